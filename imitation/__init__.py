@@ -1,0 +1,1 @@
+"""mmpc.imitation: expert demonstrations and imitation learning from the MPC (planned)."""

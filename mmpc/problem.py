@@ -1,0 +1,87 @@
+"""Problem batches: ego states, obstacle predictions and goals, in the road-aligned frame.
+
+Frame: x along the road [m], y across it [m] (highway-env's convention: lane k's centre at
+y = 4 k, so +y points to the right-hand lanes), heading psi [rad] from the +x axis.
+
+A batch holds E problems (one per environment or scene), each with G goals and M obstacle
+slots; the optimizer solves all E x G (problem, goal) elements at once.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+
+#: Layout of the last axis of an ego-state tensor.
+EGO_FIELDS = ("x", "y", "psi", "v", "a", "psidot")
+EGO_X, EGO_Y, EGO_PSI, EGO_V, EGO_A, EGO_PSIDOT = range(len(EGO_FIELDS))
+
+
+class ProblemBatch(NamedTuple):
+    """Inputs of one batch solve.
+
+    Shapes:
+        ego: (E, 6) as :data:`EGO_FIELDS`: position x, y [m], heading psi [rad], speed v [m/s],
+            longitudinal acceleration a [m/s^2], heading rate psidot [rad/s].
+        goals: (E, G, 2) goal positions (x, y) at the end of the horizon [m].
+        obstacles: (E, M, N, 2) predicted obstacle centres (x, y) at the N horizon samples [m].
+        obstacle_mask: (E, M) bool, True where the slot holds a real obstacle; absent slots may
+            hold any value, NaN included. ``None`` means every slot is present.
+    """
+
+    ego: torch.Tensor
+    goals: torch.Tensor
+    obstacles: torch.Tensor
+    obstacle_mask: Optional[torch.Tensor] = None
+
+    @property
+    def num_problems(self) -> int:
+        return int(self.ego.shape[0])
+
+    @property
+    def num_goals(self) -> int:
+        return int(self.goals.shape[1])
+
+
+def ego_state(
+    x: torch.Tensor | float,
+    y: torch.Tensor | float,
+    psi: torch.Tensor | float,
+    v: torch.Tensor | float,
+    a: torch.Tensor | float = 0.0,
+    psidot: torch.Tensor | float = 0.0,
+    *,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """Stack ego fields into an (E, 6) tensor; scalars become a batch of one.
+
+    Example:
+        >>> ego_state(0.0, 8.0, 0.0, 14.0).shape
+        torch.Size([1, 6])
+    """
+    fields = [torch.as_tensor(f, dtype=dtype, device=device) for f in (x, y, psi, v, a, psidot)]
+    fields = torch.broadcast_tensors(*fields)
+    stacked = torch.stack(fields, dim=-1)
+    return stacked.reshape(-1, len(EGO_FIELDS))
+
+
+def predict_constant_velocity(states: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+    """Constant-velocity prediction of obstacle centres.
+
+    Args:
+        states: (E, M, 4) obstacle states (x [m], y [m], vx [m/s], vy [m/s]).
+        times: (N,) prediction instants [s] measured from now.
+
+    Returns:
+        (E, M, N, 2) predicted centres ``p + v t``.
+    """
+    if states.ndim != 3 or states.shape[-1] != 4:
+        raise ValueError(f"`states` must have shape (E, M, 4); got {tuple(states.shape)}")
+    if times.ndim != 1:
+        raise ValueError(f"`times` must have shape (N,); got {tuple(times.shape)}")
+    times = times.to(dtype=states.dtype, device=states.device)
+    position = states[..., None, 0:2]
+    velocity = states[..., None, 2:4]
+    return position + velocity * times[:, None]

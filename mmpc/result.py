@@ -1,0 +1,97 @@
+"""Solver outputs as data: trajectories, residuals and a status bit mask per batch element."""
+
+from __future__ import annotations
+
+import enum
+from typing import NamedTuple, Optional
+
+import torch
+
+
+class Status(enum.IntFlag):
+    """Why an element is not feasible; ``OK`` (0) means feasible. Bits combine."""
+
+    OK = 0
+    OBSTACLE = 1  #: some predicted obstacle comes inside its ellipse
+    ACCELERATION = 2  #: acceleration norm above a_max + tolerance
+    NONHOLONOMIC = 4  #: (xdot, ydot) departs from v (cos psi, sin psi) by more than tolerance
+    HEADING = 8  #: heading leaves the +-max_heading band around the road direction
+    SPEED = 16  #: path speed outside [v_min, v_max] by more than tolerance
+    START_IN_COLLISION = 32  #: the ego starts inside an obstacle ellipse
+    GOAL_BEHIND = 64  #: the goal is not ahead of the ego
+    NUMERICAL = 128  #: the iterations produced non-finite values; outputs replaced by the initial guess
+
+    @classmethod
+    def describe(cls, code: int) -> str:
+        """Human-readable names of the bits set in ``code`` ("OK" for 0)."""
+        if code == 0:
+            return "OK"
+        return "|".join(flag.name for flag in cls if flag and code & flag)  # type: ignore[misc]
+
+
+class Trajectories(NamedTuple):
+    """Optimized trajectories in the road frame, sampled at the basis times.
+
+    Shapes (E problems, G goals, N samples):
+        times: (N,) [s]
+        x, y: (E, G, N) position [m]
+        psi: (E, G, N) heading [rad]
+        v: (E, G, N) speed variable of the non-holonomic constraint [m/s]
+        xdot, ydot: (E, G, N) velocity [m/s]
+        xddot, yddot: (E, G, N) acceleration [m/s^2]
+        psidot: (E, G, N) heading rate [rad/s]
+    """
+
+    times: torch.Tensor
+    x: torch.Tensor
+    y: torch.Tensor
+    psi: torch.Tensor
+    v: torch.Tensor
+    xdot: torch.Tensor
+    ydot: torch.Tensor
+    xddot: torch.Tensor
+    yddot: torch.Tensor
+    psidot: torch.Tensor
+
+    def select(self, index: torch.Tensor) -> "Trajectories":
+        """One goal per problem: ``index`` (E,) of goals -> every field (E, N)."""
+        rows = torch.arange(self.x.shape[0], device=self.x.device)
+        picked = [field[rows, index] for field in self[1:]]
+        return Trajectories(self.times, *picked)
+
+
+class SolveResult(NamedTuple):
+    """Everything a batch solve returns. Batch dims lead: (E, G, ...).
+
+    Fields:
+        trajectories: :class:`Trajectories`.
+        coefficients: (E, G, 3, K) Bernstein coefficients of x, y (relative to the ego's start
+            position) and psi.
+        residual_obstacle: (E, G) L2 norm over obstacles and time of the distance from each
+            trajectory point to its projection out of each ellipse [m].
+        residual_acceleration: (E, G) L2 norm over time of the excess acceleration [m/s^2].
+        residual_nonholonomic: (E, G) L2 norm over time of (xdot, ydot) - v (cos psi, sin psi) [m/s].
+        min_obstacle_distance: (E, G) smallest normalised ellipse distance
+            sqrt((dx/a)^2 + (dy/b)^2) over present obstacles and time; < 1 means overlap, +inf
+            without obstacles.
+        max_heading_deviation: (E, G) largest |psi| over the horizon [rad].
+        max_acceleration: (E, G) largest acceleration norm [m/s^2].
+        max_nonholonomic_error: (E, G) largest |(xdot, ydot) - v (cos psi, sin psi)| [m/s].
+        status: (E, G) int32 bit mask of :class:`Status`.
+        feasible: (E, G) bool, ``status == 0``.
+        history: (I, E, G, 3) obstacle, acceleration and non-holonomic residuals after every
+            iteration, when requested; otherwise ``None``.
+    """
+
+    trajectories: Trajectories
+    coefficients: torch.Tensor
+    residual_obstacle: torch.Tensor
+    residual_acceleration: torch.Tensor
+    residual_nonholonomic: torch.Tensor
+    min_obstacle_distance: torch.Tensor
+    max_heading_deviation: torch.Tensor
+    max_acceleration: torch.Tensor
+    max_nonholonomic_error: torch.Tensor
+    status: torch.Tensor
+    feasible: torch.Tensor
+    history: Optional[torch.Tensor] = None
