@@ -10,11 +10,11 @@ Per axis (x or y) with M present obstacles the position QP of iteration k is::
 
 Its KKT solution is ``c = Kcc (rho_k F_M^T g + lambda) + Kcb b`` with (Kcc, Kcb) blocks of the
 inverse KKT matrix. Writing ``F_M^T g = F_M^T F_M c_prev - u`` with ``u = F^T (F c_prev - g)``
-(the residual already mapped back to coefficient space) gives a product of one constant matrix
-with the stacked vector ``[c_prev, u, lambda, b]`` — :func:`position_operators` returns that
-matrix for every iteration and every obstacle count 0 ... M_max. The heading QP is the same with
-``F = P`` and target ``atan2(ydot, xdot)``: ``[psi_target, lambda_psi, b_psi]`` times
-:func:`heading_operators`.
+(the residual already mapped back to coefficient space) makes the update one constant matrix
+times the stacked vector ``[c_prev; u; lambda; b]``; :func:`build_operators` returns that matrix
+for every iteration and every obstacle count 0 ... M_max, so that absent obstacles change
+nothing. The heading QP is the same with ``F = P`` and target ``atan2(ydot, xdot)``: one matrix
+times ``[P^T psi_target; lambda_psi; b_psi]``.
 """
 
 from __future__ import annotations
@@ -30,18 +30,22 @@ from mmpc.config import OptimizerConfig
 class Operators(NamedTuple):
     """All constant matrices, float64 on the CPU. K coefficients, N samples, I iterations.
 
+    The solver keeps the batch in the *last* (column) dimension, so every operator multiplies
+    from the left.
+
     Shapes:
-        samples: (K, 3N) maps coefficients to [position, acceleration, velocity] samples:
-            ``c @ samples`` for c of shape (..., K).
-        gather: (3N, K) = samples^T, maps stacked [position, acceleration, velocity] residuals
-            back to coefficient space.
-        position: (I, M_max + 1, 3K + n_eq, K) right-multiplies ``[c_prev, u, lambda, b]``.
-        position_init: (n_eq, K) right-multiplies ``b`` for the smoothest trajectory meeting the
+        samples: (3N, K) maps coefficients to stacked [position; acceleration; velocity] samples.
+        gather: (K, 3N) = [-P^T, Pddot^T, Pdot^T]: maps stacked [obstacle push; acceleration
+            residual; velocity residual] to ``u = F^T (F c - g)`` (the push is projection minus
+            point, hence the minus sign).
+        position: (I, M_max + 1, K, 3K + n_eq) left-multiplies ``[c_prev; u; lambda; b]``.
+        position_init: (K, n_eq) left-multiplies ``b`` for the smoothest trajectory meeting the
             boundary conditions (the cold start).
-        heading: (I, N + K + 4, K) right-multiplies ``[psi_target, lambda_psi, b_psi]``.
-        heading_basis: (K, N) ``c_psi @ heading_basis`` gives psi samples.
-        heading_gather: (N, K) = heading_basis^T, maps heading residuals to coefficient space.
-        heading_rate_basis: (K, N) gives psidot samples.
+        heading: (I, K, 2K + 4) left-multiplies ``[P^T psi_target; lambda_psi; b_psi]``.
+        heading_gram: (K, K) P^T P, for the heading multiplier update.
+        heading_basis: (N, K) P, psi samples from heading coefficients.
+        heading_gather: (K, N) P^T, heading targets to coefficient space.
+        heading_rate_basis: (N, K) Pdot, psidot samples.
         rho: (I,) penalty weight of every iteration.
     """
 
@@ -50,6 +54,7 @@ class Operators(NamedTuple):
     position: torch.Tensor
     position_init: torch.Tensor
     heading: torch.Tensor
+    heading_gram: torch.Tensor
     heading_basis: torch.Tensor
     heading_gather: torch.Tensor
     heading_rate_basis: torch.Tensor
@@ -97,9 +102,8 @@ def build_operators(basis: Basis, config: OptimizerConfig) -> Operators:
         for m in range(config.max_obstacles + 1):
             gram = m * gram_position + gram_motion
             kcc, kcb = _kkt_blocks(smooth_xy + rho_k * gram, equality)
-            # c_new = [c_prev, u, lambda, b] @ W with W the transpose of [rho Kcc G, -rho Kcc, Kcc, Kcb].
-            stacked = torch.cat([rho_k * kcc @ gram, -rho_k * kcc, kcc, kcb], dim=1)
-            per_count.append(stacked.T)
+            # c_new = rho Kcc (G c_prev - u) + Kcc lambda + Kcb b, since F^T g = G c_prev - u.
+            per_count.append(torch.cat([rho_k * kcc @ gram, -rho_k * kcc, kcc, kcb], dim=1))
         position.append(torch.stack(per_count))
 
     _, kcb_init = _kkt_blocks(smooth_xy, equality)
@@ -108,17 +112,17 @@ def build_operators(basis: Basis, config: OptimizerConfig) -> Operators:
     heading = []
     for rho_k in rho.tolist():
         kcc, kcb = _kkt_blocks(smooth_psi + rho_k * gram_position, heading_equality)
-        heading.append(torch.cat([rho_k * kcc @ P.T, kcc, kcb], dim=1).T)
+        heading.append(torch.cat([rho_k * kcc, kcc, kcb], dim=1))
 
-    samples = torch.cat([P, Pdd, Pd], dim=0).T.contiguous()
     return Operators(
-        samples=samples,
-        gather=samples.T.contiguous(),
+        samples=torch.cat([P, Pdd, Pd], dim=0).contiguous(),
+        gather=torch.cat([-P, Pdd, Pd], dim=0).T.contiguous(),
         position=torch.stack(position),
-        position_init=kcb_init.T.contiguous(),
+        position_init=kcb_init.contiguous(),
         heading=torch.stack(heading),
-        heading_basis=P.T.contiguous(),
-        heading_gather=P.contiguous(),
-        heading_rate_basis=Pd.T.contiguous(),
+        heading_gram=gram_position.contiguous(),
+        heading_basis=P.contiguous(),
+        heading_gather=P.T.contiguous(),
+        heading_rate_basis=Pd.contiguous(),
         rho=rho,
     )

@@ -20,6 +20,7 @@ There is no Python branching on tensor values and no host synchronisation inside
 from __future__ import annotations
 
 import logging
+import math
 from typing import NamedTuple, Optional
 
 import torch
@@ -40,26 +41,26 @@ _EPS_SQUARED = 1.0e-12
 
 
 class _Residuals(NamedTuple):
-    """Constraint residuals of the current iterate. Shapes (E, G, 2, N) unless noted."""
+    """Closed-form steps of one iteration. Layout: batch last, columns ordered (axis, e, g)."""
 
-    mapped: torch.Tensor  # (E, G, 2, K) F^T (F c - g)
-    obstacle_push: torch.Tensor  # sum over obstacles of (projection - point) [m]
-    acceleration: torch.Tensor  # acceleration minus its projection on the a_max disc [m/s^2]
-    velocity: torch.Tensor  # (xdot, ydot) - v (cos psi, sin psi) [m/s]
-    speed: torch.Tensor  # (E, G, N) v [m/s]
+    stacked: torch.Tensor  # (3N, 2, E, G) [obstacle push; acceleration residual; velocity residual]
+    speed: torch.Tensor  # (N, E, G) v [m/s]
+    offset: torch.Tensor  # (M, N, 2, E, G) point minus obstacle centre, in semi-axis units
+    outward: torch.Tensor  # (M, N, E, G) (1/r - 1)_+: how far each point is pushed out, relative
 
 
 class _Prepared(NamedTuple):
-    """Validated inputs in the ego-relative frame, in the module's dtype."""
+    """Validated inputs in the ego-relative frame, in the module's dtype and solver layout."""
 
-    origin: torch.Tensor  # (E, 1, 2, 1) ego start position [m]
-    b_position: torch.Tensor  # (E, G, 2, n_eq) boundary values of x and y
-    b_heading: torch.Tensor  # (E, G, 4) boundary values of psi
-    obstacles: torch.Tensor  # (E, M, 2, N) obstacle centres / semi-axes, absent slots parked
+    origin: torch.Tensor  # (E, 2) ego start position [m]
+    b_position: torch.Tensor  # (n_eq, 2 E G) boundary values of x and y
+    b_heading: torch.Tensor  # (4, E G) boundary values of psi
+    obstacles: torch.Tensor  # (M, N, 2, E, 1) obstacle centres / semi-axes, absent slots parked
     mask: torch.Tensor  # (E, M) bool
     counts: torch.Tensor  # (E,) int64 number of present obstacles
     uniform_count: Optional[int]  # the count when it is the same for every problem
     goal_ahead: torch.Tensor  # (E, G) bool
+    num_goals: int
 
 
 class BatchOptimizer(nn.Module):
@@ -71,11 +72,15 @@ class BatchOptimizer(nn.Module):
         s.t. xdot = v cos psi, ydot = v sin psi, v_min <= v <= v_max, |(xddot, yddot)| <= a_max,
              outside every obstacle ellipse (a, b) at every sample, boundary conditions,
 
-    in ``config.iterations`` alternating-minimisation iterations from a cold start.
+    in ``config.iterations`` alternating-minimisation iterations from a cold start. Internally
+    the batch is the last (column) dimension so that every step is a constant matrix times a
+    wide right-hand side; inputs and outputs keep the batch first.
 
     Args:
         config: optimizer settings; defaults are the paper authors' values.
         dtype: floating dtype of the buffers and of every computation (inputs are cast once).
+            Build with ``dtype=torch.float64`` rather than ``.to(torch.float64)`` later, which
+            would keep the float32-rounded matrices.
         device: where the buffers live; inputs must already be there.
 
     Shapes:
@@ -109,8 +114,8 @@ class BatchOptimizer(nn.Module):
             self.register_buffer(name, value.to(dtype=dtype, device=device), persistent=False)
         self.register_buffer("times", basis.times.to(dtype=dtype, device=device), persistent=False)
         semi_axes = torch.tensor(
-            [[self.config.ellipse_a], [self.config.ellipse_b]], dtype=dtype, device=device
-        )
+            [self.config.ellipse_a, self.config.ellipse_b], dtype=dtype, device=device
+        ).view(2, 1, 1)
         self.register_buffer("semi_axes", semi_axes, persistent=False)
         self._rho = self.config.rho_schedule()
 
@@ -121,10 +126,6 @@ class BatchOptimizer(nn.Module):
     @property
     def device(self) -> torch.device:
         return self.samples.device
-
-    @property
-    def num_coefficients(self) -> int:
-        return self.config.order + 1
 
     def forward(self, problem: ProblemBatch, *, history: bool = False) -> SolveResult:
         """Solve every (problem, goal) element of ``problem``.
@@ -142,104 +143,95 @@ class BatchOptimizer(nn.Module):
                 NaN/inf in the ego state, the goals or a present obstacle, a negative speed.
         """
         prepared = self._prepare(problem)
-        c = prepared.b_position @ self.position_init
-        kinematics = self._kinematics(c)
-        psi = torch.atan2(kinematics[2][..., 1, :], kinematics[2][..., 0, :])
-        residuals = self._residuals(*kinematics, psi, prepared.obstacles)
+        n = self.config.num_steps
+        num_problems, num_goals = prepared.mask.shape[0], prepared.num_goals
+        batch = num_problems * num_goals
+
+        c = self.position_init @ prepared.b_position  # (K, 2B)
+        samples = (self.samples @ c).view(3 * n, 2, num_problems, num_goals)
+        psi = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
+        residuals = self._residuals(samples, psi, prepared.obstacles)
+        mapped = self.gather @ residuals.stacked.view(3 * n, -1)
         multipliers = torch.zeros_like(c)
-        multipliers_psi = torch.zeros_like(prepared.b_heading[..., :1]).expand(
-            *prepared.b_heading.shape[:-1], self.num_coefficients
-        )
+        multipliers_psi = c.new_zeros(c.shape[0], batch)
         records = []
         for k, rho in enumerate(self._rho):
-            c = self._position_step(k, c, residuals.mapped, multipliers, prepared)
-            kinematics = self._kinematics(c)
-            psi_target = torch.atan2(kinematics[2][..., 1, :], kinematics[2][..., 0, :])
-            stacked = torch.cat([psi_target, multipliers_psi, prepared.b_heading], dim=-1)
-            c_psi = stacked @ self.heading[k]
-            psi = c_psi @ self.heading_basis
-            multipliers_psi = multipliers_psi - rho * ((psi - psi_target) @ self.heading_gather)
-            residuals = self._residuals(*kinematics, psi, prepared.obstacles)
-            multipliers = multipliers - rho * residuals.mapped
+            c = self._position_step(k, torch.cat([c, mapped, multipliers, prepared.b_position]), prepared)
+            samples = (self.samples @ c).view(3 * n, 2, num_problems, num_goals)
+            psi_target = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
+            projected = self.heading_gather @ psi_target.view(n, batch)
+            c_psi = self.heading[k] @ torch.cat([projected, multipliers_psi, prepared.b_heading])
+            # lambda_psi -= rho P^T (P c_psi - psi_target)
+            multipliers_psi = torch.addmm(
+                multipliers_psi.add(projected, alpha=rho), self.heading_gram, c_psi, alpha=-rho
+            )
+            psi = (self.heading_basis @ c_psi).view(n, num_problems, num_goals)
+            residuals = self._residuals(samples, psi, prepared.obstacles)
+            mapped = self.gather @ residuals.stacked.view(3 * n, -1)
+            multipliers = multipliers.sub(mapped, alpha=rho)
             if history:
-                records.append(self._residual_norms(residuals, kinematics[0], prepared.obstacles))
-        return self._finish(prepared, c, c_psi, kinematics, residuals, records if history else None)
+                records.append(self._residual_norms(residuals))
+        return self._finish(prepared, c, c_psi, samples, residuals, records if history else None)
 
     # ----------------------------------------------------------------------------- iteration
 
-    def _position_step(
-        self,
-        k: int,
-        c: torch.Tensor,
-        mapped: torch.Tensor,
-        multipliers: torch.Tensor,
-        prepared: _Prepared,
-    ) -> torch.Tensor:
-        """x, y QP of iteration k: (E, G, 2, K) coefficients."""
-        stacked = torch.cat([c, mapped, multipliers, prepared.b_position], dim=-1)
+    def _position_step(self, k: int, stacked: torch.Tensor, prepared: _Prepared) -> torch.Tensor:
+        """x, y QP of iteration k: ``stacked`` (3K + n_eq, 2B) -> (K, 2B) coefficients."""
         if prepared.uniform_count is not None:
-            return stacked @ self.position[k, prepared.uniform_count]
-        operator = self.position[k].index_select(0, prepared.counts)  # (E, D, K)
-        return stacked @ operator[:, None]
+            return self.position[k, prepared.uniform_count] @ stacked
+        num_problems = prepared.mask.shape[0]
+        operator = self.position[k].index_select(0, prepared.counts)  # (E, K, D)
+        rows = stacked.shape[0]
+        per_problem = stacked.view(rows, 2, num_problems, -1).permute(2, 0, 1, 3)
+        solved = operator @ per_problem.reshape(num_problems, rows, -1)  # (E, K, 2G)
+        solved = solved.view(num_problems, -1, 2, prepared.num_goals).permute(1, 2, 0, 3)
+        return solved.reshape(solved.shape[0], -1)
 
-    def _kinematics(self, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Position, acceleration and velocity samples, each (E, G, 2, N), relative to the start."""
-        samples = c @ self.samples
-        n = self.config.num_steps
-        return samples[..., :n], samples[..., n : 2 * n], samples[..., 2 * n :]
+    def _residuals(self, samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor) -> _Residuals:
+        """Closed-form speed, obstacle and acceleration steps and the residual F c - g.
 
-    def _residuals(
-        self,
-        position: torch.Tensor,
-        acceleration: torch.Tensor,
-        velocity: torch.Tensor,
-        psi: torch.Tensor,
-        obstacles: torch.Tensor,
-    ) -> _Residuals:
-        """Closed-form speed, obstacle and acceleration steps and the residual F c - g."""
+        Args:
+            samples: (3N, 2, E, G) [position; acceleration; velocity] relative to the start.
+            psi: (N, E, G) heading [rad].
+            obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
+        """
         cfg = self.config
-        heading = torch.stack([torch.cos(psi), torch.sin(psi)], dim=-2)  # (E, G, 2, N)
-        speed = (velocity * heading).sum(dim=-2).clamp(cfg.v_min, cfg.v_max)
-        velocity_residual = velocity - speed.unsqueeze(-2) * heading
+        n = cfg.num_steps
+        position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
+        heading = torch.stack([torch.cos(psi), torch.sin(psi)], dim=1)  # (N, 2, E, G)
+        speed = (velocity * heading).sum(dim=1).clamp(cfg.v_min, cfg.v_max)
+        velocity_residual = torch.addcmul(velocity, speed.unsqueeze(1), heading, value=-1.0)
 
-        norm_squared = acceleration.square().sum(dim=-2, keepdim=True).clamp_min(_EPS_SQUARED)
-        excess = (1.0 - cfg.a_max * norm_squared.rsqrt()).clamp_min(0.0)
+        norm_squared = (acceleration * acceleration).sum(dim=1, keepdim=True)
+        inverse_norm = norm_squared.clamp_min(_EPS_SQUARED).rsqrt()
+        excess = torch.rsub(inverse_norm, 1.0, alpha=cfg.a_max).clamp_min(0.0)
         acceleration_residual = acceleration * excess
 
-        offset = self._obstacle_offsets(position, obstacles)
-        distance_squared = offset.square().sum(dim=-2, keepdim=True).clamp_min(_EPS_SQUARED)
-        outward = (distance_squared.rsqrt() - 1.0).clamp_min(0.0)
-        push = (offset * outward).sum(dim=2) * self.semi_axes
-
-        stacked = torch.cat([-push, acceleration_residual, velocity_residual], dim=-1)
+        offset = position / self.semi_axes - obstacles  # (M, N, 2, E, G)
+        distance_squared = (offset * offset).sum(dim=2)
+        outward = distance_squared.clamp_min(_EPS_SQUARED).rsqrt().sub(1.0).clamp_min(0.0)
+        push = (offset * outward.unsqueeze(2)).sum(dim=0) * self.semi_axes
         return _Residuals(
-            mapped=stacked @ self.gather,
-            obstacle_push=push,
-            acceleration=acceleration_residual,
-            velocity=velocity_residual,
+            stacked=torch.cat([push, acceleration_residual, velocity_residual]),
             speed=speed,
+            offset=offset,
+            outward=outward,
         )
 
-    def _obstacle_offsets(self, position: torch.Tensor, obstacles: torch.Tensor) -> torch.Tensor:
-        """(E, G, M, 2, N) offsets from each obstacle in ellipse-normalised units."""
-        return (position / self.semi_axes).unsqueeze(2) - obstacles.unsqueeze(1)
-
-    def _residual_norms(
-        self, residuals: _Residuals, position: torch.Tensor, obstacles: torch.Tensor
-    ) -> torch.Tensor:
-        """(E, G, 3) L2 norms of the obstacle, acceleration and non-holonomic residuals."""
-        offset = self._obstacle_offsets(position, obstacles)
-        distance = offset.square().sum(dim=-2, keepdim=True).clamp_min(_EPS_SQUARED).sqrt()
-        # Per obstacle and sample: |point - projection| = |offset| (1/r - 1)_+ in metres.
-        gap = offset * (1.0 / distance - 1.0).clamp_min(0.0) * self.semi_axes.unsqueeze(0)
-        return torch.stack(
+    def _residual_norms(self, residuals: _Residuals) -> torch.Tensor:
+        """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals."""
+        n = self.config.num_steps
+        gap = residuals.offset * residuals.outward.unsqueeze(2) * self.semi_axes
+        stacked = residuals.stacked
+        norms = torch.stack(
             [
-                gap.square().sum(dim=(2, 3, 4)).sqrt(),
-                residuals.acceleration.square().sum(dim=(-2, -1)).sqrt(),
-                residuals.velocity.square().sum(dim=(-2, -1)).sqrt(),
+                (gap * gap).sum(dim=(0, 1, 2)),
+                (stacked[n : 2 * n] ** 2).sum(dim=(0, 1)),
+                (stacked[2 * n :] ** 2).sum(dim=(0, 1)),
             ],
             dim=-1,
         )
+        return norms.sqrt()
 
     # ----------------------------------------------------------------------------- outputs
 
@@ -248,71 +240,79 @@ class BatchOptimizer(nn.Module):
         prepared: _Prepared,
         c: torch.Tensor,
         c_psi: torch.Tensor,
-        kinematics: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        samples: torch.Tensor,
         residuals: _Residuals,
         records: Optional[list[torch.Tensor]],
     ) -> SolveResult:
         cfg = self.config
-        position, acceleration, velocity = kinematics
-        psi = c_psi @ self.heading_basis
-        psidot = c_psi @ self.heading_rate_basis
-        speed = residuals.speed
+        n = cfg.num_steps
+        num_problems, num_goals = prepared.mask.shape[0], prepared.num_goals
 
-        norms = self._residual_norms(residuals, position, prepared.obstacles)
-        offset = self._obstacle_offsets(position, prepared.obstacles)
-        distance_squared = offset.square().sum(dim=-2)  # (E, G, M, N)
-        present = prepared.mask[:, None, :, None]
+        def batch_first(t: torch.Tensor) -> torch.Tensor:  # (N, E, G) -> (E, G, N)
+            return t.permute(1, 2, 0).contiguous()
+
+        position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
+        psi = (self.heading_basis @ c_psi).view(n, num_problems, num_goals)
+        psidot = (self.heading_rate_basis @ c_psi).view(n, num_problems, num_goals)
+
+        norms = self._residual_norms(residuals)
+        distance_squared = (residuals.offset * residuals.offset).sum(dim=2)  # (M, N, E, G)
+        present = prepared.mask.T[:, None, :, None]
         inf = torch.full((), float("inf"), dtype=self.dtype, device=self.device)
         distance_squared = torch.where(present, distance_squared, inf)
         # An always-absent extra slot keeps the minimum defined (+inf) when M = 0.
-        distance_squared = torch.cat([distance_squared, inf.expand_as(distance_squared[:, :, :1])], 2)
-        min_distance = distance_squared.flatten(2).amin(dim=-1).sqrt()
-        start_distance = distance_squared[..., 0].amin(dim=-1)
+        distance_squared = torch.cat([distance_squared, inf.expand(1, *distance_squared.shape[1:])])
+        min_distance = distance_squared.amin(dim=(0, 1)).sqrt()
+        start_distance = distance_squared[:, 0].amin(dim=0)
 
-        acceleration_norm = acceleration.square().sum(dim=-2).sqrt()
-        nonholonomic_error = residuals.velocity.square().sum(dim=-2).sqrt()
-        path_speed = velocity.square().sum(dim=-2).sqrt()
-        heading_deviation = psi.abs().amax(dim=-1)
-        max_acceleration = acceleration_norm.amax(dim=-1)
-        max_nonholonomic = nonholonomic_error.amax(dim=-1)
+        acceleration_norm = (acceleration * acceleration).sum(dim=1).sqrt()  # (N, E, G)
+        velocity_residual = residuals.stacked[2 * n :]
+        nonholonomic_error = (velocity_residual * velocity_residual).sum(dim=1).sqrt()
+        path_speed = (velocity * velocity).sum(dim=1).sqrt()
+        heading_deviation = psi.abs().amax(dim=0)
+        max_acceleration = acceleration_norm.amax(dim=0)
+        max_nonholonomic = nonholonomic_error.amax(dim=0)
 
-        max_heading = torch.deg2rad(torch.tensor(cfg.max_heading_deg, dtype=torch.float64)).item()
+        max_heading = math.radians(cfg.max_heading_deg)
         bits = [
             (min_distance < 1.0 - cfg.obstacle_tolerance, Status.OBSTACLE),
             (max_acceleration > cfg.a_max + cfg.acceleration_tolerance, Status.ACCELERATION),
             (max_nonholonomic > cfg.nonholonomic_tolerance, Status.NONHOLONOMIC),
             (heading_deviation > max_heading, Status.HEADING),
             (
-                (path_speed.amax(dim=-1) > cfg.v_max + cfg.speed_tolerance)
-                | (path_speed.amin(dim=-1) < cfg.v_min - cfg.speed_tolerance),
+                (path_speed.amax(dim=0) > cfg.v_max + cfg.speed_tolerance)
+                | (path_speed.amin(dim=0) < cfg.v_min - cfg.speed_tolerance),
                 Status.SPEED,
             ),
             (start_distance < 1.0, Status.START_IN_COLLISION),
             (~prepared.goal_ahead, Status.GOAL_BEHIND),
         ]
-        status = torch.zeros(c.shape[:2], dtype=torch.int32, device=self.device)
+        status = torch.zeros(num_problems, num_goals, dtype=torch.int32, device=self.device)
         for condition, flag in bits:
             status = status | condition.to(torch.int32) * int(flag)
 
-        origin = prepared.origin
+        origin = prepared.origin[:, None, None, :]  # (E, 1, 1, 2)
         fields = [
-            position[..., 0, :] + origin[..., 0, :],
-            position[..., 1, :] + origin[..., 1, :],
-            psi,
-            speed,
-            velocity[..., 0, :],
-            velocity[..., 1, :],
-            acceleration[..., 0, :],
-            acceleration[..., 1, :],
-            psidot,
+            batch_first(position[:, 0]) + origin[..., 0],
+            batch_first(position[:, 1]) + origin[..., 1],
+            batch_first(psi),
+            batch_first(residuals.speed),
+            batch_first(velocity[:, 0]),
+            batch_first(velocity[:, 1]),
+            batch_first(acceleration[:, 0]),
+            batch_first(acceleration[:, 1]),
+            batch_first(psidot),
         ]
-        coefficients = torch.cat([c, c_psi.unsqueeze(-2)], dim=-2)
+        k = c.shape[0]
+        coefficients = torch.cat(
+            [c.view(k, 2, num_problems, num_goals), c_psi.view(k, 1, num_problems, num_goals)], dim=1
+        ).permute(2, 3, 1, 0)
         finite = torch.stack([f.isfinite().all(dim=-1) for f in fields]).all(dim=0)
         finite = finite & coefficients.isfinite().flatten(2).all(dim=-1)
         status = status | (~finite).to(torch.int32) * int(Status.NUMERICAL)
         fields, coefficients, norms, scalars = _replace_nonfinite(
             finite,
-            origin,
+            prepared.origin,
             fields,
             coefficients,
             norms,
@@ -341,33 +341,31 @@ class BatchOptimizer(nn.Module):
     def _prepare(self, problem: ProblemBatch) -> _Prepared:
         ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
         cfg = self.config
-        origin = ego[:, None, EGO_X : EGO_Y + 1, None]  # (E, 1, 2, 1)
+        num_problems, num_goals = goals.shape[0], goals.shape[1]
+        origin = ego[:, EGO_X : EGO_Y + 1]  # (E, 2)
         psi0, v0 = ego[:, EGO_PSI], ego[:, EGO_V]
         a0, psidot0 = ego[:, EGO_A], ego[:, EGO_PSIDOT]
         cos0, sin0 = torch.cos(psi0), torch.sin(psi0)
-        relative_goals = goals - origin[..., 0]  # (E, G, 2)
-        num_goals = goals.shape[1]
+        relative_goals = goals - origin[:, None, :]  # (E, G, 2)
 
-        start_velocity = torch.stack([v0 * cos0, v0 * sin0], dim=-1)  # (E, 2)
-        columns = [torch.zeros_like(start_velocity), start_velocity]
+        start_velocity = torch.stack([v0 * cos0, v0 * sin0])  # (2, E)
+        rows = [torch.zeros_like(start_velocity), start_velocity]
         if cfg.start_acceleration:
-            columns.append(
-                torch.stack(
-                    [a0 * cos0 - v0 * psidot0 * sin0, a0 * sin0 + v0 * psidot0 * cos0], dim=-1
-                )
+            rows.append(
+                torch.stack([a0 * cos0 - v0 * psidot0 * sin0, a0 * sin0 + v0 * psidot0 * cos0])
             )
-        start = torch.stack(columns, dim=-1)  # (E, 2, n_start)
-        start = start[:, None].expand(-1, num_goals, -1, -1)
-        b_position = torch.cat([start, relative_goals.unsqueeze(-1)], dim=-1)
+        start = torch.stack(rows)[..., None].expand(-1, -1, -1, num_goals)  # (n_start, 2, E, G)
+        end = relative_goals.permute(2, 0, 1).unsqueeze(0)  # (1, 2, E, G)
+        b_position = torch.cat([start, end]).reshape(len(rows) + 1, -1)
 
         zeros = torch.zeros_like(psi0)
-        b_heading = torch.stack([psi0, psidot0, zeros, zeros], dim=-1)[:, None]
-        b_heading = b_heading.expand(-1, num_goals, -1)
+        b_heading = torch.stack([psi0, psidot0, zeros, zeros])[..., None].expand(-1, -1, num_goals)
+        b_heading = b_heading.reshape(4, -1)
 
-        relative = obstacles - origin[:, 0, :, 0][:, None, None, :]  # (E, M, N, 2)
+        relative = obstacles - origin[:, None, None, :]  # (E, M, N, 2)
         parked = torch.full_like(relative, _PARKED_DISTANCE)
         relative = torch.where(mask[:, :, None, None], relative, parked)
-        scaled = relative.transpose(-1, -2) / self.semi_axes  # (E, M, 2, N)
+        scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / self.semi_axes  # (M, N, 2, E, 1)
 
         counts = mask.sum(dim=1)
         count_values = counts.unique()
@@ -376,35 +374,33 @@ class BatchOptimizer(nn.Module):
             origin=origin,
             b_position=b_position,
             b_heading=b_heading,
-            obstacles=scaled,
+            obstacles=scaled.contiguous(),
             mask=mask,
             counts=counts,
             uniform_count=uniform,
             goal_ahead=relative_goals[..., 0] > 0,
+            num_goals=num_goals,
         )
 
 
 def _replace_nonfinite(
     finite: torch.Tensor,
-    origin: torch.Tensor,
+    origin: torch.Tensor,  # (E, 2)
     fields: list[torch.Tensor],
     coefficients: torch.Tensor,
     norms: torch.Tensor,
     scalars: list[torch.Tensor],
 ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, list[torch.Tensor]]:
     """Put a standing-still placeholder where an element went non-finite (it is flagged NUMERICAL)."""
-    bad = ~finite
+    bad = ~finite[..., None]
     zero = torch.zeros((), dtype=coefficients.dtype, device=coefficients.device)
     inf = torch.full((), float("inf"), dtype=coefficients.dtype, device=coefficients.device)
-    start_x = torch.nan_to_num(origin[..., 0, :], nan=0.0, posinf=0.0, neginf=0.0)
-    start_y = torch.nan_to_num(origin[..., 1, :], nan=0.0, posinf=0.0, neginf=0.0)
-    placeholders = [start_x, start_y] + [zero] * (len(fields) - 2)
-    fields = [
-        torch.where(bad[..., None], placeholder, field)
-        for field, placeholder in zip(fields, placeholders)
-    ]
-    coefficients = torch.where(bad[..., None, None], zero, coefficients)
-    norms = torch.where(bad[..., None], inf, norms)
+    start = torch.nan_to_num(origin, nan=0.0, posinf=0.0, neginf=0.0)[:, None, None, :]
+    placeholders = [start[..., 0], start[..., 1]] + [zero] * (len(fields) - 2)
+    fields = [torch.where(bad, placeholder, field) for field, placeholder in zip(fields, placeholders)]
+    coefficients = torch.where(bad[..., None], zero, coefficients)
+    norms = torch.where(bad, inf, norms)
+    bad = bad[..., 0]
     scalars = [torch.where(bad, inf, s) for s in scalars]
     scalars[0] = torch.where(bad, zero, scalars[0])  # no claimed clearance
     return fields, coefficients, norms, scalars

@@ -1,0 +1,99 @@
+"""Goal samplers: where, at the end of the horizon, each batch element should arrive.
+
+A goal sampler is any callable ``sampler(ego, road) -> goals`` with ``ego`` (E, 6) (see
+:data:`mmpc.EGO_FIELDS`) and ``goals`` (E, G, 2) positions [m]; the two below are the paper's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+from mmpc.problem import EGO_X
+from mmpc.road import Road
+
+
+class GoalSampler(Protocol):
+    def __call__(self, ego: torch.Tensor, road: Road) -> torch.Tensor:
+        """Goals (E, G, 2) [m] for ego states (E, 6) on ``road``."""
+        ...
+
+
+def _validate_count(name: str, value: int, minimum: int = 1) -> None:
+    if not isinstance(value, int) or value < minimum:
+        raise ValueError(f"`{name}` must be an int >= {minimum}; got {value!r}")
+
+
+@dataclass(frozen=True)
+class CruiseGoals:
+    """Cruise driving: ``num_goals`` goals at ``x0 + v_cruise * horizon``, spread evenly across
+    the road from the leftmost to the rightmost lane centre (the authors: 11 goals, so goals sit
+    on lane centres and on lane boundaries of a 6-lane road).
+
+    Attributes:
+        v_cruise: cruise speed [m/s].
+        horizon: planning horizon t_f [s].
+        num_goals: number of goals G.
+    """
+
+    v_cruise: float = 15.0
+    horizon: float = 8.0
+    num_goals: int = 11
+
+    def __post_init__(self) -> None:
+        _validate_count("num_goals", self.num_goals)
+        if not self.v_cruise > 0 or not self.horizon > 0:
+            raise ValueError(f"`v_cruise` and `horizon` must be > 0; got {self.v_cruise}, {self.horizon}")
+
+    def __call__(self, ego: torch.Tensor, road: Road) -> torch.Tensor:
+        lateral = torch.linspace(0.0, road.right_lane_y, self.num_goals, dtype=ego.dtype, device=ego.device)
+        if self.num_goals == 1:
+            lateral = torch.zeros(1, dtype=ego.dtype, device=ego.device)
+        x = ego[:, EGO_X, None] + self.v_cruise * self.horizon
+        return torch.stack(torch.broadcast_tensors(x, lateral[None]), dim=-1)
+
+
+@dataclass(frozen=True)
+class HighSpeedGoals:
+    """High speed near the right lane: ``round(right_lane_fraction * num_goals)`` goals on the
+    right lane at distances evenly spaced in ``right_lane_distances``; the rest spread across the
+    other lanes at ``other_distance`` ahead (the authors' layout).
+
+    Attributes:
+        num_goals: number of goals G (at least 2).
+        right_lane_fraction: share of goals on the right lane, in (0, 1).
+        right_lane_distances: (nearest, farthest) right-lane goal distance ahead [m].
+        other_distance: distance ahead of the goals on the other lanes [m].
+    """
+
+    num_goals: int = 11
+    right_lane_fraction: float = 0.6
+    right_lane_distances: tuple[float, float] = (150.0, 175.0)
+    other_distance: float = 160.0
+
+    def __post_init__(self) -> None:
+        _validate_count("num_goals", self.num_goals, minimum=2)
+        if not 0 < self.right_lane_fraction < 1:
+            raise ValueError(f"`right_lane_fraction` must be in (0, 1); got {self.right_lane_fraction}")
+        near, far = self.right_lane_distances
+        if not 0 < near <= far:
+            raise ValueError(f"`right_lane_distances` must satisfy 0 < near <= far; got {self.right_lane_distances}")
+        if not self.other_distance > 0:
+            raise ValueError(f"`other_distance` must be > 0 m; got {self.other_distance}")
+
+    def __call__(self, ego: torch.Tensor, road: Road) -> torch.Tensor:
+        kw = dict(dtype=ego.dtype, device=ego.device)
+        n_right = min(max(round(self.right_lane_fraction * self.num_goals), 1), self.num_goals - 1)
+        n_other = self.num_goals - n_right
+        near, far = self.right_lane_distances
+        right_x = torch.linspace(near, far, n_right, **kw)
+        right_y = torch.full((n_right,), road.right_lane_y, **kw)
+        other_lanes = road.lane_centers(**kw)[:-1] if road.num_lanes > 1 else road.lane_centers(**kw)
+        other_y = other_lanes[torch.arange(n_other, device=ego.device) % other_lanes.numel()]
+        other_x = torch.full((n_other,), self.other_distance, **kw)
+        offsets = torch.stack([torch.cat([right_x, other_x]), torch.cat([right_y, other_y])], dim=-1)
+        goals = offsets[None].repeat(ego.shape[0], 1, 1)
+        goals[..., 0] += ego[:, EGO_X, None]
+        return goals

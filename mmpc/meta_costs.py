@@ -1,0 +1,55 @@
+"""Meta costs: rank the optimized trajectories of a batch by a higher-level driving objective.
+
+A meta cost is any callable ``cost(trajectories, road) -> (E, G)`` over
+:class:`mmpc.Trajectories`; lower is better.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+
+from mmpc.result import Trajectories
+from mmpc.road import Road
+
+
+class MetaCost(Protocol):
+    def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
+        """(E, G) cost of each trajectory; lower is better."""
+        ...
+
+
+@dataclass(frozen=True)
+class CruiseCost:
+    """Cruise driving: ``sum_t (v(t) - v_cruise)^2`` [m^2/s^2].
+
+    Attributes:
+        v_cruise: cruise speed [m/s].
+    """
+
+    v_cruise: float = 15.0
+
+    def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
+        return ((trajectories.v - self.v_cruise) ** 2).sum(dim=-1)
+
+
+@dataclass(frozen=True)
+class HighSpeedCost:
+    """High speed near the right lane: ``sum_t w_speed (v - v_max)^2 + w_lane (y - y_right)^2``.
+
+    Attributes:
+        v_max: desired top speed [m/s].
+        w_speed: weight of the speed term [s^2/m^2].
+        w_lane: weight of the right-lane term [1/m^2].
+    """
+
+    v_max: float = 24.0
+    w_speed: float = 1.0
+    w_lane: float = 0.1
+
+    def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
+        speed_term = (trajectories.v - self.v_max) ** 2
+        lane_term = (trajectories.y - road.right_lane_y) ** 2
+        return (self.w_speed * speed_term + self.w_lane * lane_term).sum(dim=-1)

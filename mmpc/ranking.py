@@ -1,0 +1,64 @@
+"""Pick the best trajectory of every problem: lowest meta cost among the feasible ones."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from mmpc.config import OptimizerConfig
+from mmpc.result import SolveResult
+
+
+class Selection(NamedTuple):
+    """The chosen goal of each problem.
+
+    Shapes:
+        index: (E,) int64 goal index into the G goals.
+        cost: (E,) meta cost of the chosen element.
+        feasible: (E,) bool; False means no element of the problem was feasible and ``index`` is
+            the least-infeasible one (smallest :func:`constraint_violation`), a fallback the
+            caller should treat as unsafe.
+    """
+
+    index: torch.Tensor
+    cost: torch.Tensor
+    feasible: torch.Tensor
+
+
+def constraint_violation(result: SolveResult, config: OptimizerConfig) -> torch.Tensor:
+    """(E, G) dimensionless sum of how far each element is from feasible; 0 when feasible-ish.
+
+    Obstacle penetration (1 - normalised distance), acceleration excess over a_max, the
+    non-holonomic error over the tolerance and the heading excess, each normalised by its bound.
+    Collision terms are weighted 10x: a fallback should rather break kinematics than collide.
+    """
+    penetration = (1.0 - result.min_obstacle_distance).clamp_min(0.0)
+    acceleration = (result.max_acceleration - config.a_max).clamp_min(0.0) / config.a_max
+    nonholonomic = (result.max_nonholonomic_error - config.nonholonomic_tolerance).clamp_min(0.0)
+    max_heading = math.radians(config.max_heading_deg)
+    heading = (result.max_heading_deviation - max_heading).clamp_min(0.0) / max_heading
+    return 10.0 * penetration + acceleration + nonholonomic / max(config.v_max, 1.0) + heading
+
+
+def select_best(result: SolveResult, cost: torch.Tensor, config: OptimizerConfig) -> Selection:
+    """Best element of every problem: the feasible one with the lowest ``cost``; when a problem
+    has none feasible, the one with the smallest :func:`constraint_violation` (flagged).
+
+    Args:
+        result: the solve of E problems with G goals each.
+        cost: (E, G) meta cost, lower is better; NaN counts as +inf.
+        config: the optimizer's config (bounds for the violation measure).
+    """
+    if cost.shape != result.feasible.shape:
+        raise ValueError(f"`cost` must have shape {tuple(result.feasible.shape)}; got {tuple(cost.shape)}")
+    cost = torch.nan_to_num(cost, nan=float("inf"))
+    inf = torch.full((), float("inf"), dtype=cost.dtype, device=cost.device)
+    feasible_cost = torch.where(result.feasible, cost, inf)
+    best_feasible = feasible_cost.argmin(dim=-1)
+    any_feasible = result.feasible.any(dim=-1)
+    least_infeasible = constraint_violation(result, config).argmin(dim=-1)
+    index = torch.where(any_feasible, best_feasible, least_infeasible)
+    rows = torch.arange(cost.shape[0], device=cost.device)
+    return Selection(index=index, cost=cost[rows, index], feasible=any_feasible)
