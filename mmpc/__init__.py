@@ -2,14 +2,28 @@
 
 from mmpc.basis import Basis, bernstein_basis
 from mmpc.config import OptimizerConfig
+from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals
+from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state, predict_constant_velocity
+from mmpc.ranking import Selection, constraint_violation, select_best
 from mmpc.result import SolveResult, Status, Trajectories
+from mmpc.road import Road
 
 __version__ = "0.1.0"
 
 __all__ = [
     "Basis",
+    "CruiseCost",
+    "CruiseGoals",
+    "GoalSampler",
+    "HighSpeedCost",
+    "HighSpeedGoals",
+    "MetaCost",
+    "Road",
+    "Selection",
+    "constraint_violation",
+    "select_best",
     "BatchOptimizer",
     "EGO_FIELDS",
     "OptimizerConfig",

@@ -1,0 +1,27 @@
+import pytest
+import torch
+
+import mmpc
+from mmpc.scenes import synthetic_scenes
+
+
+@pytest.fixture(scope="session")
+def optimizer64() -> mmpc.BatchOptimizer:
+    return mmpc.BatchOptimizer(dtype=torch.float64)
+
+
+@pytest.fixture(scope="session")
+def scenes64():
+    return synthetic_scenes(36, seed=0, dtype=torch.float64)
+
+
+@pytest.fixture(scope="session")
+def solved_scenes(optimizer64, scenes64):
+    return [(scene, optimizer64(scene.problem)) for scene in scenes64]
+
+
+def small_config(**overrides) -> mmpc.OptimizerConfig:
+    """A cheap optimizer for property and gradient tests."""
+    values = dict(num_steps=30, order=8, iterations=20, max_obstacles=4)
+    values.update(overrides)
+    return mmpc.OptimizerConfig(**values)
