@@ -9,7 +9,10 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Mapping, TypeVar
+
+import yaml
 
 T = TypeVar("T")
 
@@ -139,3 +142,10 @@ class OptimizerConfig:
     def from_dict(cls, values: Mapping[str, Any]) -> "OptimizerConfig":
         """Build from a mapping (e.g. parsed YAML); unknown keys raise ``ValueError``."""
         return dataclass_from_dict(cls, values, where="optimizer config")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "OptimizerConfig":
+        """Load a YAML file such as ``configs/optimizer/default.yaml``."""
+        with open(path, encoding="utf-8") as handle:
+            values = yaml.safe_load(handle) or {}
+        return dataclass_from_dict(cls, values, where=f"optimizer config {path}")

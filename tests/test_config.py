@@ -26,3 +26,17 @@ def test_from_dict_rejects_unknown_keys():
     assert OptimizerConfig.from_dict({"iterations": 50}).iterations == 50
     with pytest.raises(ValueError, match="iteratons"):
         OptimizerConfig.from_dict({"iteratons": 50})
+
+
+def test_committed_yaml_matches_the_defaults():
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "optimizer" / "default.yaml"
+    assert OptimizerConfig.from_yaml(path) == OptimizerConfig()
+
+
+def test_from_yaml_rejects_unknown_keys(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("iterations: 10\nrho_grwoth: 1.1\n")
+    with pytest.raises(ValueError, match="rho_grwoth"):
+        OptimizerConfig.from_yaml(path)

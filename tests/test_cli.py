@@ -1,0 +1,41 @@
+import json
+
+import pytest
+
+from mmpc.cli import main
+
+
+def test_solve_writes_table_plot_and_json(tmp_path, capsys):
+    assert main(["solve", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "<- best" in printed and "best: goal" in printed
+    report = json.loads((tmp_path / "solve.json").read_text())
+    assert len(report["candidates"]) == 11
+    best = report["candidates"][report["best"]]
+    assert best["status"] == "OK" and report["best_feasible"]
+    # The best feasible candidate has the lowest meta cost among the feasible ones.
+    feasible_costs = [c["meta_cost"] for c in report["candidates"] if c["status"] == "OK"]
+    assert best["meta_cost"] == min(feasible_costs)
+    assert (tmp_path / "solve.png").stat().st_size > 10_000
+
+
+def test_solve_high_speed_prefers_the_right_lane(tmp_path, capsys):
+    assert main(["solve", "--scenario", "high_speed", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "solve.json").read_text())
+    assert report["best_feasible"]
+    assert report["candidates"][report["best"]]["goal_y"] >= 12.0
+
+
+def test_bench_solver_writes_json_rows(tmp_path):
+    assert main(["bench-solver", "--batches", "1,4", "--obstacles", "0,2", "--repeats", "2",
+                 "--devices", "cpu", "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "bench_solver.json").read_text())
+    rows = report["rows"]
+    assert {(r["batch"], r["obstacles"]) for r in rows} == {(1, 0), (4, 0), (1, 2), (4, 2)}
+    assert all(r["ms_median"] > 0 and r["ms_p90"] >= r["ms_median"] for r in rows)
+    assert (tmp_path / "bench_solver.png").exists()
+
+
+def test_bad_arguments_exit_with_usage_error():
+    with pytest.raises(SystemExit):
+        main(["bench-solver", "--batches", "a,b"])
