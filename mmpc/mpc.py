@@ -1,0 +1,239 @@
+"""Multi-modal MPC: sample goals, solve the batch, rank by the meta cost, extract the control.
+
+Environment-agnostic: state in (road frame), command and diagnostics out. Adapters (e.g.
+:mod:`mmpc.highway`) convert their simulator's state to the tensors below and the command to
+their action space. Batched over E problems (e.g. vectorized environments): one optimizer call
+per :meth:`MPC.plan`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import torch
+
+from mmpc.config import dataclass_from_dict
+from mmpc.goals import GoalSampler
+from mmpc.meta_costs import MetaCost
+from mmpc.optimizer import BatchOptimizer
+from mmpc.problem import EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity
+from mmpc.ranking import Selection, select_best
+from mmpc.result import SolveResult, Trajectories
+from mmpc.road import Road
+
+
+@dataclass(frozen=True)
+class MPCConfig:
+    """Settings of the receding-horizon loop.
+
+    Attributes:
+        num_obstacles: M, the nearest vehicles given to the optimizer (must not exceed the
+            optimizer's ``max_obstacles``).
+        ignore_behind: vehicles more than this far behind the ego are ignored [m].
+        wheelbase: L of ``steering = atan(L psidot / v)`` [m]; highway-env's kinematic bicycle
+            turns at ``v tan(delta) / L`` with L its 5 m vehicle length.
+        control_period: time one command is held [s]; the command is the plan averaged over it.
+        brake_deceleration: deceleration of the fallback when no candidate is feasible [m/s^2].
+        max_steering: steering saturation [rad].
+    """
+
+    num_obstacles: int = 6
+    ignore_behind: float = 20.0
+    wheelbase: float = 5.0
+    control_period: float = 0.1
+    brake_deceleration: float = 4.0
+    max_steering: float = math.pi / 4
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
+            raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
+        for name in ("ignore_behind", "wheelbase", "control_period", "brake_deceleration", "max_steering"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"`{name}` must be a finite number > 0; got {value!r}")
+
+    @classmethod
+    def from_dict(cls, values) -> "MPCConfig":
+        return dataclass_from_dict(cls, values, where="mpc config")
+
+
+class Plan(NamedTuple):
+    """One MPC step for E problems.
+
+    Fields:
+        problem: the batch that was solved (E problems, G goals, M obstacle slots).
+        result: the full solve, (E, G, ...).
+        cost: (E, G) meta cost.
+        selection: chosen goal per problem (``selection.feasible`` False: fallback).
+        trajectory: the chosen trajectories, every field (E, N).
+        acceleration: (E,) longitudinal acceleration command [m/s^2].
+        steering: (E,) steering angle command [rad].
+        heading_rate: (E,) the planned heading rate behind ``steering`` [rad/s].
+        solve_ms: wall time of the optimizer call [ms].
+    """
+
+    problem: ProblemBatch
+    result: SolveResult
+    cost: torch.Tensor
+    selection: Selection
+    trajectory: Trajectories
+    acceleration: torch.Tensor
+    steering: torch.Tensor
+    heading_rate: torch.Tensor
+    solve_ms: float
+
+
+def nearest_obstacles(
+    ego: torch.Tensor,
+    vehicles: torch.Tensor,
+    vehicle_mask: Optional[torch.Tensor],
+    count: int,
+    ellipse: tuple[float, float],
+    ignore_behind: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``count`` vehicles nearest to the ego in ellipse-normalised distance.
+
+    Args:
+        ego: (E, 6) ego states.
+        vehicles: (E, V, 4) other vehicles (x, y, vx, vy) [m, m/s].
+        vehicle_mask: (E, V) bool, True for real vehicles; ``None`` = all real.
+        count: M slots to fill.
+        ellipse: (a, b) semi-axes [m] defining the distance.
+        ignore_behind: vehicles with x < ego x - ignore_behind are left out [m].
+
+    Returns:
+        states (E, M, 4) and mask (E, M); unused slots have mask False.
+    """
+    num_problems, num_vehicles = vehicles.shape[:2]
+    if vehicle_mask is None:
+        vehicle_mask = torch.ones(num_problems, num_vehicles, dtype=torch.bool, device=vehicles.device)
+    dx = (vehicles[..., 0] - ego[:, None, EGO_X]) / ellipse[0]
+    dy = (vehicles[..., 1] - ego[:, None, EGO_Y]) / ellipse[1]
+    distance = torch.hypot(dx, dy)
+    eligible = vehicle_mask & (vehicles[..., 0] >= ego[:, None, EGO_X] - ignore_behind)
+    distance = torch.where(eligible, distance, torch.full_like(distance, float("inf")))
+    k = min(count, num_vehicles)
+    order = distance.argsort(dim=1)[:, :k]
+    states = torch.gather(vehicles, 1, order[..., None].expand(-1, -1, 4))
+    mask = torch.gather(eligible, 1, order)
+    if k < count:
+        pad = count - k
+        states = torch.cat([states, states.new_zeros(num_problems, pad, 4)], dim=1)
+        mask = torch.cat([mask, mask.new_zeros(num_problems, pad)], dim=1)
+    return states, mask
+
+
+class MPC:
+    """Receding-horizon multi-modal MPC over a batch of E problems.
+
+    Args:
+        optimizer: the batch optimizer (its config sets horizon, bounds and ellipse).
+        goal_sampler: ``f(ego (E, 6), road) -> goals (E, G, 2)``.
+        meta_cost: ``f(trajectories, road) -> (E, G)``.
+        road: the road (lanes) the goals and costs refer to.
+        config: loop settings.
+
+    Example:
+        >>> import torch, mmpc
+        >>> from mmpc.mpc import MPC
+        >>> mpc = MPC(mmpc.BatchOptimizer(), mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road())
+        >>> ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
+        >>> plan = mpc.plan(ego, torch.tensor([[[30.0, 8.0, 10.0, 0.0]]]))
+        >>> plan.acceleration.shape, bool(plan.selection.feasible[0])
+        (torch.Size([1]), True)
+    """
+
+    def __init__(
+        self,
+        optimizer: BatchOptimizer,
+        goal_sampler: GoalSampler,
+        meta_cost: MetaCost,
+        road: Road,
+        config: Optional[MPCConfig] = None,
+    ) -> None:
+        self.optimizer = optimizer
+        self.goal_sampler = goal_sampler
+        self.meta_cost = meta_cost
+        self.road = road
+        self.config = config if config is not None else MPCConfig()
+        if self.config.num_obstacles > optimizer.config.max_obstacles:
+            raise ValueError(
+                f"MPCConfig.num_obstacles={self.config.num_obstacles} exceeds the optimizer's "
+                f"max_obstacles={optimizer.config.max_obstacles}"
+            )
+
+    def build_problem(
+        self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
+    ) -> ProblemBatch:
+        """Road-frame state -> problem batch (goals sampled, nearest obstacles predicted)."""
+        opt = self.optimizer
+        if ego.ndim != 2 or ego.shape[1] != len(EGO_FIELDS):
+            raise ValueError(f"`ego` must have shape (E, {len(EGO_FIELDS)}); got {tuple(ego.shape)}")
+        if vehicles.ndim != 3 or vehicles.shape[0] != ego.shape[0] or vehicles.shape[2] != 4:
+            raise ValueError(f"`vehicles` must have shape ({ego.shape[0]}, V, 4); got {tuple(vehicles.shape)}")
+        ego = ego.to(dtype=opt.dtype)
+        vehicles = vehicles.to(dtype=opt.dtype)
+        cfg = opt.config
+        states, mask = nearest_obstacles(
+            ego, vehicles, vehicle_mask, self.config.num_obstacles, (cfg.ellipse_a, cfg.ellipse_b),
+            self.config.ignore_behind,
+        )
+        obstacles = predict_constant_velocity(states, opt.times)
+        goals = self.goal_sampler(ego, self.road)
+        return ProblemBatch(ego, goals, obstacles, mask)
+
+    @torch.no_grad()
+    def plan(
+        self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
+    ) -> Plan:
+        """One MPC step for E problems.
+
+        Args:
+            ego: (E, 6) ego states in the road frame (see :data:`mmpc.EGO_FIELDS`); ``a`` and
+                ``psidot`` are usually the previous command's.
+            vehicles: (E, V, 4) other vehicles (x, y, vx, vy) [m, m/s]; V may be 0.
+            vehicle_mask: (E, V) bool, True for real vehicles; ``None`` = all real.
+
+        Returns:
+            A :class:`Plan`; where no candidate is feasible the command is a lane-keeping brake.
+        """
+        problem = self.build_problem(ego, vehicles, vehicle_mask)
+        start = time.perf_counter()
+        result = self.optimizer(problem)
+        if result.status.is_cuda:
+            torch.cuda.synchronize(result.status.device)
+        solve_ms = (time.perf_counter() - start) * 1e3
+        cost = self.meta_cost(result.trajectories, self.road)
+        selection = select_best(result, cost, self.optimizer.config)
+        trajectory = result.trajectories.select(selection.index)
+        acceleration, heading_rate = self._command(trajectory)
+        acceleration, heading_rate = self._fallback(problem.ego, selection.feasible, acceleration, heading_rate)
+        speed = problem.ego[:, EGO_V].clamp_min(1.0)
+        steering = torch.atan(self.config.wheelbase * heading_rate / speed)
+        steering = steering.clamp(-self.config.max_steering, self.config.max_steering)
+        return Plan(problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms)
+
+    def _command(self, trajectory: Trajectories) -> tuple[torch.Tensor, torch.Tensor]:
+        """Tangential acceleration and heading rate averaged over the first control period."""
+        times = trajectory.times
+        window = times <= self.config.control_period + 1e-9
+        window[:2] = True  # at least two samples
+        speed = torch.hypot(trajectory.xdot, trajectory.ydot).clamp_min(1e-3)
+        tangential = (trajectory.xdot * trajectory.xddot + trajectory.ydot * trajectory.yddot) / speed
+        return tangential[:, window].mean(dim=1), trajectory.psidot[:, window].mean(dim=1)
+
+    def _fallback(
+        self, ego: torch.Tensor, feasible: torch.Tensor, acceleration: torch.Tensor, heading_rate: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Brake and steer back to the nearest lane centre where nothing is feasible."""
+        lane_y = self.road.lane_index(ego[:, EGO_Y]).to(ego.dtype) * self.road.lane_width
+        desired_heading = torch.atan(-0.25 * (ego[:, EGO_Y] - lane_y)).clamp(-0.2, 0.2)
+        keep_lane = 1.0 * (desired_heading - ego[:, EGO_PSI])
+        brake = torch.where(ego[:, EGO_V] > 0.5, -self.config.brake_deceleration, 0.0).to(ego.dtype)
+        return (
+            torch.where(feasible, acceleration, brake),
+            torch.where(feasible, heading_rate, keep_lane),
+        )
