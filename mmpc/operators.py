@@ -11,10 +11,11 @@ Per axis (x or y) with M present obstacles the position QP of iteration k is::
 Its KKT solution is ``c = Kcc (rho_k F_M^T g + lambda) + Kcb b`` with (Kcc, Kcb) blocks of the
 inverse KKT matrix. Writing ``F_M^T g = F_M^T F_M c_prev - u`` with ``u = F^T (F c_prev - g)``
 (the residual already mapped back to coefficient space) makes the update one constant matrix
-times the stacked vector ``[c_prev; u; lambda; b]``; :func:`build_operators` returns that matrix
+times the stacked vector ``[c_prev; u; lambda; b]`` (with the penalty weights folded in, see
+:class:`Operators`); :func:`build_operators` returns that matrix
 for every iteration and every obstacle count 0 ... M_max, so that absent obstacles change
 nothing. The heading QP is the same with ``F = P`` and target ``atan2(ydot, xdot)``: one matrix
-times ``[P^T psi_target; lambda_psi; b_psi]``.
+times ``[psi_target; lambda_psi; b_psi]``.
 """
 
 from __future__ import annotations
@@ -33,20 +34,24 @@ class Operators(NamedTuple):
     The solver keeps the batch in the *last* (column) dimension, so every operator multiplies
     from the left.
 
+    The penalty weights are folded into the matrices, so the iterations never multiply by a
+    scalar: the multiplier step of iteration k is ``lambda -= gather[k] @ R`` with
+    ``gather[k] = rho_k [-P^T, Pddot^T, Pdot^T]`` applied to the stacked residual
+    ``R = [obstacle push; acceleration residual; velocity residual]`` (the push is projection
+    minus point, hence the minus sign), and the position QP of iteration k+1 reuses that
+    product ``rho_k u``.
+
     Shapes:
         samples: (3N, K) maps coefficients to stacked [position; acceleration; velocity] samples.
-        gather: (K, 3N) = [-P^T, Pddot^T, Pdot^T]: maps stacked [obstacle push; acceleration
-            residual; velocity residual] to ``u = F^T (F c - g)`` (the push is projection minus
-            point, hence the minus sign).
-        position: (I, M_max + 1, K, 3K + n_eq) left-multiplies ``[c_prev; u; lambda; b]``.
+        gather: (I, K, 3N) ``rho_k F^T`` on the stacked residual, per iteration.
+        position: (I, M_max + 1, K, 3K + n_eq) left-multiplies ``[c_prev; rho_{k-1} u; lambda; b]``
+            (rho_{-1} = rho_0: the cold start's residual is mapped with ``gather[0]``).
         position_init: (K, n_eq) left-multiplies ``b`` for the smoothest trajectory meeting the
             boundary conditions (the cold start).
-        heading: (I, K, 2K + 4) left-multiplies ``[P^T psi_target; lambda_psi; b_psi]``.
-        heading_gram: (K, K) P^T P, for the heading multiplier update.
+        heading: (I, K, N + K + 4) left-multiplies ``[psi_target; lambda_psi; b_psi]``.
+        heading_gather: (I, K, N) ``rho_k P^T``: ``lambda_psi += heading_gather[k] @ (psi_target - psi)``.
         heading_basis: (N, K) P, psi samples from heading coefficients.
-        heading_gather: (K, N) P^T, heading targets to coefficient space.
         heading_rate_basis: (N, K) Pdot, psidot samples.
-        rho: (I,) penalty weight of every iteration.
     """
 
     samples: torch.Tensor
@@ -54,11 +59,9 @@ class Operators(NamedTuple):
     position: torch.Tensor
     position_init: torch.Tensor
     heading: torch.Tensor
-    heading_gram: torch.Tensor
-    heading_basis: torch.Tensor
     heading_gather: torch.Tensor
+    heading_basis: torch.Tensor
     heading_rate_basis: torch.Tensor
-    rho: torch.Tensor
 
 
 def position_equality_matrix(basis: Basis, start_acceleration: bool) -> torch.Tensor:
@@ -89,7 +92,7 @@ def _kkt_blocks(hessian: torch.Tensor, equality: torch.Tensor) -> tuple[torch.Te
 def build_operators(basis: Basis, config: OptimizerConfig) -> Operators:
     """Build every constant matrix of the solver for ``config`` (float64)."""
     P, Pd, Pdd = basis.P, basis.Pdot, basis.Pddot
-    rho = torch.tensor(config.rho_schedule(), dtype=torch.float64)
+    rho = config.rho_schedule()
     smooth_xy = config.weight_xy * Pdd.T @ Pdd
     smooth_psi = config.weight_psi * Pdd.T @ Pdd
     gram_position = P.T @ P
@@ -97,32 +100,34 @@ def build_operators(basis: Basis, config: OptimizerConfig) -> Operators:
 
     equality = position_equality_matrix(basis, config.start_acceleration)
     position = []
-    for rho_k in rho.tolist():
+    for k, rho_k in enumerate(rho):
+        rho_previous = rho[k - 1] if k > 0 else rho[0]
         per_count = []
         for m in range(config.max_obstacles + 1):
             gram = m * gram_position + gram_motion
             kcc, kcb = _kkt_blocks(smooth_xy + rho_k * gram, equality)
-            # c_new = rho Kcc (G c_prev - u) + Kcc lambda + Kcb b, since F^T g = G c_prev - u.
-            per_count.append(torch.cat([rho_k * kcc @ gram, -rho_k * kcc, kcc, kcb], dim=1))
+            # c = rho_k Kcc (G c_prev - u) + Kcc lambda + Kcb b, since F^T g = G c_prev - u.
+            scaled = -(rho_k / rho_previous) * kcc
+            per_count.append(torch.cat([rho_k * kcc @ gram, scaled, kcc, kcb], dim=1))
         position.append(torch.stack(per_count))
 
     _, kcb_init = _kkt_blocks(smooth_xy, equality)
 
     heading_equality = heading_equality_matrix(basis)
     heading = []
-    for rho_k in rho.tolist():
+    for rho_k in rho:
         kcc, kcb = _kkt_blocks(smooth_psi + rho_k * gram_position, heading_equality)
-        heading.append(torch.cat([rho_k * kcc, kcc, kcb], dim=1))
+        heading.append(torch.cat([rho_k * kcc @ P.T, kcc, kcb], dim=1))
 
+    rho_column = torch.tensor(rho, dtype=torch.float64)[:, None, None]
+    gather = torch.cat([-P, Pdd, Pd], dim=0).T
     return Operators(
         samples=torch.cat([P, Pdd, Pd], dim=0).contiguous(),
-        gather=torch.cat([-P, Pdd, Pd], dim=0).T.contiguous(),
+        gather=(rho_column * gather).contiguous(),
         position=torch.stack(position),
         position_init=kcb_init.contiguous(),
         heading=torch.stack(heading),
-        heading_gram=gram_position.contiguous(),
+        heading_gather=(rho_column * P.T).contiguous(),
         heading_basis=P.contiguous(),
-        heading_gather=P.T.contiguous(),
         heading_rate_basis=Pd.contiguous(),
-        rho=rho,
     )

@@ -38,6 +38,8 @@ logger = logging.getLogger(__name__)
 #: trajectory point is ever inside their ellipse, small enough to square in float32.
 _PARKED_DISTANCE = 1.0e5
 _EPS_SQUARED = 1.0e-12
+#: Iterations per compiled graph in the ``compile=True`` path.
+_COMPILED_CHUNK = 10
 
 
 class _Residuals(NamedTuple):
@@ -82,6 +84,10 @@ class BatchOptimizer(nn.Module):
             Build with ``dtype=torch.float64`` rather than ``.to(torch.float64)`` later, which
             would keep the float32-rounded matrices.
         device: where the buffers live; inputs must already be there.
+        compile: run the iterations through ``torch.compile`` (fused elementwise kernels, one
+            call per chunk of iterations). The first solve of every new batch shape compiles
+            (tens of seconds on a CPU); later solves are several times faster than eager.
+            Eager (the default) is the reference and supports autograd everywhere.
 
     Shapes:
         see :class:`mmpc.ProblemBatch` (inputs) and :class:`mmpc.SolveResult` (outputs).
@@ -103,6 +109,7 @@ class BatchOptimizer(nn.Module):
         *,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
+        compile: bool = False,
     ) -> None:
         super().__init__()
         if not dtype.is_floating_point:
@@ -117,7 +124,17 @@ class BatchOptimizer(nn.Module):
             [self.config.ellipse_a, self.config.ellipse_b], dtype=dtype, device=device
         ).view(2, 1, 1)
         self.register_buffer("semi_axes", semi_axes, persistent=False)
-        self._rho = self.config.rho_schedule()
+        self._limits = _Limits(self.config.v_min, self.config.v_max, self.config.a_max)
+        self.compiled = compile
+        if compile:
+            # Chunks of unrolled iterations: one compiled graph serves every chunk (the
+            # operators are arguments), so compile time stays bounded while the per-call
+            # overhead is paid once per chunk rather than once per iteration.
+            self.chunk = min(_COMPILED_CHUNK, self.config.iterations)
+            self._iterate = torch.compile(_iterate, fullgraph=True, dynamic=False)
+        else:
+            self.chunk = self.config.iterations
+            self._iterate = _iterate
 
     @property
     def dtype(self) -> torch.dtype:
@@ -150,88 +167,27 @@ class BatchOptimizer(nn.Module):
         c = self.position_init @ prepared.b_position  # (K, 2B)
         samples = (self.samples @ c).view(3 * n, 2, num_problems, num_goals)
         psi = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
-        residuals = self._residuals(samples, psi, prepared.obstacles)
-        mapped = self.gather @ residuals.stacked.view(3 * n, -1)
-        multipliers = torch.zeros_like(c)
-        multipliers_psi = c.new_zeros(c.shape[0], batch)
-        records = []
-        for k, rho in enumerate(self._rho):
-            c = self._position_step(k, torch.cat([c, mapped, multipliers, prepared.b_position]), prepared)
-            samples = (self.samples @ c).view(3 * n, 2, num_problems, num_goals)
-            psi_target = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
-            projected = self.heading_gather @ psi_target.view(n, batch)
-            c_psi = self.heading[k] @ torch.cat([projected, multipliers_psi, prepared.b_heading])
-            # lambda_psi -= rho P^T (P c_psi - psi_target)
-            multipliers_psi = torch.addmm(
-                multipliers_psi.add(projected, alpha=rho), self.heading_gram, c_psi, alpha=-rho
+        residuals = _closed_form_steps(samples, psi, prepared.obstacles, self.semi_axes, self._limits)
+        state = _State(
+            c=c,
+            scaled_residual=self.gather[0] @ residuals.stacked.view(3 * n, -1),
+            multipliers=torch.zeros_like(c),
+            multipliers_psi=c.new_zeros(c.shape[0], batch),
+        )
+        records: list[torch.Tensor] = []
+        for first in range(0, self.config.iterations, self.chunk):
+            last = min(first + self.chunk, self.config.iterations)
+            if prepared.uniform_count is not None:
+                position = self.position[first:last, prepared.uniform_count]  # (U, K, D)
+            else:
+                position = self.position[first:last].index_select(1, prepared.counts)  # (U, E, K, D)
+            state, step = self._iterate(
+                state, prepared.b_position, prepared.b_heading, prepared.obstacles, position,
+                self.gather[first:last], self.heading[first:last], self.heading_gather[first:last],
+                self.samples, self.heading_basis, self.semi_axes, self._limits, history,
             )
-            psi = (self.heading_basis @ c_psi).view(n, num_problems, num_goals)
-            residuals = self._residuals(samples, psi, prepared.obstacles)
-            mapped = self.gather @ residuals.stacked.view(3 * n, -1)
-            multipliers = multipliers.sub(mapped, alpha=rho)
-            if history:
-                records.append(self._residual_norms(residuals))
-        return self._finish(prepared, c, c_psi, samples, residuals, records if history else None)
-
-    # ----------------------------------------------------------------------------- iteration
-
-    def _position_step(self, k: int, stacked: torch.Tensor, prepared: _Prepared) -> torch.Tensor:
-        """x, y QP of iteration k: ``stacked`` (3K + n_eq, 2B) -> (K, 2B) coefficients."""
-        if prepared.uniform_count is not None:
-            return self.position[k, prepared.uniform_count] @ stacked
-        num_problems = prepared.mask.shape[0]
-        operator = self.position[k].index_select(0, prepared.counts)  # (E, K, D)
-        rows = stacked.shape[0]
-        per_problem = stacked.view(rows, 2, num_problems, -1).permute(2, 0, 1, 3)
-        solved = operator @ per_problem.reshape(num_problems, rows, -1)  # (E, K, 2G)
-        solved = solved.view(num_problems, -1, 2, prepared.num_goals).permute(1, 2, 0, 3)
-        return solved.reshape(solved.shape[0], -1)
-
-    def _residuals(self, samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor) -> _Residuals:
-        """Closed-form speed, obstacle and acceleration steps and the residual F c - g.
-
-        Args:
-            samples: (3N, 2, E, G) [position; acceleration; velocity] relative to the start.
-            psi: (N, E, G) heading [rad].
-            obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
-        """
-        cfg = self.config
-        n = cfg.num_steps
-        position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
-        heading = torch.stack([torch.cos(psi), torch.sin(psi)], dim=1)  # (N, 2, E, G)
-        speed = (velocity * heading).sum(dim=1).clamp(cfg.v_min, cfg.v_max)
-        velocity_residual = torch.addcmul(velocity, speed.unsqueeze(1), heading, value=-1.0)
-
-        norm_squared = (acceleration * acceleration).sum(dim=1, keepdim=True)
-        inverse_norm = norm_squared.clamp_min(_EPS_SQUARED).rsqrt()
-        excess = torch.rsub(inverse_norm, 1.0, alpha=cfg.a_max).clamp_min(0.0)
-        acceleration_residual = acceleration * excess
-
-        offset = position / self.semi_axes - obstacles  # (M, N, 2, E, G)
-        distance_squared = (offset * offset).sum(dim=2)
-        outward = distance_squared.clamp_min(_EPS_SQUARED).rsqrt().sub(1.0).clamp_min(0.0)
-        push = (offset * outward.unsqueeze(2)).sum(dim=0) * self.semi_axes
-        return _Residuals(
-            stacked=torch.cat([push, acceleration_residual, velocity_residual]),
-            speed=speed,
-            offset=offset,
-            outward=outward,
-        )
-
-    def _residual_norms(self, residuals: _Residuals) -> torch.Tensor:
-        """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals."""
-        n = self.config.num_steps
-        gap = residuals.offset * residuals.outward.unsqueeze(2) * self.semi_axes
-        stacked = residuals.stacked
-        norms = torch.stack(
-            [
-                (gap * gap).sum(dim=(0, 1, 2)),
-                (stacked[n : 2 * n] ** 2).sum(dim=(0, 1)),
-                (stacked[2 * n :] ** 2).sum(dim=(0, 1)),
-            ],
-            dim=-1,
-        )
-        return norms.sqrt()
+            records.extend(step.records)
+        return self._finish(prepared, state.c, step.c_psi, step.samples, step.residuals, records if history else None)
 
     # ----------------------------------------------------------------------------- outputs
 
@@ -255,7 +211,7 @@ class BatchOptimizer(nn.Module):
         psi = (self.heading_basis @ c_psi).view(n, num_problems, num_goals)
         psidot = (self.heading_rate_basis @ c_psi).view(n, num_problems, num_goals)
 
-        norms = self._residual_norms(residuals)
+        norms = _residual_norms(residuals, self.semi_axes)
         distance_squared = (residuals.offset * residuals.offset).sum(dim=2)  # (M, N, E, G)
         present = prepared.mask.T[:, None, :, None]
         inf = torch.full((), float("inf"), dtype=self.dtype, device=self.device)
@@ -381,6 +337,136 @@ class BatchOptimizer(nn.Module):
             goal_ahead=relative_goals[..., 0] > 0,
             num_goals=num_goals,
         )
+
+
+class _Limits(NamedTuple):
+    """Bounds used inside the iterations (Python floats: constants to a compiler)."""
+
+    v_min: float
+    v_max: float
+    a_max: float
+
+
+class _State(NamedTuple):
+    """What one iteration hands to the next. Columns ordered (axis, e, g)."""
+
+    c: torch.Tensor  # (K, 2B) x, y coefficients relative to the start
+    scaled_residual: torch.Tensor  # (K, 2B) rho_k F^T (F c - g)
+    multipliers: torch.Tensor  # (K, 2B)
+    multipliers_psi: torch.Tensor  # (K, B)
+
+
+class _Step(NamedTuple):
+    """Last iterate of a run of iterations, for the outputs."""
+
+    c_psi: torch.Tensor  # (K, B)
+    samples: torch.Tensor  # (3N, 2, E, G)
+    residuals: _Residuals
+    records: list  # per-iteration (E, G, 3) residual norms when requested
+
+
+def _iterate(
+    state: _State,
+    b_position: torch.Tensor,
+    b_heading: torch.Tensor,
+    obstacles: torch.Tensor,
+    position: torch.Tensor,
+    gather: torch.Tensor,
+    heading: torch.Tensor,
+    heading_gather: torch.Tensor,
+    samples_operator: torch.Tensor,
+    heading_basis: torch.Tensor,
+    semi_axes: torch.Tensor,
+    limits: _Limits,
+    history: bool,
+) -> tuple[_State, _Step]:
+    """Run U = ``gather.shape[0]`` iterations; every operator argument is sliced to those U.
+
+    Shapes: ``position`` (U, K, D) when every problem has the same obstacle count, else
+    (U, E, K, D); ``gather`` (U, K, 3N); ``heading`` (U, K, N + K + 4); ``heading_gather``
+    (U, K, N); see :class:`mmpc.operators.Operators`. Pure tensor code without host
+    synchronisation, so that it can be compiled.
+    """
+    c, scaled_residual, multipliers, multipliers_psi = state
+    n = samples_operator.shape[0] // 3
+    num_problems, num_goals = obstacles.shape[3], b_heading.shape[1] // obstacles.shape[3]
+    records = []
+    for u in range(gather.shape[0]):
+        stacked = torch.cat([c, scaled_residual, multipliers, b_position])
+        c = _position_qp(position[u], stacked, num_problems)
+        samples = (samples_operator @ c).view(3 * n, 2, num_problems, num_goals)
+        psi_target = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0]).view(n, -1)  # (N, B)
+        c_psi = heading[u] @ torch.cat([psi_target, multipliers_psi, b_heading])
+        psi = heading_basis @ c_psi
+        multipliers_psi = torch.addmm(multipliers_psi, heading_gather[u], psi_target - psi)
+        residuals = _closed_form_steps(samples, psi.view(n, num_problems, num_goals), obstacles, semi_axes, limits)
+        scaled_residual = gather[u] @ residuals.stacked.view(3 * n, -1)
+        multipliers = multipliers - scaled_residual
+        if history:
+            records.append(_residual_norms(residuals, semi_axes))
+    return _State(c, scaled_residual, multipliers, multipliers_psi), _Step(c_psi, samples, residuals, records)
+
+
+def _position_qp(operator: torch.Tensor, stacked: torch.Tensor, num_problems: int) -> torch.Tensor:
+    """x, y QP: ``stacked`` (D, 2B) -> (K, 2B); ``operator`` (K, D) shared or (E, K, D) per problem."""
+    if operator.ndim == 2:
+        return operator @ stacked
+    rows = stacked.shape[0]
+    per_problem = stacked.view(rows, 2, num_problems, -1).permute(2, 0, 1, 3)
+    solved = operator @ per_problem.reshape(num_problems, rows, -1)  # (E, K, 2G)
+    solved = solved.view(num_problems, operator.shape[1], 2, -1).permute(1, 2, 0, 3)
+    return solved.reshape(operator.shape[1], -1)
+
+
+def _closed_form_steps(
+    samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor, semi_axes: torch.Tensor, limits: _Limits
+) -> _Residuals:
+    """Closed-form speed, obstacle and acceleration steps and the residual F c - g.
+
+    Args:
+        samples: (3N, 2, E, G) [position; acceleration; velocity] relative to the start.
+        psi: (N, E, G) heading [rad].
+        obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
+        semi_axes: (2, 1, 1) ellipse semi-axes (a, b) [m].
+        limits: speed and acceleration bounds.
+    """
+    n = psi.shape[0]
+    position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
+    heading = torch.stack([torch.cos(psi), torch.sin(psi)], dim=1)  # (N, 2, E, G)
+    speed = (velocity * heading).sum(dim=1).clamp(limits.v_min, limits.v_max)
+    velocity_residual = torch.addcmul(velocity, speed.unsqueeze(1), heading, value=-1.0)
+
+    norm_squared = (acceleration * acceleration).sum(dim=1, keepdim=True)
+    inverse_norm = norm_squared.clamp_min(_EPS_SQUARED).rsqrt()
+    excess = torch.rsub(inverse_norm, 1.0, alpha=limits.a_max).clamp_min(0.0)
+    acceleration_residual = acceleration * excess
+
+    offset = position / semi_axes - obstacles  # (M, N, 2, E, G)
+    distance_squared = (offset * offset).sum(dim=2)
+    outward = distance_squared.clamp_min(_EPS_SQUARED).rsqrt().sub(1.0).clamp_min(0.0)
+    push = (offset * outward.unsqueeze(2)).sum(dim=0) * semi_axes
+    return _Residuals(
+        stacked=torch.cat([push, acceleration_residual, velocity_residual]),
+        speed=speed,
+        offset=offset,
+        outward=outward,
+    )
+
+
+def _residual_norms(residuals: _Residuals, semi_axes: torch.Tensor) -> torch.Tensor:
+    """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals."""
+    n = residuals.speed.shape[0]
+    gap = residuals.offset * residuals.outward.unsqueeze(2) * semi_axes
+    stacked = residuals.stacked
+    norms = torch.stack(
+        [
+            (gap * gap).sum(dim=(0, 1, 2)),
+            (stacked[n : 2 * n] ** 2).sum(dim=(0, 1)),
+            (stacked[2 * n :] ** 2).sum(dim=(0, 1)),
+        ],
+        dim=-1,
+    )
+    return norms.sqrt()
 
 
 def _replace_nonfinite(
