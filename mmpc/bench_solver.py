@@ -30,6 +30,7 @@ class SolverBenchmark:
         batches: batch sizes B (goals of one problem).
         obstacles: obstacle counts M.
         devices: "cpu" and/or "cuda" (cuda rows are skipped without a GPU).
+        variants: "eager" (reference) and/or "compiled" (``BatchOptimizer(compile=True)``).
         threads: CPU threads for the CPU rows.
         repeats: timed solves per row.
         warmup: untimed solves per row.
@@ -39,6 +40,7 @@ class SolverBenchmark:
     batches: tuple[int, ...] = (1, 11, 64, 256, 1024, 4096)
     obstacles: tuple[int, ...] = (6, 10)
     devices: tuple[str, ...] = ("cpu", "cuda")
+    variants: tuple[str, ...] = ("eager", "compiled")
     threads: int = 1
     repeats: int = 20
     warmup: int = 3
@@ -60,6 +62,35 @@ def benchmark_problem(batch: int, obstacles: int, times: torch.Tensor) -> Proble
     return ProblemBatch(ego, goals, predict_constant_velocity(states, times))
 
 
+def bytes_per_solve(batch: int, obstacles: int, config: OptimizerConfig, element_size: int = 4) -> float:
+    """Least memory traffic of one solve [bytes]: what an ideal implementation must move.
+
+    Per iteration the samples (3N x 2B) are written by one product and read by the
+    elementwise steps, whose residual (3N x 2B) is written and read by the next product; the
+    heading target and heading (N x B) go the same way; the obstacle predictions (M x N x 2)
+    are read once per problem. Coefficient-sized arrays are negligible.
+    """
+    n = config.num_steps
+    per_iteration = 4 * 3 * n * 2 * batch + 4 * n * batch + 2 * obstacles * n
+    return float(per_iteration * config.iterations * element_size)
+
+
+def memory_bandwidth(device: torch.device, megabytes: int = 256) -> float:
+    """Measured copy bandwidth [bytes/s] (read + write) with the current thread setting."""
+    count = megabytes * 2**20 // 4
+    source = torch.ones(count, device=device)
+    target = torch.empty_like(source)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    best = float("inf")
+    for _ in range(5):
+        sync()
+        start = time.perf_counter()
+        target.copy_(source)
+        sync()
+        best = min(best, time.perf_counter() - start)
+    return 2 * count * 4 / best
+
+
 def time_solver(solve: Callable[[], object], device: torch.device, repeats: int, warmup: int, budget: float) -> list[float]:
     """Wall times [ms] of ``solve()`` after ``warmup`` calls."""
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -77,8 +108,13 @@ def time_solver(solve: Callable[[], object], device: torch.device, repeats: int,
 
 
 def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) -> dict:
-    """Measure every row, print a table, write ``out/bench_solver.json`` and ``out/bench_solver.png``."""
+    """Measure every row, print a table, write ``out/bench_solver.json`` and ``out/bench_solver.png``.
+
+    Each row: device, variant, batch, obstacles, ms_median, ms_p90, solves, and
+    ``roofline_fraction`` = (least bytes per solve / median time) / measured copy bandwidth.
+    """
     rows = []
+    bandwidths = {}
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(spec.threads)
     try:
@@ -87,36 +123,26 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
                 log("cuda: no GPU available, skipped")
                 continue
             device = torch.device(device_name)
-            optimizer = BatchOptimizer(spec.config, device=device)
-            for obstacles in spec.obstacles:
-                for batch in spec.batches:
-                    problem = benchmark_problem(batch, obstacles, optimizer.times.cpu())
-                    problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
-                    with torch.inference_mode():
-                        samples = time_solver(lambda: optimizer(problem), device, spec.repeats, spec.warmup,
-                                              spec.max_seconds_per_row)
-                    samples.sort()
-                    row = {
-                        "device": device_name,
-                        "variant": "eager",
-                        "threads": spec.threads if device_name == "cpu" else None,
-                        "batch": batch,
-                        "obstacles": obstacles,
-                        "iterations": spec.config.iterations,
-                        "ms_median": statistics.median(samples),
-                        "ms_p90": samples[min(len(samples) - 1, int(0.9 * len(samples)))],
-                        "solves": len(samples),
-                    }
-                    rows.append(row)
-                    log(f"{row['device']:>5} {row['variant']:>8} M={obstacles:<3} B={batch:<6} "
-                        f"median {row['ms_median']:9.2f} ms   p90 {row['ms_p90']:9.2f} ms   ({len(samples)} solves)")
+            bandwidths[device_name] = memory_bandwidth(device)
+            log(f"{device_name}: copy bandwidth {bandwidths[device_name] / 1e9:.1f} GB/s")
+            for variant in spec.variants:
+                optimizer = BatchOptimizer(spec.config, device=device, compile=variant == "compiled")
+                for obstacles in spec.obstacles:
+                    for batch in spec.batches:
+                        rows.append(_measure(spec, optimizer, device, variant, batch, obstacles, bandwidths[device_name]))
+                        row = rows[-1]
+                        log(f"{row['device']:>5} {variant:>9} M={obstacles:<3} B={batch:<6} median {row['ms_median']:9.2f} ms"
+                            f"   p90 {row['ms_p90']:9.2f} ms   roofline {100 * row['roofline_fraction']:5.1f} %"
+                            f"   ({row['solves']} solves)")
     finally:
         torch.set_num_threads(previous_threads)
+    _log_speedups(rows, log)
     device_text = torch.cuda.get_device_name() if torch.cuda.is_available() and "cuda" in spec.devices else platform.processor() or platform.machine()
     report = {
         "device": device_text,
         "torch": torch.__version__,
         "cpu_threads": spec.threads,
+        "bandwidth_bytes_per_s": bandwidths,
         "rows": rows,
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -124,3 +150,36 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
     if rows:
         plot_scaling(out / "bench_solver.png", rows)
     return report
+
+
+def _measure(spec: SolverBenchmark, optimizer: BatchOptimizer, device: torch.device, variant: str,
+             batch: int, obstacles: int, bandwidth: float) -> dict:
+    problem = benchmark_problem(batch, obstacles, optimizer.times.cpu())
+    problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
+    with torch.inference_mode():
+        samples = time_solver(lambda: optimizer(problem), device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
+    samples.sort()
+    median = statistics.median(samples)
+    return {
+        "device": device.type,
+        "variant": variant,
+        "threads": spec.threads if device.type == "cpu" else None,
+        "batch": batch,
+        "obstacles": obstacles,
+        "iterations": spec.config.iterations,
+        "ms_median": median,
+        "ms_p90": samples[min(len(samples) - 1, int(0.9 * len(samples)))],
+        "solves": len(samples),
+        "roofline_fraction": bytes_per_solve(batch, obstacles, spec.config) / (median * 1e-3) / bandwidth,
+    }
+
+
+def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
+    """Compiled over eager speed-up, side by side from the same run."""
+    eager = {(r["device"], r["batch"], r["obstacles"]): r["ms_median"] for r in rows if r["variant"] == "eager"}
+    for row in rows:
+        key = (row["device"], row["batch"], row["obstacles"])
+        if row["variant"] == "compiled" and key in eager:
+            row["speedup_vs_eager"] = eager[key] / row["ms_median"]
+            log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is "
+                f"{row['speedup_vs_eager']:.2f}x faster than eager")

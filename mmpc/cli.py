@@ -92,6 +92,7 @@ def _solve(args: argparse.Namespace) -> int:
 def _bench_solver(args: argparse.Namespace) -> int:
     spec = SolverBenchmark(
         batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
+        variants=tuple(args.variants.split(",")),
         threads=args.threads, repeats=args.repeats, max_seconds_per_row=args.max_seconds_per_row,
     )
     report = run_solver_benchmark(spec, Path(args.out))
@@ -117,6 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--batches", type=_int_list, default=(1, 11, 64, 256, 1024, 4096), help="comma-separated batch sizes")
     bench.add_argument("--obstacles", type=_int_list, default=(6, 10), help="comma-separated obstacle counts")
     bench.add_argument("--devices", default="cpu,cuda", help="cpu and/or cuda (cuda skipped without a GPU)")
+    bench.add_argument("--variants", default="eager,compiled", help="eager and/or compiled (torch.compile)")
     bench.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
     bench.add_argument("--repeats", type=int, default=20, help="timed solves per row")
     bench.add_argument("--max-seconds-per-row", type=float, default=20.0, help="time budget per row")

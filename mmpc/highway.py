@@ -1,0 +1,210 @@
+"""highway-env adapter: build the environment of a scenario, read its true state in the road
+frame, turn an MPC command into highway-env's continuous action.
+
+This module and :mod:`mmpc.traffic` are the only ones in :mod:`mmpc` that import highway-env.
+
+Frames. highway-env's straight road has lane k's centre at ``y = 4 k`` along +x; the road frame
+used by the optimizer is lane 0's frame (x along the lane from its start, y to the right-hand
+lanes), which coincides with the world frame for highway-env's straight road but is computed
+from the lane, not assumed.
+
+Vehicle model. highway-env's kinematic bicycle moves along ``heading + beta`` with
+``beta = atan(tan(delta) / 2)`` and turns at ``v sin(beta) / (L / 2)`` (L = 5 m): the
+optimizer's heading psi (the direction of the velocity) is ``heading + beta`` and its heading
+rate that turn rate; the command's steering ``atan(L psidot / v)`` inverts it to first order.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import gymnasium as gym
+import highway_env  # noqa: F401  (registers the highway-v0 family)
+import numpy as np
+import torch
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.road.lane import StraightLane
+from highway_env.vehicle.kinematics import Vehicle
+
+from mmpc.goals import GoalSampler
+from mmpc.mpc import MPC, Plan
+from mmpc.optimizer import BatchOptimizer
+from mmpc.scenario import IDMTraffic, ScenarioConfig
+from mmpc.traffic import TrafficController, make_traffic
+
+#: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.
+ACCELERATION_RANGE = (-5.0, 5.0)
+STEERING_RANGE = (-math.pi / 4, math.pi / 4)
+#: Rendered frame size [px] (multiples of 16 for video codecs) and scale [px/m].
+SCREEN = (960, 192)
+SCALING = 4.0
+
+
+def env_config(scenario: ScenarioConfig) -> dict:
+    """highway-env configuration of a scenario (continuous control at the MPC rate)."""
+    traffic = scenario.traffic
+    idm = isinstance(traffic, IDMTraffic)  # the other sources place their own vehicles
+    return {
+        "action": {
+            "type": "ContinuousAction",
+            "acceleration_range": ACCELERATION_RANGE,
+            "steering_range": STEERING_RANGE,
+        },
+        "observation": {"type": "Kinematics"},
+        "simulation_frequency": scenario.frequency,
+        "policy_frequency": scenario.frequency,
+        "lanes_count": scenario.lanes,
+        "vehicles_count": traffic.vehicles_count if idm else 0,
+        "vehicles_density": traffic.vehicles_density if idm else 1.0,
+        "initial_lane_id": scenario.ego.lane,
+        "duration": scenario.duration,
+        "offroad_terminal": False,
+        "screen_width": SCREEN[0],
+        "screen_height": SCREEN[1],
+        "scaling": SCALING,
+        "centering_position": [0.25, 0.5],
+    }
+
+
+class RoadFrame(NamedTuple):
+    """Lane 0's frame: ``origin`` (2,) [m], unit ``along`` and ``across`` (2,), ``heading`` [rad]."""
+
+    origin: np.ndarray
+    along: np.ndarray
+    across: np.ndarray
+    heading: float
+
+    @classmethod
+    def of(cls, env: AbstractEnv) -> "RoadFrame":
+        lane = env.road.network.get_lane((*env.vehicle.lane_index[:2], 0))
+        if not isinstance(lane, StraightLane):
+            raise TypeError(f"the road frame needs a straight road; lane 0 is a {type(lane).__name__}")
+        return cls(np.asarray(lane.start, dtype=np.float64), lane.direction, lane.direction_lateral, float(lane.heading))
+
+    def to_road(self, points: np.ndarray) -> np.ndarray:
+        """World positions (..., 2) -> road frame (..., 2) [m]."""
+        relative = points - self.origin
+        return np.stack([relative @ self.along, relative @ self.across], axis=-1)
+
+    def vector_to_road(self, vectors: np.ndarray) -> np.ndarray:
+        """World vectors (..., 2) (e.g. velocities) -> road frame (..., 2)."""
+        return np.stack([vectors @ self.along, vectors @ self.across], axis=-1)
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        """Road-frame positions (..., 2) -> world (..., 2) [m]."""
+        return self.origin + points[..., :1] * self.along + points[..., 1:2] * self.across
+
+
+class RoadState(NamedTuple):
+    """True state of one environment in the road frame, as the MPC takes it.
+
+    Shapes:
+        ego: (1, 6) as :data:`mmpc.EGO_FIELDS`: x, y [m], psi (direction of motion) [rad],
+            v [m/s], a (the acceleration being applied) [m/s^2], psidot (the turn rate of the
+            steering being applied) [rad/s].
+        vehicles: (1, V, 4) every other vehicle's x, y [m], vx, vy [m/s].
+    """
+
+    ego: torch.Tensor
+    vehicles: torch.Tensor
+
+
+def vehicle_motion(vehicle: Vehicle) -> tuple[float, float]:
+    """Slip angle beta [rad] and turn rate [rad/s] of a kinematic-bicycle vehicle's current steering."""
+    beta = math.atan(0.5 * math.tan(float(vehicle.action["steering"])))
+    return beta, vehicle.speed * math.sin(beta) / (vehicle.LENGTH / 2)
+
+
+def road_state(env: AbstractEnv, frame: RoadFrame, *, dtype: torch.dtype = torch.float32) -> RoadState:
+    """Read the ego and every other vehicle from ``env`` (its ``unwrapped`` highway-env)."""
+    ego = env.vehicle
+    beta, turn_rate = vehicle_motion(ego)
+    x, y = frame.to_road(np.asarray(ego.position))
+    ego_row = [x, y, ego.heading + beta - frame.heading, ego.speed, float(ego.action["acceleration"]), turn_rate]
+    others = [v for v in env.road.vehicles if v is not ego]
+    if others:
+        positions = frame.to_road(np.array([v.position for v in others]))
+        velocities = frame.vector_to_road(np.array([v.velocity for v in others]))
+        rows = np.concatenate([positions, velocities], axis=1)
+    else:
+        rows = np.zeros((0, 4))
+    return RoadState(
+        torch.tensor([ego_row], dtype=dtype),
+        torch.as_tensor(rows, dtype=dtype).reshape(1, -1, 4),
+    )
+
+
+def command_to_action(acceleration: float, steering: float) -> np.ndarray:
+    """Acceleration [m/s^2] and steering [rad] -> highway-env's ContinuousAction in [-1, 1]^2 (clipped)."""
+    a = 2.0 * (acceleration - ACCELERATION_RANGE[0]) / (ACCELERATION_RANGE[1] - ACCELERATION_RANGE[0]) - 1.0
+    s = 2.0 * (steering - STEERING_RANGE[0]) / (STEERING_RANGE[1] - STEERING_RANGE[0]) - 1.0
+    return np.clip(np.array([a, s], dtype=np.float32), -1.0, 1.0)
+
+
+def build_mpc(scenario: ScenarioConfig) -> MPC:
+    """The scenario's MPC: optimizer, goals on the lane centres, meta cost (float32, CPU)."""
+    road = scenario.road
+    goals: GoalSampler = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
+    return MPC(BatchOptimizer(scenario.optimizer), goals, scenario.objective.meta_cost(), road, scenario.mpc)
+
+
+class HighwayDriver:
+    """One highway-env episode of a scenario, driven by the MPC one frame at a time.
+
+    Args:
+        scenario: the scenario.
+        seed: seeds highway-env (ego lane, traffic) and the traffic controller.
+        render: create the environment with ``render_mode="rgb_array"``.
+        mpc: reuse an MPC (e.g. across episodes); default: :func:`build_mpc`.
+
+    Example:
+        >>> driver = HighwayDriver(ScenarioConfig(duration=1.0), seed=0)
+        >>> state, plan = driver.step()
+        >>> state.ego.shape, plan.acceleration.shape
+        (torch.Size([1, 6]), torch.Size([1]))
+    """
+
+    def __init__(self, scenario: ScenarioConfig, seed: int, *, render: bool = False, mpc: MPC | None = None) -> None:
+        self.scenario = scenario
+        self.env = gym.make(scenario.env_id, config=env_config(scenario), render_mode="rgb_array" if render else None)
+        self.env.reset(seed=seed)
+        self.unwrapped: AbstractEnv = self.env.unwrapped
+        self.unwrapped.vehicle.speed = scenario.ego.speed
+        self.traffic: TrafficController = make_traffic(scenario, self.unwrapped)
+        self.traffic.reset()
+        self.frame = RoadFrame.of(self.unwrapped)
+        self.mpc = mpc if mpc is not None else build_mpc(scenario)
+        self.time = 0.0
+
+    @property
+    def ego(self) -> Vehicle:
+        return self.unwrapped.vehicle
+
+    @property
+    def done(self) -> bool:
+        """The ego crashed or the scenario's duration is over."""
+        return bool(self.ego.crashed) or self.time >= self.scenario.duration - 1e-9
+
+    def observe(self) -> RoadState:
+        return road_state(self.unwrapped, self.frame, dtype=self.mpc.optimizer.dtype)
+
+    def plan(self, state: RoadState) -> Plan:
+        return self.mpc.plan(state.ego, state.vehicles)
+
+    def apply(self, plan: Plan) -> None:
+        """Send the plan's command for one frame, then let the traffic controller move vehicles."""
+        action = command_to_action(float(plan.acceleration[0]), float(plan.steering[0]))
+        self.env.step(action)
+        self.traffic.after_step()
+        self.time += 1.0 / self.scenario.frequency
+
+    def step(self) -> tuple[RoadState, Plan]:
+        """Observe, plan, apply; returns the state planned from and the plan."""
+        state = self.observe()
+        plan = self.plan(state)
+        self.apply(plan)
+        return state, plan
+
+    def close(self) -> None:
+        self.env.close()

@@ -1,0 +1,411 @@
+"""Closed-loop scenarios: what the ego wants, the road, the traffic, the MPC settings.
+
+A scenario is a frozen, validated :class:`ScenarioConfig`, normally loaded from YAML in
+``configs/scenarios/`` (:func:`load_scenario`). Every section rejects unknown keys. The two
+sections with variants, ``objective`` and ``traffic``, pick theirs with a ``type`` key::
+
+    objective: {type: cruise, v_cruise: 15.0}
+    traffic: {type: idm, vehicles_count: 18, vehicles_density: 1.5, target_speeds: [7.0, 12.0]}
+
+This module does not import highway-env; :mod:`mmpc.highway` turns a scenario into an
+environment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Mapping, Optional, Union
+
+import yaml
+
+from mmpc.config import OptimizerConfig, dataclass_from_dict
+from mmpc.goals import CruiseGoals, FollowingGoals, GoalSampler, HighSpeedGoals
+from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
+from mmpc.mpc import MPCConfig
+from mmpc.road import Road
+
+#: Folder of the scenarios that ship with the repository.
+SCENARIO_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+def _positive(where: str, **values: float) -> None:
+    for name, value in values.items():
+        _require(
+            isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0,
+            f"{where}: `{name}` must be a finite number > 0; got {value!r}",
+        )
+
+
+def _speeds(where: str, name: str, values: tuple[float, ...]) -> None:
+    _require(isinstance(values, tuple), f"{where}: `{name}` must be a list of speeds; got {values!r}")
+    for value in values:
+        _positive(where, **{name: value})
+
+
+# ----------------------------------------------------------------------------------- objectives
+
+
+@dataclass(frozen=True)
+class CruiseObjective:
+    """Cruise at ``v_cruise``: goals on every lane centre at ``v_cruise * horizon`` ahead plus
+    slower car-following goals; meta cost ``sum_t (v - v_cruise)^2``.
+
+    Attributes:
+        v_cruise: cruise speed [m/s].
+        follow_speeds: average speeds of the car-following goals [m/s] (see
+            :class:`mmpc.FollowingGoals`); empty for the paper's goals only.
+        follow_lanes: the following goals sit on the ego's lane and this many lanes either side.
+    """
+
+    kind: ClassVar[str] = "cruise"
+    v_cruise: float = 15.0
+    follow_speeds: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0)
+    follow_lanes: int = 1
+
+    def __post_init__(self) -> None:
+        _positive("objective cruise", v_cruise=self.v_cruise)
+        _speeds("objective cruise", "follow_speeds", self.follow_speeds)
+        _require(isinstance(self.follow_lanes, int) and self.follow_lanes >= 0,
+                 f"objective cruise: `follow_lanes` must be an int >= 0; got {self.follow_lanes!r}")
+
+    @property
+    def top_speed(self) -> float:
+        """Highest speed the objective asks for [m/s]."""
+        return self.v_cruise
+
+    def goal_sampler(self, road: Road, horizon: float) -> GoalSampler:
+        lanes = CruiseGoals(v_cruise=self.v_cruise, horizon=horizon, num_goals=road.num_lanes)
+        if not self.follow_speeds:
+            return lanes
+        return FollowingGoals(lanes, speeds=self.follow_speeds, horizon=horizon, lanes_around=self.follow_lanes)
+
+    def meta_cost(self) -> MetaCost:
+        return CruiseCost(self.v_cruise)
+
+
+@dataclass(frozen=True)
+class HighSpeedObjective:
+    """High speed near the right lane (the authors' goal layout, :class:`mmpc.HighSpeedGoals`,
+    plus car-following goals); meta cost ``sum_t w_speed (v - v_max)^2 + w_lane (y - y_right)^2``.
+
+    Attributes:
+        v_max: desired top speed [m/s].
+        w_speed: weight of the speed term [s^2/m^2].
+        w_lane: weight of the right-lane term [1/m^2].
+        num_goals: goals of the authors' layout.
+        right_lane_fraction: share of those on the right lane.
+        right_lane_distances: (nearest, farthest) right-lane goal distance ahead [m].
+        other_distance: distance ahead of the goals on the other lanes [m].
+        follow_speeds: average speeds of the car-following goals [m/s].
+        follow_lanes: the following goals sit on the ego's lane and this many lanes either side.
+    """
+
+    kind: ClassVar[str] = "high_speed"
+    v_max: float = 24.0
+    w_speed: float = 1.0
+    w_lane: float = 0.1
+    num_goals: int = 11
+    right_lane_fraction: float = 0.6
+    right_lane_distances: tuple[float, float] = (150.0, 175.0)
+    other_distance: float = 160.0
+    follow_speeds: tuple[float, ...] = (4.0, 8.0, 12.0, 16.0)
+    follow_lanes: int = 1
+
+    def __post_init__(self) -> None:
+        _positive("objective high_speed", v_max=self.v_max, w_speed=self.w_speed, w_lane=self.w_lane)
+        _speeds("objective high_speed", "follow_speeds", self.follow_speeds)
+        _require(isinstance(self.follow_lanes, int) and self.follow_lanes >= 0,
+                 f"objective high_speed: `follow_lanes` must be an int >= 0; got {self.follow_lanes!r}")
+        self._goals_without_follow()  # validates the layout fields
+
+    @property
+    def top_speed(self) -> float:
+        return self.v_max
+
+    def _goals_without_follow(self) -> HighSpeedGoals:
+        return HighSpeedGoals(
+            num_goals=self.num_goals, right_lane_fraction=self.right_lane_fraction,
+            right_lane_distances=self.right_lane_distances, other_distance=self.other_distance,
+        )
+
+    def goal_sampler(self, road: Road, horizon: float) -> GoalSampler:
+        base = self._goals_without_follow()
+        if not self.follow_speeds:
+            return base
+        return FollowingGoals(base, speeds=self.follow_speeds, horizon=horizon, lanes_around=self.follow_lanes)
+
+    def meta_cost(self) -> MetaCost:
+        return HighSpeedCost(self.v_max, self.w_speed, self.w_lane)
+
+
+Objective = Union[CruiseObjective, HighSpeedObjective]
+OBJECTIVES: dict[str, type] = {cls.kind: cls for cls in (CruiseObjective, HighSpeedObjective)}
+
+
+# ----------------------------------------------------------------------------------- traffic
+
+
+@dataclass(frozen=True)
+class IDMTraffic:
+    """highway-env's IDM/MOBIL traffic, optionally slowed down and kept around the ego.
+
+    Attributes:
+        vehicles_count: other vehicles on the road.
+        vehicles_density: highway-env's density factor (spacing at creation is 1/density).
+        target_speeds: (low, high) range the vehicles' desired and initial speeds are drawn
+            from [m/s]; ``None`` keeps highway-env's defaults (21-24 m/s).
+        window: (behind, ahead) [m]: a vehicle farther behind the ego than ``behind`` is moved
+            ahead near ``ahead`` and one farther ahead than ``ahead`` is moved behind, into a
+            free gap of a random lane, so that traffic stays around the ego; ``None`` disables it.
+        initial_clearance: at the start, vehicles within this distance ahead of the ego in its
+            lane (or half of it behind) are moved away [m].
+    """
+
+    kind: ClassVar[str] = "idm"
+    vehicles_count: int = 18
+    vehicles_density: float = 1.5
+    target_speeds: Optional[tuple[float, float]] = (7.0, 12.0)
+    window: Optional[tuple[float, float]] = (60.0, 200.0)
+    initial_clearance: float = 25.0
+
+    def __post_init__(self) -> None:
+        where = "traffic idm"
+        _require(isinstance(self.vehicles_count, int) and self.vehicles_count >= 0,
+                 f"{where}: `vehicles_count` must be an int >= 0; got {self.vehicles_count!r}")
+        _positive(where, vehicles_density=self.vehicles_density, initial_clearance=self.initial_clearance)
+        if self.target_speeds is not None:
+            _require(len(self.target_speeds) == 2 and 0 < self.target_speeds[0] <= self.target_speeds[1],
+                     f"{where}: `target_speeds` must be [low, high] with 0 < low <= high m/s; got {self.target_speeds!r}")
+        if self.window is not None:
+            _require(len(self.window) == 2, f"{where}: `window` must be [behind, ahead] in m; got {self.window!r}")
+            _positive(where, window_behind=self.window[0], window_ahead=self.window[1])
+
+
+@dataclass(frozen=True)
+class ScriptedVehicle:
+    """One vehicle of a hand-built scene, placed relative to the ego at the start.
+
+    Attributes:
+        lane: lane index (0 = leftmost).
+        x: longitudinal offset from the ego [m] (negative: behind).
+        speed: initial and desired speed [m/s].
+        lane_change: whether MOBIL may change its lane.
+    """
+
+    lane: int
+    x: float
+    speed: float
+    lane_change: bool = False
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.lane, int) and self.lane >= 0, f"scripted vehicle: `lane` must be an int >= 0; got {self.lane!r}")
+        _require(isinstance(self.x, (int, float)) and math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
+        _require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
+
+
+@dataclass(frozen=True)
+class ScriptedTraffic:
+    """A hand-built scene: IDM vehicles at given places that keep their speed and lane.
+
+    Attributes:
+        vehicles: the vehicles (YAML: a list of mappings with the :class:`ScriptedVehicle` fields).
+    """
+
+    kind: ClassVar[str] = "scripted"
+    vehicles: tuple[ScriptedVehicle, ...] = ()
+
+
+@dataclass(frozen=True)
+class NGSIMTraffic:
+    """Recorded vehicles from an NGSIM trajectory CSV replayed around the ego (not reactive).
+
+    Attributes:
+        path: the CSV (US-101 / I-80 format, feet); relative paths are taken from the working
+            directory.
+        location: keep only rows whose ``Location`` column equals this (the combined data.gov
+            file holds several sites); ``None`` keeps all.
+        start_time: replay start, seconds after the recording's first frame [s].
+        ego_position: where the ego starts along the section (``Local_Y``) [m].
+        lane_width_ft: NGSIM lane width; lateral positions are scaled so that NGSIM lane k
+            (1 = leftmost) lies on highway-env lane k - 1 [ft].
+        initial_clearance: recorded vehicles within this distance of the ego's start in its
+            lane are left out [m].
+    """
+
+    kind: ClassVar[str] = "ngsim"
+    path: str = ""
+    location: Optional[str] = None
+    start_time: float = 0.0
+    ego_position: float = 100.0
+    lane_width_ft: float = 12.0
+    initial_clearance: float = 15.0
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.path, str) and self.path != "", "traffic ngsim: `path` must name the NGSIM CSV file")
+        _require(self.start_time >= 0, f"traffic ngsim: `start_time` must be >= 0 s; got {self.start_time!r}")
+        _positive("traffic ngsim", lane_width_ft=self.lane_width_ft, initial_clearance=self.initial_clearance)
+        _require(math.isfinite(self.ego_position), f"traffic ngsim: `ego_position` must be finite; got {self.ego_position!r}")
+
+
+Traffic = Union[IDMTraffic, ScriptedTraffic, NGSIMTraffic]
+TRAFFIC: dict[str, type] = {cls.kind: cls for cls in (IDMTraffic, ScriptedTraffic, NGSIMTraffic)}
+
+
+# ----------------------------------------------------------------------------------- scenario
+
+
+@dataclass(frozen=True)
+class EgoConfig:
+    """The controlled vehicle at the start.
+
+    Attributes:
+        speed: initial speed [m/s].
+        lane: initial lane (0 = leftmost); ``None`` draws it from the episode's seed.
+    """
+
+    speed: float = 14.0
+    lane: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"ego: `speed` must be >= 0 m/s; got {self.speed!r}")
+        _require(self.lane is None or (isinstance(self.lane, int) and self.lane >= 0),
+                 f"ego: `lane` must be null or an int >= 0; got {self.lane!r}")
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """One closed-loop scenario. Defaults: the paper's cruise scenario in dense slow traffic.
+
+    Attributes:
+        name: short name (output folders, tables).
+        objective: what the ego wants (goal sampler + meta cost).
+        lanes: number of lanes (4 m wide; lane 0 leftmost).
+        duration: episode length [s].
+        frequency: MPC rate = simulation rate [Hz]; highway-env applies an action only on the
+            first frame of a step, so the two are equal and the MPC commands every frame.
+        seeds: evaluation seeds.
+        env_id: highway-env environment (``highway-v0`` checks collisions between all vehicles).
+        ego: the controlled vehicle at the start.
+        traffic: the other vehicles.
+        optimizer: batch optimizer settings.
+        mpc: receding-horizon settings; ``control_period`` must be ``1 / frequency``.
+    """
+
+    name: str = "cruise"
+    objective: Objective = field(default_factory=CruiseObjective)
+    lanes: int = 6
+    duration: float = 40.0
+    frequency: float = 10.0
+    seeds: tuple[int, ...] = tuple(range(20))
+    env_id: str = "highway-v0"
+    ego: EgoConfig = field(default_factory=EgoConfig)
+    traffic: Traffic = field(default_factory=IDMTraffic)
+    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
+    mpc: MPCConfig = field(default_factory=MPCConfig)
+
+    def __post_init__(self) -> None:
+        where = f"scenario {self.name!r}"
+        _require(isinstance(self.objective, tuple(OBJECTIVES.values())), f"{where}: `objective` must be one of {sorted(OBJECTIVES)}")
+        _require(isinstance(self.traffic, tuple(TRAFFIC.values())), f"{where}: `traffic` must be one of {sorted(TRAFFIC)}")
+        _require(isinstance(self.lanes, int) and self.lanes >= 1, f"{where}: `lanes` must be an int >= 1; got {self.lanes!r}")
+        _positive(where, duration=self.duration, frequency=self.frequency)
+        _require(isinstance(self.seeds, tuple) and len(self.seeds) > 0 and all(isinstance(s, int) and s >= 0 for s in self.seeds),
+                 f"{where}: `seeds` must be a non-empty list of ints >= 0; got {self.seeds!r}")
+        _require(self.ego.lane is None or self.ego.lane < self.lanes,
+                 f"{where}: `ego.lane` must be < lanes={self.lanes}; got {self.ego.lane}")
+        if isinstance(self.traffic, ScriptedTraffic):
+            for vehicle in self.traffic.vehicles:
+                _require(vehicle.lane < self.lanes, f"{where}: scripted vehicle lane {vehicle.lane} must be < lanes={self.lanes}")
+        _require(
+            math.isclose(self.mpc.control_period, 1.0 / self.frequency),
+            f"{where}: `mpc.control_period` must equal 1 / frequency = {1.0 / self.frequency} s; got {self.mpc.control_period}",
+        )
+        _require(
+            self.optimizer.v_max >= self.objective.top_speed,
+            f"{where}: `optimizer.v_max` ({self.optimizer.v_max} m/s) must be >= the objective's speed "
+            f"({self.objective.top_speed} m/s)",
+        )
+        _require(
+            self.mpc.num_obstacles <= self.optimizer.max_obstacles,
+            f"{where}: `mpc.num_obstacles` ({self.mpc.num_obstacles}) must be <= `optimizer.max_obstacles` "
+            f"({self.optimizer.max_obstacles})",
+        )
+
+    @property
+    def road(self) -> Road:
+        """The road the goals and meta cost refer to (4 m lanes, highway-env's layout)."""
+        return Road(num_lanes=self.lanes)
+
+    def replace(self, **changes: Any) -> "ScenarioConfig":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any], *, where: str = "scenario") -> "ScenarioConfig":
+        """Build from parsed YAML; unknown keys in any section raise ``ValueError``."""
+        if not isinstance(values, Mapping):
+            raise TypeError(f"{where} must be a mapping; got {type(values).__name__}")
+        values = dict(values)
+        frequency = values.get("frequency", cls.frequency)
+        if "objective" in values:
+            values["objective"] = _variant(OBJECTIVES, values["objective"], f"{where}: objective")
+        if "traffic" in values:
+            values["traffic"] = _variant(TRAFFIC, values["traffic"], f"{where}: traffic")
+        if "ego" in values:
+            values["ego"] = dataclass_from_dict(EgoConfig, values["ego"] or {}, where=f"{where}: ego")
+        if "optimizer" in values:
+            values["optimizer"] = dataclass_from_dict(OptimizerConfig, values["optimizer"] or {}, where=f"{where}: optimizer")
+        mpc = dict(values.get("mpc") or {})
+        mpc.setdefault("control_period", 1.0 / frequency)
+        values["mpc"] = dataclass_from_dict(MPCConfig, mpc, where=f"{where}: mpc")
+        if "seeds" in values:
+            values["seeds"] = _as_tuple(values["seeds"])
+        return dataclass_from_dict(cls, values, where=where)
+
+
+def _as_tuple(value: Any) -> Any:
+    return tuple(value) if isinstance(value, list) else value
+
+
+def _variant(registry: Mapping[str, type], values: Any, where: str) -> Any:
+    """Build the dataclass named by ``values['type']`` from the other keys."""
+    if not isinstance(values, Mapping) or "type" not in values:
+        raise ValueError(f"{where} must be a mapping with a `type` key, one of {sorted(registry)}; got {values!r}")
+    values = dict(values)
+    kind = values.pop("type")
+    if kind not in registry:
+        raise ValueError(f"{where}: unknown type {kind!r}; expected one of {sorted(registry)}")
+    cls = registry[kind]
+    if cls is ScriptedTraffic and "vehicles" in values:
+        values["vehicles"] = tuple(
+            dataclass_from_dict(ScriptedVehicle, v, where=f"{where}: vehicles[{i}]") for i, v in enumerate(values["vehicles"] or [])
+        )
+    values = {key: _as_tuple(value) for key, value in values.items()}
+    return dataclass_from_dict(cls, values, where=f"{where} {kind}")
+
+
+def load_scenario(name_or_path: str | Path) -> ScenarioConfig:
+    """Load ``configs/scenarios/<name>.yaml`` or a YAML file at a path.
+
+    Raises:
+        FileNotFoundError: neither a shipped scenario nor an existing file; the message lists
+            the shipped names.
+        ValueError: an invalid or unknown key.
+    """
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = SCENARIO_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        shipped = sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml")) if SCENARIO_DIR.is_dir() else []
+        raise FileNotFoundError(f"scenario {str(name_or_path)!r}: no file {path}; shipped scenarios: {shipped}")
+    with open(path, encoding="utf-8") as handle:
+        values = yaml.safe_load(handle) or {}
+    return ScenarioConfig.from_dict(values, where=f"scenario {path}")
