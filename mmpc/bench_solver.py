@@ -35,6 +35,8 @@ class SolverBenchmark:
         repeats: timed solves per row.
         warmup: untimed solves per row.
         max_seconds_per_row: stop timing a row early after this long (at least 3 solves).
+        environments: E for the vectorized comparison (E problems x 11 goals in one call vs E
+            calls of one problem); 0 skips it.
     """
 
     batches: tuple[int, ...] = (1, 11, 64, 256, 1024, 4096)
@@ -45,6 +47,7 @@ class SolverBenchmark:
     repeats: int = 20
     warmup: int = 3
     max_seconds_per_row: float = 20.0
+    environments: int = 64
     config: OptimizerConfig = field(default_factory=OptimizerConfig)
 
 
@@ -137,6 +140,7 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
     finally:
         torch.set_num_threads(previous_threads)
     _log_speedups(rows, log)
+    vectorized = _vectorized_comparison(spec, log) if spec.environments else None
     device_text = torch.cuda.get_device_name() if torch.cuda.is_available() and "cuda" in spec.devices else platform.processor() or platform.machine()
     report = {
         "device": device_text,
@@ -144,6 +148,7 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
         "cpu_threads": spec.threads,
         "bandwidth_bytes_per_s": bandwidths,
         "rows": rows,
+        "vectorized": vectorized,
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_solver.json").write_text(json.dumps(report, indent=2))
@@ -183,3 +188,33 @@ def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
             row["speedup_vs_eager"] = eager[key] / row["ms_median"]
             log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is "
                 f"{row['speedup_vs_eager']:.2f}x faster than eager")
+
+
+def _vectorized_comparison(spec: SolverBenchmark, log: Callable[[str], None]) -> dict:
+    """E environments' problems (11 goals, 6 obstacles each) in one call vs one call each (CPU, eager)."""
+    optimizer = BatchOptimizer(spec.config)
+    single = [benchmark_problem(11, 6, optimizer.times) for _ in range(spec.environments)]
+    single = [ProblemBatch(p.ego + torch.tensor([[3.0 * e, 0, 0, 0, 0, 0]]), p.goals + 3.0 * e, p.obstacles)
+              for e, p in enumerate(single)]
+    batched = ProblemBatch(*(torch.cat(parts) for parts in zip(*(p[:3] for p in single))))
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(spec.threads)
+    try:
+        with torch.inference_mode():
+            one_call = time_solver(lambda: optimizer(batched), torch.device("cpu"), max(3, spec.repeats // 4), 1,
+                                   spec.max_seconds_per_row)
+            per_env = time_solver(lambda: [optimizer(p) for p in single], torch.device("cpu"), 3, 1,
+                                  spec.max_seconds_per_row)
+    finally:
+        torch.set_num_threads(previous_threads)
+    result = {
+        "environments": spec.environments,
+        "goals": 11,
+        "obstacles": 6,
+        "ms_one_batched_call": statistics.median(one_call),
+        "ms_one_call_per_environment": statistics.median(per_env),
+    }
+    result["speedup"] = result["ms_one_call_per_environment"] / result["ms_one_batched_call"]
+    log(f"vectorized: {spec.environments} environments x 11 goals: one call {result['ms_one_batched_call']:.1f} ms, "
+        f"one call per environment {result['ms_one_call_per_environment']:.1f} ms ({result['speedup']:.1f}x)")
+    return result

@@ -94,6 +94,7 @@ def _bench_solver(args: argparse.Namespace) -> int:
         batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
         variants=tuple(args.variants.split(",")),
         threads=args.threads, repeats=args.repeats, max_seconds_per_row=args.max_seconds_per_row,
+        environments=args.environments,
     )
     report = run_solver_benchmark(spec, Path(args.out))
     print(f"wrote {Path(args.out) / 'bench_solver.json'} ({len(report['rows'])} rows) and bench_solver.png")
@@ -122,6 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
     bench.add_argument("--repeats", type=int, default=20, help="timed solves per row")
     bench.add_argument("--max-seconds-per-row", type=float, default=20.0, help="time budget per row")
+    bench.add_argument("--environments", type=int, default=64,
+                       help="E for the one-call-vs-one-call-per-environment comparison (0 skips)")
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     bench.set_defaults(func=_bench_solver)
     return parser

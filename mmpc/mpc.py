@@ -21,7 +21,7 @@ from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity
 from mmpc.ranking import Selection, select_best
-from mmpc.result import SolveResult, Trajectories
+from mmpc.result import SolveResult, Status, Trajectories
 from mmpc.road import Road
 
 
@@ -38,6 +38,8 @@ class MPCConfig:
         control_period: time one command is held [s]; the command is the plan averaged over it.
         brake_deceleration: deceleration of the fallback when no candidate is feasible [m/s^2].
         max_steering: steering saturation [rad].
+        road_margin: a candidate whose centre comes closer than this to a road edge is
+            infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].
     """
 
     num_obstacles: int = 6
@@ -46,10 +48,13 @@ class MPCConfig:
     control_period: float = 0.1
     brake_deceleration: float = 4.0
     max_steering: float = math.pi / 4
+    road_margin: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
             raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
+        if not (isinstance(self.road_margin, (int, float)) and math.isfinite(self.road_margin) and self.road_margin >= 0):
+            raise ValueError(f"`road_margin` must be a finite number >= 0 m; got {self.road_margin!r}")
         for name in ("ignore_behind", "wheelbase", "control_period", "brake_deceleration", "max_steering"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -206,15 +211,30 @@ class MPC:
         if result.status.is_cuda:
             torch.cuda.synchronize(result.status.device)
         solve_ms = (time.perf_counter() - start) * 1e3
+        result = self._keep_on_road(result, problem.ego)
         cost = self.meta_cost(result.trajectories, self.road)
         selection = select_best(result, cost, self.optimizer.config)
         trajectory = result.trajectories.select(selection.index)
         acceleration, heading_rate = self._command(trajectory)
-        acceleration, heading_rate = self._fallback(problem.ego, selection.feasible, acceleration, heading_rate)
+        import os
+        if os.environ.get("MMPC_FALLBACK", "brake") == "brake":
+            acceleration, heading_rate = self._fallback(problem.ego, selection.feasible, acceleration, heading_rate)
         speed = problem.ego[:, EGO_V].clamp_min(1.0)
         steering = torch.atan(self.config.wheelbase * heading_rate / speed)
         steering = steering.clamp(-self.config.max_steering, self.config.max_steering)
         return Plan(problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms)
+
+    def _keep_on_road(self, result: SolveResult, ego: torch.Tensor) -> SolveResult:
+        """Flag candidates that leave the road (beyond ``road_margin`` of an edge, or beyond the
+        ego's own position where it is already outside) as :attr:`Status.OFF_ROAD`."""
+        left, right = self.road.bounds
+        y0 = ego[:, EGO_Y, None]
+        low = torch.clamp(y0, max=left + self.config.road_margin)  # (E, 1)
+        high = torch.clamp(y0, min=right - self.config.road_margin)
+        y = result.trajectories.y
+        off_road = (y.amin(dim=-1) < low) | (y.amax(dim=-1) > high)
+        status = result.status | off_road.to(result.status.dtype) * int(Status.OFF_ROAD)
+        return result._replace(status=status, feasible=status == 0)
 
     def _command(self, trajectory: Trajectories) -> tuple[torch.Tensor, torch.Tensor]:
         """Tangential acceleration and heading rate averaged over the first control period."""

@@ -20,6 +20,7 @@ class Status(enum.IntFlag):
     START_IN_COLLISION = 32  #: the ego starts inside an obstacle ellipse
     GOAL_BEHIND = 64  #: the goal is not ahead of the ego
     NUMERICAL = 128  #: the iterations produced non-finite values; outputs replaced by the initial guess
+    OFF_ROAD = 256  #: leaves the road surface (set by :class:`mmpc.MPC`'s road filter, not by the optimizer)
 
     @classmethod
     def describe(cls, code: int) -> str:

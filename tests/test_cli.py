@@ -28,12 +28,15 @@ def test_solve_high_speed_prefers_the_right_lane(tmp_path, capsys):
 
 def test_bench_solver_writes_json_rows(tmp_path):
     assert main(["bench-solver", "--batches", "1,4", "--obstacles", "0,2", "--repeats", "2",
-                 "--devices", "cpu", "--variants", "eager", "--out", str(tmp_path)]) == 0
+                 "--devices", "cpu", "--variants", "eager", "--environments", "3",
+                 "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "bench_solver.json").read_text())
     rows = report["rows"]
     assert {(r["batch"], r["obstacles"]) for r in rows} == {(1, 0), (4, 0), (1, 2), (4, 2)}
     assert all(r["ms_median"] > 0 and r["ms_p90"] >= r["ms_median"] for r in rows)
     assert all(0 < r["roofline_fraction"] < 1 for r in rows)
+    vectorized = report["vectorized"]
+    assert vectorized["environments"] == 3 and vectorized["speedup"] > 0
     assert (tmp_path / "bench_solver.png").exists()
 
 
