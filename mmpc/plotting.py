@@ -17,6 +17,16 @@ from mmpc.result import SolveResult  # noqa: E402
 from mmpc.road import Road  # noqa: E402
 
 
+def save_figure(fig: plt.Figure, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` (folders created) and close it."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def plot_candidates(
     path: str | Path,
     problem: ProblemBatch,
@@ -73,12 +83,7 @@ def plot_candidates(
     ax.set_ylabel("y [m]")
     ax.set_title(title or "candidate trajectories (obstacles: filled at t=0, dashed at t_f)")
     ax.legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_scaling(path: str | Path, rows: Sequence[dict], title: str = "") -> Path:
@@ -86,8 +91,8 @@ def plot_scaling(path: str | Path, rows: Sequence[dict], title: str = "") -> Pat
     fig, ax = plt.subplots(figsize=(6, 4))
     keys = sorted({(r["device"], r.get("variant", ""), r["obstacles"]) for r in rows})
     for device, variant, obstacles in keys:
-        sel = sorted((r for r in rows if (r["device"], r.get("variant", ""), r["obstacles"]) == (device, variant, obstacles)),
-                     key=lambda r: r["batch"])
+        key = (device, variant, obstacles)
+        sel = sorted((r for r in rows if (r["device"], r.get("variant", ""), r["obstacles"]) == key), key=lambda r: r["batch"])
         label = f"{device} {variant} M={obstacles}".replace("  ", " ")
         ax.plot([r["batch"] for r in sel], [r["ms_median"] for r in sel], marker="o", label=label)
     ax.set_xscale("log")
@@ -97,9 +102,4 @@ def plot_scaling(path: str | Path, rows: Sequence[dict], title: str = "") -> Pat
     ax.set_title(title or "batch optimizer: computation time vs batch size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
