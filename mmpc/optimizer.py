@@ -135,7 +135,7 @@ class BatchOptimizer(nn.Module):
             self.chunk = min(_COMPILED_CHUNK, self.config.iterations)
             # On CUDA "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
             mode = "reduce-overhead" if torch.device(device or "cpu").type == "cuda" else None
-            self._iterate = torch.compile(_iterate, fullgraph=True, dynamic=False, mode=mode)
+            self._iterate = torch.compile(_iterate, fullgraph=True, mode=mode)
         else:
             self.chunk = self.config.iterations
             self._iterate = _iterate
