@@ -136,6 +136,7 @@ class BatchOptimizer(nn.Module):
             # On CUDA "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
             mode = "reduce-overhead" if torch.device(device or "cpu").type == "cuda" else None
             self._iterate = torch.compile(_iterate, fullgraph=True, mode=mode)
+            logger.info("BatchOptimizer: iterations compiled in chunks of %d (mode=%s)", self.chunk, mode)
         else:
             self.chunk = self.config.iterations
             self._iterate = _iterate
