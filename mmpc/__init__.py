@@ -2,8 +2,9 @@
 
 from mmpc.basis import Basis, bernstein_basis
 from mmpc.config import OptimizerConfig
-from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals
+from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
+from mmpc.mpc import MPC, MPCConfig, Plan
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state, predict_constant_velocity
 from mmpc.ranking import Selection, constraint_violation, select_best
@@ -20,6 +21,10 @@ __all__ = [
     "HighSpeedCost",
     "HighSpeedGoals",
     "MetaCost",
+    "MPC",
+    "MPCConfig",
+    "NearLaneGoals",
+    "Plan",
     "Road",
     "Selection",
     "constraint_violation",

@@ -1,8 +1,9 @@
-"""The ``mmpc`` command line: ``mmpc solve``, ``mmpc bench-solver``."""
+"""The ``mmpc`` command line: ``mmpc solve``, ``mmpc bench-solver``, ``mmpc drive``."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -31,6 +32,20 @@ def _int_list(text: str) -> tuple[int, ...]:
     if not values or min(values) < 0:
         raise argparse.ArgumentTypeError(f"expected non-negative integers; got {text!r}")
     return values
+
+
+def _seed_list(text: str) -> tuple[int, ...]:
+    """``"0-19"``, ``"0,3,7"`` or a mix (``"0-4,9"``) -> seeds."""
+    seeds: list[int] = []
+    try:
+        for part in (p for p in text.split(",") if p):
+            low, _, high = part.partition("-")
+            seeds.extend(range(int(low), int(high) + 1) if high else [int(low)])
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"expected seeds like 0-19 or 0,3,7; got {text!r}") from error
+    if not seeds or min(seeds) < 0:
+        raise argparse.ArgumentTypeError(f"expected non-negative seeds like 0-19 or 0,3,7; got {text!r}")
+    return tuple(dict.fromkeys(seeds))
 
 
 def _solve(args: argparse.Namespace) -> int:
@@ -101,6 +116,59 @@ def _bench_solver(args: argparse.Namespace) -> int:
     return 0
 
 
+def _drive(args: argparse.Namespace) -> int:
+    """One episode (video, table, outputs) or, with --seeds, an evaluation over seeds."""
+    from tqdm import tqdm
+
+    from mmpc.scenario import IDMTraffic, load_scenario  # highway-env is imported only for this command
+
+    torch.set_num_threads(args.threads)
+    scenarios = []
+    for name in args.scenario.split(","):
+        scenario = load_scenario(name)
+        if args.duration is not None:
+            scenario = scenario.replace(duration=args.duration)
+        if args.default_traffic:
+            if not isinstance(scenario.traffic, IDMTraffic):
+                print(f"mmpc drive: error: --default-traffic needs IDM traffic; scenario {scenario.name!r} has "
+                      f"{type(scenario.traffic).__name__}", file=sys.stderr)
+                return 2
+            traffic = dataclasses.replace(scenario.traffic, target_speeds=None)
+            scenario = scenario.replace(name=f"{scenario.name}_default_traffic", traffic=traffic)
+        scenarios.append(scenario)
+    out = Path(args.out)
+    if args.seeds is not None:
+        from mmpc.evaluate import evaluate, format_table
+
+        episodes = len(scenarios) * len(args.seeds)
+        with tqdm(total=episodes, desc="episodes", unit="ep") as bar:
+            def progress(row: dict) -> None:
+                bar.update(1)
+                bar.set_postfix_str(f"{row['scenario']} seed {row['seed']}: collisions {row['collisions']}")
+
+            _, summary = evaluate(scenarios, args.seeds, out, workers=args.workers, threads=args.threads, on_episode=progress)
+        print(format_table(summary))
+        print(f"wrote {out / 'summary.json'} and one folder per episode under {out}")
+        return 0
+    if len(scenarios) != 1:
+        print("mmpc drive: error: several scenarios need --seeds", file=sys.stderr)
+        return 2
+    from mmpc.drive import run_episode, write_outputs
+
+    scenario = scenarios[0]
+    seed = scenario.seeds[0] if args.seed is None else args.seed
+    video = None if args.no_video else out / "episode.mp4"
+    steps = round(scenario.duration * scenario.frequency)
+    with tqdm(total=steps, desc=f"{scenario.name} seed {seed}", unit="step") as bar:
+        result = run_episode(scenario, seed, video=video, on_step=lambda record: bar.update(1))
+    paths = write_outputs(result, out)
+    width = max(map(len, result.metrics))
+    for key, value in result.metrics.items():
+        print(f"{key:<{width}}  {value:.3f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+    print("wrote " + ", ".join(str(p) for p in paths + ([video] if video else [])))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mmpc", description="Multi-modal MPC by batch non-holonomic trajectory optimization.")
     parser.add_argument("--log-level", default="WARNING", help="logging level of the library (default WARNING)")
@@ -127,6 +195,23 @@ def build_parser() -> argparse.ArgumentParser:
                        help="E for the one-call-vs-one-call-per-environment comparison (0 skips)")
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     bench.set_defaults(func=_bench_solver)
+
+    drive = sub.add_parser("drive", help="closed-loop highway-env episode: metrics, steps.csv, video, top-down plot")
+    drive.add_argument("--scenario", default="cruise",
+                       help="name in configs/scenarios (cruise, high_speed, ...) or a YAML path; "
+                            "comma-separated with --seeds (default cruise)")
+    drive.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's first seed)")
+    drive.add_argument("--seeds", type=_seed_list, default=None,
+                       help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "
+                            "a video only for episodes with a collision")
+    drive.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
+    drive.add_argument("--default-traffic", action="store_true",
+                       help="highway-env's own traffic speeds (21-24 m/s) instead of the scenario's: the harder setting")
+    drive.add_argument("--no-video", action="store_true", help="skip episode.mp4 (single episode)")
+    drive.add_argument("--workers", type=int, default=1, help="parallel episodes with --seeds (default 1)")
+    drive.add_argument("--threads", type=int, default=1, help="torch threads per episode (default 1)")
+    drive.add_argument("--out", default="runs/drive", help="output folder (default runs/drive)")
+    drive.set_defaults(func=_drive)
     return parser
 
 
@@ -135,6 +220,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
     if getattr(args, "goals", 1) < 1:
         print("mmpc: error: --goals must be >= 1", file=sys.stderr)
+        return 2
+    for name in ("workers", "threads"):
+        if getattr(args, name, 1) < 1:
+            print(f"mmpc: error: --{name} must be >= 1", file=sys.stderr)
+            return 2
+    if getattr(args, "duration", None) is not None and not args.duration > 0:
+        print("mmpc: error: --duration must be > 0 s", file=sys.stderr)
         return 2
     return int(args.func(args))
 

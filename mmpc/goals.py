@@ -7,7 +7,7 @@ A goal sampler is any callable ``sampler(ego, road) -> goals`` with ``ego`` (E, 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Optional, Protocol
 
 import torch
 
@@ -100,47 +100,53 @@ class HighSpeedGoals:
 
 
 @dataclass(frozen=True)
-class FollowingGoals:
-    """Goals of ``base`` plus slower goals on the lanes around the ego, so that following a
-    slower car stays feasible when every goal of ``base`` is blocked.
+class NearLaneGoals:
+    """Goals of ``base`` plus goals on the lanes around the ego at several average speeds.
 
-    The paper's goals all lie ``v_ref * horizon`` ahead; behind a slower car with the
-    neighbouring lanes occupied none of them is reachable and the MPC could only fall back to
-    braking. These extra goals sit on the centre of the ego's nearest lane and of the
-    ``lanes_around`` lanes either side (clamped to the road, so edge lanes repeat a lane), at
+    The paper's goals all lie a fixed distance ahead (``v_ref * horizon``, or 150-175 m for high
+    speed, where the authors' layout also leaves a lane without goals). Behind a slower car with
+    the neighbouring lanes occupied none of them is reachable, and the MPC could only fall back.
+    These extra goals sit on the centre of the ego's nearest lane and of the ``lanes_around``
+    lanes either side (clamped to the road, so edge lanes repeat a lane), at
     ``x0 + s * horizon`` for every average speed ``s`` in ``speeds``. The end speed is free, so a
-    goal short of the leader's predicted position yields a following trajectory; the meta cost
+    goal short of a leader's predicted position yields a car-following trajectory; the meta cost
     still prefers the fastest feasible goal.
 
     Attributes:
         base: the sampler whose goals come first (G0 goals).
         speeds: average speeds of the extra goals [m/s].
         horizon: planning horizon t_f [s].
-        lanes_around: lanes either side of the ego's lane that also get the extra goals.
+        lanes_around: lanes either side of the ego's lane that also get the extra goals;
+            ``None``: every lane of the road.
 
     Shapes:
-        returns (E, G0 + len(speeds) * (2 lanes_around + 1), 2).
+        returns (E, G0 + len(speeds) * L, 2) with L = 2 lanes_around + 1, or the road's lane
+        count when ``lanes_around`` is ``None``.
     """
 
     base: GoalSampler
     speeds: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0)
     horizon: float = 8.0
-    lanes_around: int = 1
+    lanes_around: Optional[int] = 1
 
     def __post_init__(self) -> None:
         if not self.speeds or any(not s > 0 for s in self.speeds):
             raise ValueError(f"`speeds` must be a non-empty sequence of speeds > 0 m/s; got {self.speeds!r}")
         if not self.horizon > 0:
             raise ValueError(f"`horizon` must be > 0 s; got {self.horizon}")
-        _validate_count("lanes_around", self.lanes_around, minimum=0)
+        if self.lanes_around is not None:
+            _validate_count("lanes_around", self.lanes_around, minimum=0)
 
     def __call__(self, ego: torch.Tensor, road: Road) -> torch.Tensor:
         kw = dict(dtype=ego.dtype, device=ego.device)
-        offsets = torch.arange(-self.lanes_around, self.lanes_around + 1, device=ego.device)
-        lanes = (road.lane_index(ego[:, EGO_Y])[:, None] + offsets).clamp(0, road.num_lanes - 1)  # (E, 2k+1)
-        lane_y = lanes.to(ego.dtype) * road.lane_width
+        if self.lanes_around is None:
+            lane_y = road.lane_centers(**kw).expand(ego.shape[0], -1)  # (E, L)
+        else:
+            offsets = torch.arange(-self.lanes_around, self.lanes_around + 1, device=ego.device)
+            lanes = (road.lane_index(ego[:, EGO_Y])[:, None] + offsets).clamp(0, road.num_lanes - 1)  # (E, L)
+            lane_y = lanes.to(ego.dtype) * road.lane_width
         ahead = torch.tensor(self.speeds, **kw) * self.horizon  # (S,)
         x = ego[:, EGO_X, None, None] + ahead[None, None, :]  # (E, 1, S)
-        y = lane_y[:, :, None]  # (E, 2k+1, 1)
-        extra = torch.stack(torch.broadcast_tensors(x, y), dim=-1).flatten(1, 2)  # (E, (2k+1) S, 2)
+        y = lane_y[:, :, None]  # (E, L, 1)
+        extra = torch.stack(torch.broadcast_tensors(x, y), dim=-1).flatten(1, 2)  # (E, L S, 2)
         return torch.cat([self.base(ego, road), extra], dim=1)

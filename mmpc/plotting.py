@@ -1,4 +1,4 @@
-"""Figures: candidate trajectories of one solve, solver scaling."""
+"""Figures: candidate trajectories of one solve, solver scaling, a closed-loop episode."""
 
 from __future__ import annotations
 
@@ -103,3 +103,57 @@ def plot_scaling(path: str | Path, rows: Sequence[dict], title: str = "") -> Pat
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return save_figure(fig, path)
+
+
+def plot_episode(path: str | Path, records: Sequence, road: Road, *, v_ref: Optional[float] = None, title: str = "") -> Path:
+    """Top-down view of a closed-loop episode and its speed and lane over time.
+
+    Args:
+        path: output image.
+        records: :class:`mmpc.metrics.StepRecord` rows, in order.
+        road: the road (lanes are drawn).
+        v_ref: the objective's reference speed [m/s], drawn as a dashed line.
+        title: figure title.
+    """
+    x = [r.x for r in records]
+    y = [r.y for r in records]
+    t = [r.time for r in records]
+    v = [r.v for r in records]
+    low, high = road.bounds
+    fig, (top, speed, lateral) = plt.subplots(3, 1, figsize=(12, 7.5), gridspec_kw={"height_ratios": [1.3, 1, 1]})
+    top.axhspan(low, high, color="0.93", zorder=0)
+    for k in range(road.num_lanes + 1):
+        top.axhline(low + k * road.lane_width, color="0.6", lw=1, ls="-" if k in (0, road.num_lanes) else "--", zorder=1)
+    path_plot = top.scatter(x, y, c=v, s=4, cmap="viridis", zorder=3)
+    fig.colorbar(path_plot, ax=top, label="speed [m/s]", pad=0.01)
+    crashed = [r for r in records if r.crashed]
+    if crashed:
+        top.plot(crashed[0].x, crashed[0].y, "x", color="crimson", ms=12, mew=3, zorder=5, label="collision")
+        top.legend(loc="upper left", fontsize=8)
+    fallback = [r for r in records if r.fallback]
+    if fallback:
+        top.plot([r.x for r in fallback], [r.y for r in fallback], ".", color="orange", ms=4, zorder=4, label="no feasible candidate")
+        top.legend(loc="upper left", fontsize=8)
+    top.set_ylim(high + 1, low - 1)  # lane 0 (left) on top, as highway-env draws it
+    top.set_xlabel("x along the road [m]")
+    top.set_ylabel("y [m]")
+    top.set_title(title or "closed-loop episode")
+    speed.plot(t, v, color="tab:blue", label="speed")
+    if v_ref is not None:
+        speed.axhline(v_ref, color="0.3", ls="--", lw=1, label=f"reference {v_ref:g} m/s")
+    speed.set_ylabel("v [m/s]")
+    speed.legend(loc="lower right", fontsize=8)
+    speed.grid(alpha=0.3)
+    lateral.plot(t, y, color="tab:green")
+    for k in range(road.num_lanes):
+        lateral.axhline(k * road.lane_width, color="0.8", lw=0.8, zorder=0)
+    lateral.set_ylim(high, low)
+    lateral.set_xlabel("time [s]")
+    lateral.set_ylabel("y [m]")
+    lateral.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

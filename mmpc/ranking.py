@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import torch
 
@@ -42,23 +42,32 @@ def constraint_violation(result: SolveResult, config: OptimizerConfig) -> torch.
     return 10.0 * penetration + acceleration + nonholonomic / max(config.v_max, 1.0) + heading
 
 
-def select_best(result: SolveResult, cost: torch.Tensor, config: OptimizerConfig) -> Selection:
+def select_best(
+    result: SolveResult, cost: torch.Tensor, config: OptimizerConfig, *, violation: Optional[torch.Tensor] = None
+) -> Selection:
     """Best element of every problem: the feasible one with the lowest ``cost``; when a problem
-    has none feasible, the one with the smallest :func:`constraint_violation` (flagged).
+    has none feasible, the one with the smallest violation (flagged).
 
     Args:
         result: the solve of E problems with G goals each.
         cost: (E, G) meta cost, lower is better; NaN counts as +inf.
         config: the optimizer's config (bounds for the violation measure).
+        violation: (E, G) how far each element is from feasible; default
+            :func:`constraint_violation` (a caller that adds constraints of its own adds their
+            violation to it).
     """
     if cost.shape != result.feasible.shape:
         raise ValueError(f"`cost` must have shape {tuple(result.feasible.shape)}; got {tuple(cost.shape)}")
+    if violation is None:
+        violation = constraint_violation(result, config)
+    elif violation.shape != cost.shape:
+        raise ValueError(f"`violation` must have shape {tuple(cost.shape)}; got {tuple(violation.shape)}")
     cost = torch.nan_to_num(cost, nan=float("inf"))
     inf = torch.full((), float("inf"), dtype=cost.dtype, device=cost.device)
     feasible_cost = torch.where(result.feasible, cost, inf)
     best_feasible = feasible_cost.argmin(dim=-1)
     any_feasible = result.feasible.any(dim=-1)
-    least_infeasible = constraint_violation(result, config).argmin(dim=-1)
+    least_infeasible = violation.argmin(dim=-1)
     index = torch.where(any_feasible, best_feasible, least_infeasible)
     rows = torch.arange(cost.shape[0], device=cost.device)
     return Selection(index=index, cost=cost[rows, index], feasible=any_feasible)

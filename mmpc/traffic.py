@@ -114,8 +114,9 @@ class IDMTrafficController:
     def reset(self) -> None:
         rng = self.env.np_random
         ego = self.env.vehicle
-        if self.config.target_speeds is not None:
-            for vehicle in _others(self.env):
+        for vehicle in _others(self.env):
+            vehicle.enable_lane_change = self.config.lane_changes
+            if self.config.target_speeds is not None:
                 vehicle.speed = vehicle.target_speed = float(rng.uniform(*self.config.target_speeds))
         s_ego, lane_ego = self.lanes.along(ego), self.lanes.lane_of(ego)
         clearance = self.config.initial_clearance
@@ -142,7 +143,7 @@ class IDMTrafficController:
 
 class ScriptedTrafficController:
     """A hand-built scene: the scenario's vehicles, placed relative to the ego, keep their
-    speed (IDM) and, unless allowed, their lane."""
+    speed (IDM, or constant) and, unless allowed, their lane."""
 
     def __init__(self, config: ScriptedTraffic, env: AbstractEnv) -> None:
         self.config = config
@@ -156,11 +157,14 @@ class ScriptedTrafficController:
         for spec in self.config.vehicles:
             lane = self.lanes.lane(spec.lane)
             s = s_ego + spec.x
-            vehicle = IDMVehicle(
-                road, lane.position(s, 0.0), lane.heading_at(s), spec.speed,
-                target_lane_index=(*self.lanes.road_id, spec.lane), target_speed=spec.speed,
-                enable_lane_change=spec.lane_change,
-            )
+            if spec.constant_speed:
+                vehicle = Vehicle(road, lane.position(s, 0.0), lane.heading_at(s), spec.speed)
+            else:
+                vehicle = IDMVehicle(
+                    road, lane.position(s, 0.0), lane.heading_at(s), spec.speed,
+                    target_lane_index=(*self.lanes.road_id, spec.lane), target_speed=spec.speed,
+                    enable_lane_change=spec.lane_change,
+                )
             road.vehicles.append(vehicle)
 
     def after_step(self) -> None:

@@ -25,3 +25,13 @@ def small_config(**overrides) -> mmpc.OptimizerConfig:
     values = dict(num_steps=30, order=8, iterations=20, max_obstacles=4)
     values.update(overrides)
     return mmpc.OptimizerConfig(**values)
+
+
+@pytest.fixture
+def one_thread():
+    """Closed-loop tests: one torch thread (the solves are small; two threads thrash on a busy
+    2-core machine)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)

@@ -1,0 +1,116 @@
+"""Per-step records of a closed-loop episode and the paper's episode metrics.
+
+Pure Python over the records; no simulator import. The metrics follow the paper's tables:
+meta cost, linear and angular acceleration, speed (cruise: residual to the cruise speed; high
+speed: mean speed and distance to the right lane), computation time, plus safety counts.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional, Sequence
+
+
+class StepRecord(NamedTuple):
+    """One control step: the state planned from, the plan, and what happened after the frame.
+
+    Fields (road frame; SI units):
+        step: index of the step.
+        time: simulated time of the state [s].
+        x, y: ego position [m].
+        psi: direction of motion [rad].
+        v: speed [m/s].
+        acceleration: acceleration being applied at the state (the previous command) [m/s^2].
+        heading_rate: turn rate being applied at the state [rad/s].
+        lane: nearest lane index (0 = leftmost).
+        command_acceleration: the new command's acceleration [m/s^2].
+        command_steering: the new command's steering angle [rad].
+        goal_index: index of the chosen goal.
+        goal_x, goal_y: the chosen goal [m].
+        feasible_goals: number of feasible candidates.
+        fallback: no candidate was feasible; the least-infeasible one was executed.
+        meta_cost: meta cost of the chosen candidate.
+        solve_ms: wall time of the batch solve [ms].
+        clearance: smallest normalised ellipse distance ``sqrt((dx/a)^2 + (dy/b)^2)`` from the
+            ego to another vehicle (inf without vehicles); < 1 is inside the safety ellipse.
+        crashed: the ego had collided after this step's frame.
+        on_road: the ego was on the road after this step's frame.
+    """
+
+    step: int
+    time: float
+    x: float
+    y: float
+    psi: float
+    v: float
+    acceleration: float
+    heading_rate: float
+    lane: int
+    command_acceleration: float
+    command_steering: float
+    goal_index: int
+    goal_x: float
+    goal_y: float
+    feasible_goals: int
+    fallback: bool
+    meta_cost: float
+    solve_ms: float
+    clearance: float
+    crashed: bool
+    on_road: bool
+
+
+def _mean(values: Sequence[float]) -> float:
+    return sum(values) / len(values) if values else float("nan")
+
+
+def episode_metrics(
+    records: Sequence[StepRecord],
+    *,
+    dt: float,
+    right_lane_y: float,
+    v_cruise: Optional[float] = None,
+) -> dict[str, float | int]:
+    """Metrics of one episode.
+
+    Args:
+        records: the steps, in order (at least one).
+        dt: control period [s], for the angular acceleration.
+        right_lane_y: lateral position of the right lane's centre [m].
+        v_cruise: cruise speed [m/s]; adds ``speed_residual_mean`` when given.
+
+    Returns:
+        ``collisions`` (0 or 1: an episode ends at the first one), ``offroad`` (steps off the
+        road), ``steps``, ``duration`` [s], ``mean_speed`` [m/s], ``meta_cost_mean`` / ``_max``,
+        ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
+        ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
+        [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``,
+        ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``.
+    """
+    if not records:
+        raise ValueError("`records` must hold at least one step")
+    if not dt > 0:
+        raise ValueError(f"`dt` must be > 0 s; got {dt}")
+    speeds = [r.v for r in records]
+    rates = [r.heading_rate for r in records]
+    metrics: dict[str, float | int] = {
+        "collisions": int(any(r.crashed for r in records)),
+        "offroad": sum(not r.on_road for r in records),
+        "steps": len(records),
+        "duration": len(records) * dt,
+        "mean_speed": _mean(speeds),
+        "meta_cost_mean": _mean([r.meta_cost for r in records]),
+        "meta_cost_max": max(r.meta_cost for r in records),
+    }
+    if v_cruise is not None:
+        metrics["speed_residual_mean"] = _mean([(v - v_cruise) ** 2 for v in speeds])
+    metrics.update(
+        right_lane_distance_mean=_mean([abs(r.y - right_lane_y) for r in records]),
+        lin_acc_mean=_mean([abs(r.acceleration) for r in records]),
+        ang_acc_mean=_mean([abs(b - a) / dt for a, b in zip(rates, rates[1:])]) if len(rates) > 1 else 0.0,
+        solve_ms_mean=_mean([r.solve_ms for r in records]),
+        solve_ms_max=max(r.solve_ms for r in records),
+        lane_changes=sum(a.lane != b.lane for a, b in zip(records, records[1:])),
+        fallback_steps=sum(r.fallback for r in records),
+        min_clearance=min(r.clearance for r in records),
+    )
+    return metrics

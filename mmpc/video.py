@@ -1,0 +1,77 @@
+"""Episode video: highway-env's frames with the MPC's candidate trajectories drawn in.
+
+Each frame is highway-env's own rendering of the state the MPC planned from; on top of it go
+every candidate of that plan (feasible: blue, infeasible: grey), the goals (dots) and the
+executed one (red, thick).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pygame
+
+from mmpc.highway import HighwayDriver
+from mmpc.mpc import Plan
+
+FEASIBLE = (70, 150, 255)
+INFEASIBLE = (165, 165, 165)
+BEST = (230, 30, 30)
+
+
+def render_plan(driver: HighwayDriver, plan: Plan) -> np.ndarray:
+    """(H, W, 3) uint8 frame of the current state with the candidates of ``plan`` (problem 0).
+
+    The driver's environment must have been created with ``render=True``.
+    """
+    driver.env.render()  # highway-env draws road and vehicles onto its viewer's surface
+    viewer = driver.unwrapped.viewer
+    surface = viewer.sim_surface
+    trajectories = plan.result.trajectories
+    road_xy = np.stack([trajectories.x[0].cpu().numpy(), trajectories.y[0].cpu().numpy()], axis=-1)  # (G, N, 2)
+    world = driver.frame.to_world(road_xy)
+    feasible = plan.result.feasible[0].cpu().numpy()
+    best = int(plan.selection.index[0])
+    goals = driver.frame.to_world(plan.problem.goals[0].cpu().numpy())
+    for g in np.argsort(feasible, kind="stable"):  # infeasible first, underneath
+        if g == best:
+            continue
+        points = [surface.vec2pix(p) for p in world[g]]
+        pygame.draw.lines(surface, FEASIBLE if feasible[g] else INFEASIBLE, False, points, 1)
+    for goal in goals:
+        pygame.draw.circle(surface, (40, 40, 40), surface.vec2pix(goal), 2)
+    pygame.draw.lines(surface, BEST, False, [surface.vec2pix(p) for p in world[best]], 3)
+    return viewer.get_image()
+
+
+class VideoWriter:
+    """Frames to ``path``: ``.mp4`` (H.264 through imageio-ffmpeg) or ``.gif``.
+
+    Args:
+        path: output file; its suffix picks the format.
+        fps: frames per second (the control rate plays the episode in real time).
+    """
+
+    def __init__(self, path: str | Path, fps: float) -> None:
+        self.path = Path(path)
+        if self.path.suffix not in (".mp4", ".gif"):
+            raise ValueError(f"`path` must end in .mp4 or .gif; got {self.path.name!r}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.suffix == ".mp4":
+            self._writer = imageio.get_writer(self.path, fps=fps, codec="libx264", quality=6, macro_block_size=16)
+        else:
+            self._writer = imageio.get_writer(self.path, duration=1000.0 / fps, loop=0)
+
+    def add(self, frame: np.ndarray) -> None:
+        self._writer.append_data(frame)
+
+    def close(self) -> None:
+        self._writer.close()
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

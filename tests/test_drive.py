@@ -1,0 +1,119 @@
+"""Episode outputs, metrics and ``mmpc drive``."""
+
+import argparse
+import csv
+import json
+import math
+
+import imageio.v2 as imageio
+import pytest
+
+from mmpc.cli import _seed_list, main
+from mmpc.drive import run_episode, write_outputs
+from mmpc.evaluate import format_table, summarize
+from mmpc.metrics import StepRecord, episode_metrics
+from mmpc.scenario import ScenarioConfig, load_scenario
+
+REQUIRED_METRICS = {
+    "collisions", "offroad", "steps", "mean_speed", "meta_cost_mean", "meta_cost_max", "speed_residual_mean",
+    "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean", "solve_ms_max", "lane_changes",
+}
+
+
+def record(step, *, y=8.0, v=15.0, a=0.0, rate=0.0, lane=2, crashed=False, on_road=True, fallback=False):
+    return StepRecord(step, step * 0.1, 10.0 * step, y, 0.0, v, a, rate, lane, a, 0.0, 0, 0.0, 0.0, 5, fallback,
+                      float(step), 20.0 + step, 2.0, crashed, on_road)
+
+
+def test_episode_metrics_follow_their_definitions():
+    records = [record(0, v=14.0, rate=0.0), record(1, v=16.0, a=-1.0, rate=0.1, lane=3, y=12.0),
+               record(2, v=15.0, a=2.0, rate=0.0, lane=3, y=12.0, fallback=True, on_road=False)]
+    metrics = episode_metrics(records, dt=0.1, right_lane_y=20.0, v_cruise=15.0)
+    assert metrics["speed_residual_mean"] == pytest.approx((1 + 1 + 0) / 3)
+    assert metrics["mean_speed"] == pytest.approx(15.0)
+    assert metrics["right_lane_distance_mean"] == pytest.approx((12 + 8 + 8) / 3)
+    assert metrics["lin_acc_mean"] == pytest.approx(1.0)
+    assert metrics["ang_acc_mean"] == pytest.approx(1.0)  # |0.1 - 0| / 0.1 twice
+    assert metrics["lane_changes"] == 1 and metrics["offroad"] == 1 and metrics["fallback_steps"] == 1
+    assert metrics["meta_cost_max"] == 2.0 and metrics["solve_ms_max"] == 22.0 and metrics["collisions"] == 0
+    assert "speed_residual_mean" not in episode_metrics(records, dt=0.1, right_lane_y=20.0)
+    assert episode_metrics([record(0, crashed=True)], dt=0.1, right_lane_y=20.0)["collisions"] == 1
+    with pytest.raises(ValueError, match="records"):
+        episode_metrics([], dt=0.1, right_lane_y=20.0)
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_episode_outputs_and_video(tmp_path):
+    scenario = ScenarioConfig(duration=2.0)
+    result = run_episode(scenario, seed=1, video=tmp_path / "episode.mp4")
+    assert len(result.records) == 20 and result.metrics["steps"] == 20
+    assert REQUIRED_METRICS <= set(result.metrics)
+    paths = write_outputs(result, tmp_path)
+    assert [p.name for p in paths] == ["metrics.json", "steps.csv", "topdown.png"]
+    assert json.loads((tmp_path / "metrics.json").read_text())["seed"] == 1
+    rows = list(csv.DictReader(open(tmp_path / "steps.csv")))
+    assert len(rows) == 20 and list(rows[0]) == list(StepRecord._fields)
+    assert float(rows[-1]["time"]) == pytest.approx(1.9)
+    frames = imageio.mimread(tmp_path / "episode.mp4", memtest=False)
+    assert len(frames) == 20 and frames[0].shape == (192, 960, 3)
+    assert (tmp_path / "topdown.png").stat().st_size > 20_000
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_drive_cli_single_episode(tmp_path, capsys):
+    assert main(["drive", "--duration", "1.5", "--seed", "2", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "collisions" in printed and "speed_residual_mean" in printed
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert REQUIRED_METRICS <= set(metrics) and metrics["steps"] == 15 and metrics["scenario"] == "cruise"
+    assert all(math.isfinite(metrics[key]) for key in REQUIRED_METRICS)
+    assert (tmp_path / "episode.mp4").stat().st_size > 10_000 and (tmp_path / "topdown.png").exists()
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_drive_cli_evaluates_scenarios_over_seeds(tmp_path, capsys):
+    argv = ["drive", "--scenario", "cruise,high_speed", "--seeds", "0-1", "--duration", "1.0", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "cruise" in printed and "high_speed" in printed and "collisions" in printed
+    report = json.loads((tmp_path / "summary.json").read_text())
+    assert [(e["scenario"], e["seed"]) for e in report["episodes"]] == [
+        ("cruise", 0), ("cruise", 1), ("high_speed", 0), ("high_speed", 1)]
+    assert [s["episodes"] for s in report["summary"]] == [2, 2]
+    assert (tmp_path / "high_speed" / "seed_1" / "steps.csv").exists()
+
+
+def test_drive_cli_rejects_bad_arguments(tmp_path, capsys):
+    assert main(["drive", "--duration", "-1", "--out", str(tmp_path)]) == 2
+    assert main(["drive", "--scenario", "cruise,high_speed", "--out", str(tmp_path)]) == 2
+    with pytest.raises(FileNotFoundError, match="shipped scenarios"):
+        main(["drive", "--scenario", "nowhere", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        main(["drive", "--seeds", "a-b"])
+
+
+def test_seed_lists():
+    assert _seed_list("0-3") == (0, 1, 2, 3)
+    assert _seed_list("5,1-2,5") == (5, 1, 2)
+    for bad in ("", "x", "-1", "3-a"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            _seed_list(bad)
+
+
+def test_summary_table_lists_collisions_by_seed():
+    rows = [dict(scenario="cruise", seed=s, collisions=int(s == 3), offroad=0, mean_speed=14.0 + s, speed_residual_mean=0.1,
+                 right_lane_distance_mean=5.0, lin_acc_mean=0.5, ang_acc_mean=0.01, meta_cost_mean=1.0, lane_changes=2,
+                 fallback_steps=1, solve_ms_mean=20.0, solve_ms_max=30.0 + s, min_clearance=1.5) for s in range(4)]
+    summary = summarize(rows)
+    assert summary[0]["collisions"] == 1 and summary[0]["collision_seeds"] == [3]
+    assert summary[0]["mean_speed"] == pytest.approx(15.5) and summary[0]["solve_ms_max"] == 33.0
+    table = format_table(summary)
+    assert "seeds [3]" in table and "15.50" in table
+
+
+@pytest.mark.usefixtures("one_thread")
+def test_drive_cli_default_traffic_is_the_harder_setting(tmp_path):
+    assert load_scenario("cruise").traffic.target_speeds == (7.0, 12.0)
+    assert main(["drive", "--default-traffic", "--duration", "0.5", "--no-video", "--out", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "metrics.json").read_text())["scenario"] == "cruise_default_traffic"
+    assert not (tmp_path / "episode.mp4").exists()

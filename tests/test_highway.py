@@ -1,0 +1,149 @@
+"""The highway-env adapter: state extraction, action mapping, traffic, and closed-loop behaviour
+on hand-built scenes (short episodes, run by default)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mmpc.drive import run_episode
+from mmpc.highway import HighwayDriver, command_to_action, env_config, vehicle_motion
+from mmpc.scenario import (
+    EgoConfig, HighSpeedObjective, IDMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle,
+)
+
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def scripted(vehicles, *, lanes=3, ego_lane=1, ego_speed=15.0, duration=12.0, objective=None) -> ScenarioConfig:
+    scenario = ScenarioConfig(
+        name="scene", lanes=lanes, duration=duration, ego=EgoConfig(speed=ego_speed, lane=ego_lane),
+        traffic=ScriptedTraffic(tuple(ScriptedVehicle(*v) if isinstance(v, tuple) else v for v in vehicles)),
+    )
+    return scenario if objective is None else scenario.replace(objective=objective)
+
+
+def test_env_config_commands_every_frame_with_continuous_actions():
+    config = env_config(ScenarioConfig())
+    assert config["simulation_frequency"] == config["policy_frequency"] == 10.0
+    assert config["action"]["type"] == "ContinuousAction"
+    assert config["lanes_count"] == 6 and config["vehicles_density"] >= 1.5
+
+
+def test_action_mapping_round_trips_through_highway_env():
+    driver = HighwayDriver(scripted([]), seed=0)
+    try:
+        for acceleration, steering in [(0.0, 0.0), (2.5, 0.1), (-4.0, -0.3), (9.0, 2.0)]:
+            applied = driver.unwrapped.action_type.get_action(command_to_action(acceleration, steering))
+            assert applied["acceleration"] == pytest.approx(np.clip(acceleration, -5, 5), abs=1e-5)
+            assert applied["steering"] == pytest.approx(np.clip(steering, -math.pi / 4, math.pi / 4), abs=1e-5)
+    finally:
+        driver.close()
+
+
+def test_road_state_reads_every_vehicle_in_the_road_frame():
+    driver = HighwayDriver(scripted([(0, 20.0, 9.0), (2, -15.0, 11.0)]), seed=0)
+    try:
+        state = driver.observe()
+        ego = driver.ego
+        assert state.ego.shape == (1, 6) and state.vehicles.shape == (1, 2, 4)
+        assert state.ego[0, :2].tolist() == pytest.approx(ego.position.tolist(), abs=1e-4)
+        assert float(state.ego[0, 3]) == pytest.approx(15.0)
+        rows = sorted(state.vehicles[0].tolist())
+        assert rows[0][0] == pytest.approx(ego.position[0] - 15.0, abs=1e-3) and rows[0][1] == pytest.approx(8.0)
+        assert rows[1][0] == pytest.approx(ego.position[0] + 20.0, abs=1e-3) and rows[1][1] == pytest.approx(0.0)
+        assert [rows[0][2], rows[1][2]] == pytest.approx([11.0, 9.0])
+    finally:
+        driver.close()
+
+
+def test_commanded_heading_rate_is_what_highway_env_executes():
+    """A lane change's first command: the ego's turn rate after one frame matches the plan's."""
+    driver = HighwayDriver(scripted([(1, 25.0, 8.0)]), seed=0)
+    try:
+        for _ in range(5):
+            _, plan = driver.step()
+        _, turn_rate = vehicle_motion(driver.ego)
+        assert abs(float(plan.heading_rate[0])) > 1e-3
+        assert turn_rate == pytest.approx(float(plan.heading_rate[0]), rel=0.05)
+        assert float(driver.ego.action["acceleration"]) == pytest.approx(float(plan.acceleration[0]), abs=1e-5)
+    finally:
+        driver.close()
+
+
+def test_idm_traffic_gets_the_scenario_speeds_and_stays_around_the_ego():
+    scenario = ScenarioConfig(duration=8.0)
+    driver = HighwayDriver(scenario, seed=3)
+    try:
+        ego = driver.ego
+        others = [v for v in driver.unwrapped.road.vehicles if v is not ego]
+        assert len(others) == scenario.traffic.vehicles_count
+        assert all(7.0 <= v.target_speed <= 12.0 for v in others)
+        ahead = [v.position[0] - ego.position[0] for v in others if v.lane_index == ego.lane_index]
+        assert all(not (-12.5 < dx < scenario.traffic.initial_clearance) for dx in ahead)
+        while not driver.done:
+            driver.step()
+        behind, front = scenario.traffic.window
+        for vehicle in driver.unwrapped.road.vehicles:
+            assert -behind - 3.0 <= vehicle.position[0] - driver.ego.position[0] <= front + 3.0
+    finally:
+        driver.close()
+
+
+def test_default_traffic_option_keeps_highway_env_speeds():
+    scenario = ScenarioConfig(duration=1.0, traffic=IDMTraffic(target_speeds=None))
+    driver = HighwayDriver(scenario, seed=0)
+    try:
+        speeds = [v.target_speed for v in driver.unwrapped.road.vehicles if v is not driver.ego]
+        assert min(speeds) >= 20.0
+    finally:
+        driver.close()
+
+
+# ------------------------------------------------------------------------ behaviour on hand-built scenes
+
+
+def _lanes(result):
+    return [r.lane for r in result.records]
+
+
+def test_slow_car_ahead_with_a_free_lane_is_overtaken():
+    scene = scripted([ScriptedVehicle(lane=1, x=40.0, speed=8.0, constant_speed=True)], duration=14.0)
+    result = run_episode(scene, seed=0)
+    assert result.metrics["collisions"] == 0 and result.metrics["offroad"] == 0
+    assert set(_lanes(result)) - {1}, "the ego never left its lane"
+    final = result.records[-1]
+    slow_car_x = result.records[0].x + 40.0 + 8.0 * final.time
+    assert final.x > slow_car_x + 10.0, "the ego did not get past the slow car"
+    assert final.v > 14.0
+    assert result.metrics["min_clearance"] >= 0.95
+
+
+def test_blocked_neighbour_lanes_make_the_ego_follow():
+    walls = [ScriptedVehicle(lane=lane, x=x, speed=8.0, constant_speed=True)
+             for lane in (0, 2) for x in np.arange(-24.0, 200.0, 12.0)]
+    leader = ScriptedVehicle(lane=1, x=35.0, speed=8.0, constant_speed=True)
+    result = run_episode(scripted([leader, *walls], ego_speed=12.0, duration=14.0), seed=0)
+    assert result.metrics["collisions"] == 0
+    assert set(_lanes(result)) == {1}
+    assert result.records[-1].v == pytest.approx(8.0, abs=1.0)
+    gap = result.records[0].x + 35.0 + 8.0 * result.records[-1].time - result.records[-1].x
+    assert gap > 8.0, "following closer than the safety ellipse"
+    assert result.metrics["min_clearance"] >= 0.95
+
+
+def test_high_speed_with_the_right_lane_free_ends_in_the_right_lane():
+    traffic = [ScriptedVehicle(lane=1, x=60.0, speed=14.0), ScriptedVehicle(lane=0, x=30.0, speed=16.0)]
+    scene = scripted(traffic, lanes=4, ego_lane=1, ego_speed=18.0, duration=14.0, objective=HighSpeedObjective())
+    result = run_episode(scene, seed=0)
+    assert result.metrics["collisions"] == 0 and result.metrics["offroad"] == 0
+    final = result.records[-1]
+    assert final.lane == 3 and abs(final.y - 12.0) < 0.5
+    assert final.v > 20.0
+
+
+def test_episodes_are_reproducible_from_the_seed():
+    scenario = ScenarioConfig(duration=2.0)
+    first, second = run_episode(scenario, seed=5), run_episode(scenario, seed=5)
+    assert [r[:10] for r in first.records] == [r[:10] for r in second.records]

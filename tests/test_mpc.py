@@ -1,0 +1,114 @@
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import mmpc
+from mmpc.mpc import nearest_obstacles
+
+
+@pytest.fixture(scope="module")
+def cruise_mpc() -> mmpc.MPC:
+    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=6), speeds=(3.0, 6.0, 9.0, 12.0))
+    return mmpc.MPC(mmpc.BatchOptimizer(), goals, mmpc.CruiseCost(15.0), mmpc.Road(num_lanes=6))
+
+
+def test_library_mpc_does_not_import_the_simulator():
+    code = "import sys, mmpc; mmpc.MPC; print(sorted(m for m in ('highway_env', 'gymnasium', 'pygame') if m in sys.modules))"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "[]"
+
+
+def test_free_road_keeps_lane_and_speeds_up(cruise_mpc):
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
+    plan = cruise_mpc.plan(ego, torch.zeros(1, 0, 4))
+    assert bool(plan.selection.feasible[0])
+    assert float(plan.acceleration[0]) > 0.0  # below the cruise speed
+    assert abs(float(plan.steering[0])) < 1e-2
+    assert plan.trajectory.x.shape == (1, cruise_mpc.optimizer.config.num_steps)
+
+
+def test_slow_car_ahead_with_free_neighbour_plans_a_lane_change(cruise_mpc):
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 15.0)
+    car = torch.tensor([[[30.0, 8.0, 8.0, 0.0]]])
+    plan = cruise_mpc.plan(ego, car)
+    goal_y = float(plan.problem.goals[0, int(plan.selection.index[0]), 1])
+    assert bool(plan.selection.feasible[0]) and goal_y != 8.0
+    assert float(plan.result.min_obstacle_distance[0, int(plan.selection.index[0])]) >= 0.99
+
+
+def test_blocked_lanes_choose_a_following_goal(cruise_mpc):
+    road = mmpc.Road(num_lanes=3)
+    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=3), speeds=(3.0, 6.0, 9.0, 12.0))
+    mpc = mmpc.MPC(cruise_mpc.optimizer, goals, cruise_mpc.meta_cost, road, mmpc.MPCConfig(num_obstacles=9))
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 12.0)
+    walls = [[x, y, 8.0, 0.0] for y in (0.0, 8.0) for x in (-6.0, 8.0, 22.0, 36.0)]  # gaps < 2 a: no way through
+    plan = mpc.plan(ego, torch.tensor([[[25.0, 4.0, 8.0, 0.0], *walls]]))
+    best = int(plan.selection.index[0])
+    assert bool(plan.selection.feasible[0])
+    assert plan.problem.goals[0, best, 1] == 4.0 and plan.problem.goals[0, best, 0] < 15.0 * 8.0
+    assert float(plan.acceleration[0]) < 0.0
+
+
+def test_candidates_leaving_the_road_are_flagged(cruise_mpc):
+    off_road = lambda ego, road: torch.tensor([[[120.0, 8.0], [120.0, 30.0], [120.0, -9.0]]])  # noqa: E731
+    mpc = mmpc.MPC(cruise_mpc.optimizer, off_road, cruise_mpc.meta_cost, cruise_mpc.road)
+    plan = mpc.plan(mmpc.ego_state(0.0, 8.0, 0.0, 15.0), torch.zeros(1, 0, 4))
+    status = plan.result.status[0]
+    assert not status[0] & mmpc.Status.OFF_ROAD
+    assert status[1] & mmpc.Status.OFF_ROAD and status[2] & mmpc.Status.OFF_ROAD
+    assert plan.result.feasible[0].tolist() == [True, False, False] and int(plan.selection.index[0]) == 0
+
+
+def test_ego_outside_the_margin_may_come_back(cruise_mpc):
+    left, right = cruise_mpc.road.bounds
+    ego = mmpc.ego_state(0.0, right - 0.5, 0.0, 15.0)  # beyond the 1 m margin already
+    plan = cruise_mpc.plan(ego, torch.zeros(1, 0, 4))
+    assert bool(plan.selection.feasible[0])
+    assert float(plan.trajectory.y.max()) <= right - 0.5 + 1e-3
+
+
+def test_no_feasible_candidate_falls_back_to_the_least_infeasible(cruise_mpc):
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 15.0)
+    inside = torch.tensor([[[3.0, 8.0, 15.0, 0.0]]])  # the ego starts inside the ellipse
+    plan = cruise_mpc.plan(ego, inside)
+    assert not bool(plan.selection.feasible[0])
+    assert (plan.result.status[0] & mmpc.Status.START_IN_COLLISION).all()
+    assert math.isfinite(float(plan.acceleration[0])) and math.isfinite(float(plan.steering[0]))
+    assert abs(float(plan.steering[0])) <= cruise_mpc.config.max_steering
+
+
+def test_steering_inverts_the_kinematic_turn_rate(cruise_mpc):
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 15.0)
+    plan = cruise_mpc.plan(ego, torch.tensor([[[30.0, 4.0, 8.0, 0.0]]]))
+    expected = math.atan(cruise_mpc.config.wheelbase * float(plan.heading_rate[0]) / 15.0)
+    assert float(plan.steering[0]) == pytest.approx(expected, rel=1e-5)
+
+
+def test_nearest_obstacles_ignores_far_behind_and_pads():
+    ego = mmpc.ego_state(100.0, 8.0, 0.0, 15.0)
+    vehicles = torch.tensor([[[60.0, 8.0, 10.0, 0.0], [130.0, 8.0, 10.0, 0.0], [105.0, 4.0, 10.0, 0.0]]])
+    states, mask = nearest_obstacles(ego, vehicles, None, 4, (8.0, 3.0), ignore_behind=20.0)
+    assert states.shape == (1, 4, 4) and mask.tolist() == [[True, True, False, False]]
+    assert states[0, 0, 0] == 105.0 and states[0, 1, 0] == 130.0  # nearest first
+
+
+def test_near_lane_goals_cover_the_lanes_around_the_ego():
+    road = mmpc.Road(num_lanes=4)
+    sampler = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0, 10.0), horizon=8.0, lanes_around=1)
+    goals = sampler(mmpc.ego_state(0.0, 0.4, 0.0, 10.0), road)[0]
+    assert goals.shape == (4 + 2 * 3, 2)
+    extra = goals[4:]
+    assert sorted(set(extra[:, 1].tolist())) == [0.0, 4.0]  # lane 0 and its one neighbour (the road's edge clamps)
+    assert sorted(set(extra[:, 0].tolist())) == [40.0, 80.0]
+    every_lane = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0,), lanes_around=None)
+    assert every_lane(mmpc.ego_state(0.0, 0.0, 0.0, 10.0), road)[0, 4:, 1].tolist() == [0.0, 4.0, 8.0, 12.0]
+
+
+@pytest.mark.parametrize("kwargs, name", [({"command_window": 0.0}, "command_window"), ({"road_margin": -1.0}, "road_margin"),
+                                          ({"num_obstacles": -1}, "num_obstacles")])
+def test_mpc_config_is_validated(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        mmpc.MPCConfig(**kwargs)
