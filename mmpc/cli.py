@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -11,6 +10,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import torch
+import yaml
 
 from mmpc.bench_solver import SolverBenchmark, run as run_solver_benchmark
 from mmpc.config import OptimizerConfig
@@ -46,6 +46,14 @@ def _seed_list(text: str) -> tuple[int, ...]:
     if not seeds or min(seeds) < 0:
         raise argparse.ArgumentTypeError(f"expected non-negative seeds like 0-19 or 0,3,7; got {text!r}")
     return tuple(dict.fromkeys(seeds))
+
+
+def _override(text: str) -> tuple[str, object]:
+    """``"traffic.lane_changes=true"`` -> ("traffic.lane_changes", True) (the value is YAML)."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE such as traffic.lane_changes=true; got {text!r}")
+    return key, yaml.safe_load(value)
 
 
 def _solve(args: argparse.Namespace) -> int:
@@ -120,21 +128,17 @@ def _drive(args: argparse.Namespace) -> int:
     """One episode (video, table, outputs) or, with --seeds, an evaluation over seeds."""
     from tqdm import tqdm
 
-    from mmpc.scenario import IDMTraffic, load_scenario  # highway-env is imported only for this command
+    from mmpc.scenario import load_scenario
 
+    if args.seed is not None and args.seeds is not None:
+        print("mmpc drive: error: give --seed (one episode) or --seeds (an evaluation), not both", file=sys.stderr)
+        return 2
     torch.set_num_threads(args.threads)
     scenarios = []
     for name in args.scenario.split(","):
-        scenario = load_scenario(name)
+        scenario = load_scenario(name, dict(args.set))
         if args.duration is not None:
             scenario = scenario.replace(duration=args.duration)
-        if args.default_traffic:
-            if not isinstance(scenario.traffic, IDMTraffic):
-                print(f"mmpc drive: error: --default-traffic needs IDM traffic; scenario {scenario.name!r} has "
-                      f"{type(scenario.traffic).__name__}", file=sys.stderr)
-                return 2
-            traffic = dataclasses.replace(scenario.traffic, target_speeds=None)
-            scenario = scenario.replace(name=f"{scenario.name}_default_traffic", traffic=traffic)
         scenarios.append(scenario)
     out = Path(args.out)
     if args.seeds is not None:
@@ -205,8 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "
                             "a video only for episodes with a collision")
     drive.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
-    drive.add_argument("--default-traffic", action="store_true",
-                       help="highway-env's own traffic speeds (21-24 m/s) instead of the scenario's: the harder setting")
+    drive.add_argument("--set", type=_override, action="append", default=[], metavar="KEY=VALUE",
+                       help="override a scenario value (YAML; repeatable), e.g. highway-env's own faster traffic: "
+                            "--set traffic.target_speeds=null --set name=cruise_default_traffic")
     drive.add_argument("--no-video", action="store_true", help="skip episode.mp4 (single episode)")
     drive.add_argument("--workers", type=int, default=1, help="parallel episodes with --seeds (default 1)")
     drive.add_argument("--threads", type=int, default=1, help="torch threads per episode (default 1)")

@@ -40,8 +40,7 @@ def episode_dir(out: Path, scenario: str, seed: int) -> Path:
     return out / scenario / f"seed_{seed}"
 
 
-def _run_one(scenario: ScenarioConfig, seed: int, out: Path, threads: int, video: bool) -> dict:
-    torch.set_num_threads(threads)
+def _run_one(scenario: ScenarioConfig, seed: int, out: Path, video: bool) -> dict:
     directory = episode_dir(out, scenario.name, seed)
     result = run_episode(scenario, seed, video=directory / "episode.mp4" if video else None)
     write_outputs(result, directory)
@@ -104,8 +103,9 @@ def evaluate(
         seeds: seeds, the same for every scenario.
         out: output folder: ``<scenario>/seed_<n>/`` per episode (``episode.mp4`` only for
             episodes with a collision) and ``summary.json``.
-        workers: parallel episode processes.
-        threads: torch threads per episode.
+        workers: parallel episode processes; with 1 the episodes run in this process.
+        threads: torch threads of each worker process (``workers > 1``; one worker uses the
+            caller's setting).
         on_episode: called with each episode's metrics as it finishes.
 
     Returns:
@@ -120,12 +120,13 @@ def evaluate(
     rows: list[dict] = []
     if workers == 1:
         for scenario, seed in jobs:
-            rows.append(_run_one(scenario, seed, out, threads, False))
+            rows.append(_run_one(scenario, seed, out, False))
             if on_episode is not None:
                 on_episode(rows[-1])
     else:
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_run_one, scenario, seed, out, threads, False) for scenario, seed in jobs]
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=context, initializer=torch.set_num_threads, initargs=(threads,)) as pool:
+            futures = [pool.submit(_run_one, scenario, seed, out, False) for scenario, seed in jobs]
             for future in as_completed(futures):
                 rows.append(future.result())
                 if on_episode is not None:
@@ -134,7 +135,7 @@ def evaluate(
     by_name = {s.name: s for s in scenarios}
     for row in rows:
         if row["collisions"]:  # replay the seed with the video
-            _run_one(by_name[row["scenario"]], row["seed"], out, threads, True)
+            _run_one(by_name[row["scenario"]], row["seed"], out, True)
     summary = summarize(rows)
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps({"summary": summary, "episodes": rows}, indent=2) + "\n")

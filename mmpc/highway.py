@@ -27,10 +27,8 @@ from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.lane import StraightLane
 from highway_env.vehicle.kinematics import Vehicle
 
-from mmpc.goals import GoalSampler
 from mmpc.mpc import MPC, Plan
-from mmpc.optimizer import BatchOptimizer
-from mmpc.scenario import IDMTraffic, ScenarioConfig
+from mmpc.scenario import IDMTraffic, ScenarioConfig, build_mpc
 from mmpc.traffic import TrafficController, make_traffic
 
 #: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.
@@ -142,13 +140,6 @@ def command_to_action(acceleration: float, steering: float) -> np.ndarray:
     return np.clip(np.array([a, s], dtype=np.float32), -1.0, 1.0)
 
 
-def build_mpc(scenario: ScenarioConfig) -> MPC:
-    """The scenario's MPC: optimizer, goals on the lane centres, meta cost (float32, CPU)."""
-    road = scenario.road
-    goals: GoalSampler = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
-    return MPC(BatchOptimizer(scenario.optimizer), goals, scenario.objective.meta_cost(), road, scenario.mpc)
-
-
 class HighwayDriver:
     """One highway-env episode of a scenario, driven by the MPC one frame at a time.
 
@@ -156,7 +147,7 @@ class HighwayDriver:
         scenario: the scenario.
         seed: seeds highway-env (ego lane, traffic) and the traffic controller.
         render: create the environment with ``render_mode="rgb_array"``.
-        mpc: reuse an MPC (e.g. across episodes); default: :func:`build_mpc`.
+        mpc: reuse an MPC (e.g. across episodes); default: :func:`mmpc.scenario.build_mpc`.
 
     Example:
         >>> driver = HighwayDriver(ScenarioConfig(duration=1.0), seed=0)

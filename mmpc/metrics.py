@@ -27,7 +27,7 @@ class StepRecord(NamedTuple):
         goal_index: index of the chosen goal.
         goal_x, goal_y: the chosen goal [m].
         feasible_goals: number of feasible candidates.
-        fallback: no candidate was feasible; the least-infeasible one was executed.
+        fallback: no candidate was feasible (the MPC executed its fallback, see :meth:`mmpc.MPC.plan`).
         meta_cost: meta cost of the chosen candidate.
         solve_ms: wall time of the batch solve [ms].
         clearance: smallest normalised ellipse distance ``sqrt((dx/a)^2 + (dy/b)^2)`` from the

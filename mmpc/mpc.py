@@ -48,7 +48,8 @@ class MPCConfig:
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
             (measured in highway-env: 1.1 m overshoot on a two-lane change); averaging over
             0.3 s anticipates the plan's trend (0.15 m) at no cost in speed tracking.
-        brake_deceleration: deceleration of the fallback when no candidate is feasible [m/s^2].
+        brake_deceleration: deceleration of the lane-keeping brake, the fallback when no
+            candidate is feasible and the least-infeasible one is not drivable [m/s^2].
         max_steering: steering saturation [rad].
         road_margin: a candidate whose centre comes closer than this to a road edge is
             infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].

@@ -86,6 +86,7 @@ def test_drive_cli_evaluates_scenarios_over_seeds(tmp_path, capsys):
 def test_drive_cli_rejects_bad_arguments(tmp_path, capsys):
     assert main(["drive", "--duration", "-1", "--out", str(tmp_path)]) == 2
     assert main(["drive", "--scenario", "cruise,high_speed", "--out", str(tmp_path)]) == 2
+    assert main(["drive", "--seed", "1", "--seeds", "0-3", "--out", str(tmp_path)]) == 2
     with pytest.raises(FileNotFoundError, match="shipped scenarios"):
         main(["drive", "--scenario", "nowhere", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):
@@ -112,8 +113,20 @@ def test_summary_table_lists_collisions_by_seed():
 
 
 @pytest.mark.usefixtures("one_thread")
-def test_drive_cli_default_traffic_is_the_harder_setting(tmp_path):
-    assert load_scenario("cruise").traffic.target_speeds == (7.0, 12.0)
-    assert main(["drive", "--default-traffic", "--duration", "0.5", "--no-video", "--out", str(tmp_path)]) == 0
+def test_drive_cli_overrides_scenario_values(tmp_path):
+    argv = ["drive", "--set", "traffic.target_speeds=null", "--set", "name=cruise_default_traffic", "--duration", "0.5",
+            "--no-video", "--out", str(tmp_path)]
+    assert main(argv) == 0
     assert json.loads((tmp_path / "metrics.json").read_text())["scenario"] == "cruise_default_traffic"
     assert not (tmp_path / "episode.mp4").exists()
+    with pytest.raises(ValueError, match="target_sped"):
+        main(["drive", "--set", "traffic.target_sped=null", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        main(["drive", "--set", "no_equals_sign"])
+
+
+def test_scenario_overrides_reach_nested_sections():
+    scenario = load_scenario("cruise", {"traffic.target_speeds": None, "mpc.num_obstacles": 4, "name": "x"})
+    assert scenario.traffic.target_speeds is None and scenario.mpc.num_obstacles == 4 and scenario.name == "x"
+    with pytest.raises(ValueError, match="not a section"):
+        load_scenario("cruise", {"name.first": "x"})

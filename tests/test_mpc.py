@@ -112,3 +112,13 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
 def test_mpc_config_is_validated(kwargs, name):
     with pytest.raises(ValueError, match=name):
         mmpc.MPCConfig(**kwargs)
+
+
+def test_undrivable_candidates_give_a_lane_keeping_brake(cruise_mpc):
+    off_road = lambda ego, road: torch.tensor([[[120.0, 40.0], [120.0, -20.0]]])  # noqa: E731
+    mpc = mmpc.MPC(cruise_mpc.optimizer, off_road, cruise_mpc.meta_cost, cruise_mpc.road)
+    plan = mpc.plan(mmpc.ego_state(0.0, 8.5, 0.0, 15.0), torch.zeros(1, 0, 4))
+    assert not bool(plan.selection.feasible[0])
+    assert (plan.result.status[0] & mmpc.mpc.UNDRIVABLE).all()
+    assert float(plan.acceleration[0]) == -mpc.config.brake_deceleration
+    assert float(plan.heading_rate[0]) < 0.0  # back towards the centre of lane 2 (y = 8)

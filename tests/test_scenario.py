@@ -2,8 +2,7 @@ import pytest
 
 from mmpc import HighSpeedGoals, NearLaneGoals, Road
 from mmpc.scenario import (
-    SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
-    load_scenario,
+    SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, load_scenario,
 )
 
 
