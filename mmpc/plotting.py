@@ -17,12 +17,12 @@ from mmpc.result import SolveResult  # noqa: E402
 from mmpc.road import Road  # noqa: E402
 
 
-def save_figure(fig: plt.Figure, path: str | Path) -> Path:
+def save_figure(fig: plt.Figure, path: str | Path, dpi: int = 120) -> Path:
     """Write ``fig`` to ``path`` (folders created) and close it."""
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
 
@@ -151,9 +151,4 @@ def plot_episode(path: str | Path, records: Sequence, road: Road, *, v_ref: Opti
     lateral.set_xlabel("time [s]")
     lateral.set_ylabel("y [m]")
     lateral.grid(alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
