@@ -150,7 +150,8 @@ def _drive(args: argparse.Namespace) -> int:
                 bar.update(1)
                 bar.set_postfix_str(f"{row['scenario']} seed {row['seed']}: collisions {row['collisions']}")
 
-            _, summary = evaluate(scenarios, args.seeds, out, workers=args.workers, threads=args.threads, on_episode=progress)
+            _, summary = evaluate(scenarios, args.seeds, out, workers=args.workers, threads=args.threads,
+                                  driver=args.driver, on_episode=progress)
         print(format_table(summary))
         print(f"wrote {out / 'summary.json'} and one folder per episode under {out}")
         return 0
@@ -158,13 +159,15 @@ def _drive(args: argparse.Namespace) -> int:
         print("mmpc drive: error: several scenarios need --seeds", file=sys.stderr)
         return 2
     from mmpc.drive import run_episode, write_outputs
+    from mmpc.drivers import make_driver
 
     scenario = scenarios[0]
+    driver = make_driver(args.driver, scenario)
     seed = scenario.seeds[0] if args.seed is None else args.seed
     video = None if args.no_video else out / "episode.mp4"
     steps = round(scenario.duration * scenario.frequency)
     with tqdm(total=steps, desc=f"{scenario.name} seed {seed}", unit="step") as bar:
-        result = run_episode(scenario, seed, video=video, on_step=lambda record: bar.update(1))
+        result = run_episode(scenario, seed, driver=driver, video=video, on_step=lambda record: bar.update(1))
     paths = write_outputs(result, out)
     width = max(map(len, result.metrics))
     for key, value in result.metrics.items():
@@ -204,6 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     drive.add_argument("--scenario", default="cruise",
                        help="name in configs/scenarios (cruise, high_speed, ...) or a YAML path; "
                             "comma-separated with --seeds (default cruise)")
+    drive.add_argument("--driver", default="mpc",
+                       help="who drives: mpc (default), frenet, standard-mpc, batch-nlp, bc:RUN/policy.pt, sb3:MODEL.zip")
     drive.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's first seed)")
     drive.add_argument("--seeds", type=_seed_list, default=None,
                        help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "

@@ -17,6 +17,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from mmpc.drive import run_episode, write_outputs
+from mmpc.drivers import make_driver
 from mmpc.scenario import ScenarioConfig
 
 #: Columns of the summary table: (key, header, format).
@@ -40,9 +41,9 @@ def episode_dir(out: Path, scenario: str, seed: int) -> Path:
     return out / scenario / f"seed_{seed}"
 
 
-def _run_one(scenario: ScenarioConfig, seed: int, out: Path, video: bool) -> dict:
+def _run_one(scenario: ScenarioConfig, seed: int, out: Path, video: bool, driver: str) -> dict:
     directory = episode_dir(out, scenario.name, seed)
-    result = run_episode(scenario, seed, video=directory / "episode.mp4" if video else None)
+    result = run_episode(scenario, seed, driver=make_driver(driver, scenario), video=directory / "episode.mp4" if video else None)
     write_outputs(result, directory)
     return result.metrics
 
@@ -94,6 +95,7 @@ def evaluate(
     *,
     workers: int = 1,
     threads: int = 1,
+    driver: str = "mpc",
     on_episode: Optional[Callable[[dict], None]] = None,
 ) -> tuple[list[dict], list[dict]]:
     """Run every scenario for every seed; write per-episode outputs and ``summary.json``.
@@ -106,6 +108,7 @@ def evaluate(
         workers: parallel episode processes; with 1 the episodes run in this process.
         threads: torch threads of each worker process (``workers > 1``; one worker uses the
             caller's setting).
+        driver: driver spec (:func:`mmpc.drivers.make_driver`), built anew for each episode.
         on_episode: called with each episode's metrics as it finishes.
 
     Returns:
@@ -120,7 +123,7 @@ def evaluate(
     rows: list[dict] = []
     if workers == 1:
         for scenario, seed in jobs:
-            rows.append(_run_one(scenario, seed, out, False))
+            rows.append(_run_one(scenario, seed, out, False, driver))
             if on_episode is not None:
                 on_episode(rows[-1])
     else:
@@ -135,7 +138,7 @@ def evaluate(
     by_name = {s.name: s for s in scenarios}
     for row in rows:
         if row["collisions"]:  # replay the seed with the video
-            _run_one(by_name[row["scenario"]], row["seed"], out, True)
+            _run_one(by_name[row["scenario"]], row["seed"], out, True, driver)
     summary = summarize(rows)
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps({"summary": summary, "episodes": rows}, indent=2) + "\n")

@@ -27,8 +27,8 @@ from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.lane import StraightLane
 from highway_env.vehicle.kinematics import Vehicle
 
-from mmpc.mpc import MPC, Plan
-from mmpc.scenario import IDMTraffic, ScenarioConfig, build_mpc
+from mmpc.drivers import Decision, Driver, Observation
+from mmpc.scenario import IDMTraffic, ScenarioConfig
 from mmpc.traffic import TrafficController, make_traffic
 
 #: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.
@@ -140,24 +140,26 @@ def command_to_action(acceleration: float, steering: float) -> np.ndarray:
     return np.clip(np.array([a, s], dtype=np.float32), -1.0, 1.0)
 
 
-class HighwayDriver:
-    """One highway-env episode of a scenario, driven by the MPC one frame at a time.
+class HighwayEpisode:
+    """One highway-env episode of a scenario, stepped one control period at a time by a driver.
 
     Args:
         scenario: the scenario.
         seed: seeds highway-env (ego lane, traffic) and the traffic controller.
         render: create the environment with ``render_mode="rgb_array"``.
-        mpc: reuse an MPC (e.g. across episodes); default: :func:`mmpc.scenario.build_mpc`.
 
     Example:
-        >>> driver = HighwayDriver(ScenarioConfig(duration=1.0), seed=0)
-        >>> state, plan = driver.step()
-        >>> state.ego.shape, plan.acceleration.shape
+        >>> from mmpc.drivers import make_driver
+        >>> scenario = ScenarioConfig(duration=1.0)
+        >>> episode, driver = HighwayEpisode(scenario, seed=0), make_driver("mpc", scenario)
+        >>> observation, decision = episode.step(driver)
+        >>> observation.ego.shape, decision.acceleration.shape
         (torch.Size([1, 6]), torch.Size([1]))
     """
 
-    def __init__(self, scenario: ScenarioConfig, seed: int, *, render: bool = False, mpc: MPC | None = None) -> None:
+    def __init__(self, scenario: ScenarioConfig, seed: int, *, render: bool = False) -> None:
         self.scenario = scenario
+        self.seed = seed
         self.env = gym.make(scenario.env_id, config=env_config(scenario), render_mode="rgb_array" if render else None)
         self.env.reset(seed=seed)
         self.unwrapped: AbstractEnv = self.env.unwrapped
@@ -165,8 +167,8 @@ class HighwayDriver:
         self.traffic: TrafficController = make_traffic(scenario, self.unwrapped)
         self.traffic.reset()
         self.frame = RoadFrame.of(self.unwrapped)
-        self.mpc = mpc if mpc is not None else build_mpc(scenario)
         self.time = 0.0
+        self.reward = 0.0
 
     @property
     def ego(self) -> Vehicle:
@@ -177,25 +179,33 @@ class HighwayDriver:
         """The ego crashed or the scenario's duration is over."""
         return bool(self.ego.crashed) or self.time >= self.scenario.duration - 1e-9
 
-    def observe(self) -> RoadState:
-        return road_state(self.unwrapped, self.frame, dtype=self.mpc.optimizer.dtype)
+    def kinematics(self) -> np.ndarray:
+        """highway-env's ``Kinematics`` observation of the current state, (rows, features) float32."""
+        return np.asarray(self.unwrapped.observation_type.observe(), dtype=np.float32)
 
-    def plan(self, state: RoadState) -> Plan:
-        return self.mpc.plan(state.ego, state.vehicles)
+    def observe(self, dtype: torch.dtype = torch.float32) -> Observation:
+        """The current state for a driver (E = 1)."""
+        state = road_state(self.unwrapped, self.frame, dtype=dtype)
+        return Observation(state.ego, state.vehicles, None, self.kinematics()[None])
 
-    def apply(self, plan: Plan) -> None:
-        """Send the plan's command for one frame, then let the traffic controller move vehicles."""
-        action = command_to_action(float(plan.acceleration[0]), float(plan.steering[0]))
-        self.env.step(action)
+    def apply(self, acceleration: float, steering: float) -> None:
+        """Send one command for one frame, then let the traffic controller move vehicles.
+
+        Args:
+            acceleration: [m/s^2], clipped to :data:`ACCELERATION_RANGE`.
+            steering: [rad], clipped to :data:`STEERING_RANGE`.
+        """
+        _, reward, _, _, _ = self.env.step(command_to_action(acceleration, steering))
+        self.reward = float(reward)
         self.traffic.after_step()
         self.time += 1.0 / self.scenario.frequency
 
-    def step(self) -> tuple[RoadState, Plan]:
-        """Observe, plan, apply; returns the state planned from and the plan."""
-        state = self.observe()
-        plan = self.plan(state)
-        self.apply(plan)
-        return state, plan
+    def step(self, driver: Driver) -> tuple[Observation, Decision]:
+        """Observe, decide, apply; returns the observation decided from and the decision."""
+        observation = self.observe()
+        decision = driver.decide(observation)
+        self.apply(float(decision.acceleration[0]), float(decision.steering[0]))
+        return observation, decision
 
     def close(self) -> None:
         self.env.close()

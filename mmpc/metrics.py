@@ -26,10 +26,12 @@ class StepRecord(NamedTuple):
         command_steering: the new command's steering angle [rad].
         goal_index: index of the chosen goal.
         goal_x, goal_y: the chosen goal [m].
-        feasible_goals: number of feasible candidates.
-        fallback: no candidate was feasible (the MPC executed its fallback, see :meth:`mmpc.MPC.plan`).
-        meta_cost: meta cost of the chosen candidate.
-        solve_ms: wall time of the batch solve [ms].
+        feasible_goals: number of feasible candidates (-1: the driver has none).
+        fallback: no candidate was feasible (the driver executed its fallback, see :meth:`mmpc.MPC.plan`).
+        meta_cost: the scenario's meta cost term at this driven state (its ``stage_cost``;
+            cruise ``(v - v_cruise)^2``): the same yardstick for every driver.
+        plan_cost: meta cost of the chosen plan as the driver ranked it (NaN: no plan).
+        solve_ms: wall time of the driver's decision [ms].
         clearance: smallest normalised ellipse distance ``sqrt((dx/a)^2 + (dy/b)^2)`` from the
             ego to another vehicle (inf without vehicles); < 1 is inside the safety ellipse.
         crashed: the ego had collided after this step's frame.
@@ -53,6 +55,7 @@ class StepRecord(NamedTuple):
     feasible_goals: int
     fallback: bool
     meta_cost: float
+    plan_cost: float
     solve_ms: float
     clearance: float
     crashed: bool
@@ -80,8 +83,9 @@ def episode_metrics(
 
     Returns:
         ``collisions`` (0 or 1: an episode ends at the first one), ``offroad`` (steps off the
-        road), ``steps``, ``duration`` [s], ``mean_speed`` [m/s], ``meta_cost_mean`` / ``_max``,
-        ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
+        road), ``steps``, ``duration`` [s], ``mean_speed`` [m/s], ``meta_cost_mean`` / ``_max``
+        (over the driven states' meta cost terms),
+        ``plan_cost_mean``, ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
         ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
         [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``,
         ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``.
@@ -100,6 +104,7 @@ def episode_metrics(
         "mean_speed": _mean(speeds),
         "meta_cost_mean": _mean([r.meta_cost for r in records]),
         "meta_cost_max": max(r.meta_cost for r in records),
+        "plan_cost_mean": _mean([r.plan_cost for r in records]),
     }
     if v_cruise is not None:
         metrics["speed_residual_mean"] = _mean([(v - v_cruise) ** 2 for v in speeds])

@@ -112,6 +112,10 @@ class CruiseObjective:
     def meta_cost(self) -> MetaCost:
         return CruiseCost(self.v_cruise)
 
+    def stage_cost(self, v: float, y: float, road: Road) -> float:
+        """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""
+        return (v - self.v_cruise) ** 2
+
 
 @dataclass(frozen=True)
 class HighSpeedObjective:
@@ -169,6 +173,10 @@ class HighSpeedObjective:
 
     def meta_cost(self) -> MetaCost:
         return HighSpeedCost(self.v_max, self.w_speed, self.w_lane)
+
+    def stage_cost(self, v: float, y: float, road: Road) -> float:
+        """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""
+        return self.w_speed * (v - self.v_max) ** 2 + self.w_lane * (y - road.right_lane_y) ** 2
 
 
 Objective = Union[CruiseObjective, HighSpeedObjective]

@@ -1,47 +1,49 @@
-"""Episode video: highway-env's frames with the MPC's candidate trajectories drawn in.
+"""Episode video: highway-env's frames with the driver's candidate trajectories drawn in.
 
-Each frame is highway-env's own rendering of the state the MPC planned from; on top of it go
-every candidate of that plan (feasible: blue, infeasible: grey), the goals (dots) and the
+Each frame is highway-env's own rendering of the state the driver decided from; on top of it
+go every candidate of that decision (feasible: blue, infeasible: grey), the goals (dots) and the
 executed one (red, thick).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import imageio.v2 as imageio
 import numpy as np
 import pygame
 
-from mmpc.highway import HighwayDriver
-from mmpc.mpc import Plan
+from mmpc.drivers import Candidates
+from mmpc.highway import HighwayEpisode
 
 FEASIBLE = (70, 150, 255)
 INFEASIBLE = (165, 165, 165)
 BEST = (230, 30, 30)
 
 
-def render_plan(driver: HighwayDriver, plan: Plan) -> np.ndarray:
-    """(H, W, 3) uint8 frame of the current state with the candidates of ``plan`` (problem 0).
+def render_candidates(episode: HighwayEpisode, candidates: Optional[Candidates]) -> np.ndarray:
+    """(H, W, 3) uint8 frame of the current state with the candidates of environment 0 drawn.
 
-    The driver's environment must have been created with ``render=True``.
+    The episode's environment must have been created with ``render=True``. Drivers that plan
+    nothing (``candidates`` None) get highway-env's frame alone.
     """
-    driver.env.render()  # highway-env draws road and vehicles onto its viewer's surface
-    viewer = driver.unwrapped.viewer
+    episode.env.render()  # highway-env draws road and vehicles onto its viewer's surface
+    viewer = episode.unwrapped.viewer
+    if candidates is None:
+        return viewer.get_image()
     surface = viewer.sim_surface
-    trajectories = plan.result.trajectories
-    road_xy = np.stack([trajectories.x[0].cpu().numpy(), trajectories.y[0].cpu().numpy()], axis=-1)  # (G, N, 2)
-    world = driver.frame.to_world(road_xy)
-    feasible = plan.result.feasible[0].cpu().numpy()
-    best = int(plan.selection.index[0])
-    goals = driver.frame.to_world(plan.problem.goals[0].cpu().numpy())
-    for g in np.argsort(feasible, kind="stable"):  # infeasible first, underneath
-        if g == best:
+    world = episode.frame.to_world(candidates.xy[0].cpu().numpy())  # (K, N, 2)
+    feasible = candidates.feasible[0].cpu().numpy()
+    best = int(candidates.best[0])
+    for k in np.argsort(feasible, kind="stable"):  # infeasible first, underneath
+        if k == best:
             continue
-        points = [surface.vec2pix(p) for p in world[g]]
-        pygame.draw.lines(surface, FEASIBLE if feasible[g] else INFEASIBLE, False, points, 1)
-    for goal in goals:
-        pygame.draw.circle(surface, (40, 40, 40), surface.vec2pix(goal), 2)
+        points = [surface.vec2pix(p) for p in world[k]]
+        pygame.draw.lines(surface, FEASIBLE if feasible[k] else INFEASIBLE, False, points, 1)
+    if candidates.goals is not None:
+        for goal in episode.frame.to_world(candidates.goals[0].cpu().numpy()):
+            pygame.draw.circle(surface, (40, 40, 40), surface.vec2pix(goal), 2)
     pygame.draw.lines(surface, BEST, False, [surface.vec2pix(p) for p in world[best]], 3)
     return viewer.get_image()
 

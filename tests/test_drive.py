@@ -22,7 +22,7 @@ REQUIRED_METRICS = {
 
 def record(step, *, y=8.0, v=15.0, a=0.0, rate=0.0, lane=2, crashed=False, on_road=True, fallback=False):
     return StepRecord(step, step * 0.1, 10.0 * step, y, 0.0, v, a, rate, lane, a, 0.0, 0, 0.0, 0.0, 5, fallback,
-                      float(step), 20.0 + step, 2.0, crashed, on_road)
+                      float(step), float("nan"), 20.0 + step, 2.0, crashed, on_road)
 
 
 def test_episode_metrics_follow_their_definitions():

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from mmpc.drive import run_episode
-from mmpc.highway import HighwayDriver, command_to_action, env_config, vehicle_motion
+from mmpc.drivers import make_driver
+from mmpc.highway import HighwayEpisode, command_to_action, env_config, vehicle_motion
 from mmpc.scenario import (
     EgoConfig, HighSpeedObjective, IDMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle,
 )
@@ -32,21 +33,21 @@ def test_env_config_commands_every_frame_with_continuous_actions():
 
 
 def test_action_mapping_round_trips_through_highway_env():
-    driver = HighwayDriver(scripted([]), seed=0)
+    episode = HighwayEpisode(scripted([]), seed=0)
     try:
         for acceleration, steering in [(0.0, 0.0), (2.5, 0.1), (-4.0, -0.3), (9.0, 2.0)]:
-            applied = driver.unwrapped.action_type.get_action(command_to_action(acceleration, steering))
+            applied = episode.unwrapped.action_type.get_action(command_to_action(acceleration, steering))
             assert applied["acceleration"] == pytest.approx(np.clip(acceleration, -5, 5), abs=1e-5)
             assert applied["steering"] == pytest.approx(np.clip(steering, -math.pi / 4, math.pi / 4), abs=1e-5)
     finally:
-        driver.close()
+        episode.close()
 
 
 def test_road_state_reads_every_vehicle_in_the_road_frame():
-    driver = HighwayDriver(scripted([(0, 20.0, 9.0), (2, -15.0, 11.0)]), seed=0)
+    episode = HighwayEpisode(scripted([(0, 20.0, 9.0), (2, -15.0, 11.0)]), seed=0)
     try:
-        state = driver.observe()
-        ego = driver.ego
+        state = episode.observe()
+        ego = episode.ego
         assert state.ego.shape == (1, 6) and state.vehicles.shape == (1, 2, 4)
         assert state.ego[0, :2].tolist() == pytest.approx(ego.position.tolist(), abs=1e-4)
         assert float(state.ego[0, 3]) == pytest.approx(15.0)
@@ -55,50 +56,52 @@ def test_road_state_reads_every_vehicle_in_the_road_frame():
         assert rows[1][0] == pytest.approx(ego.position[0] + 20.0, abs=1e-3) and rows[1][1] == pytest.approx(0.0)
         assert [rows[0][2], rows[1][2]] == pytest.approx([11.0, 9.0])
     finally:
-        driver.close()
+        episode.close()
 
 
 def test_commanded_heading_rate_is_what_highway_env_executes():
     """A lane change's first command: the ego's turn rate after one frame matches the plan's."""
-    driver = HighwayDriver(scripted([(1, 25.0, 8.0)]), seed=0)
+    scenario = scripted([(1, 25.0, 8.0)])
+    episode, mpc = HighwayEpisode(scenario, seed=0), make_driver("mpc", scenario)
     try:
         for _ in range(5):
-            _, plan = driver.step()
-        _, turn_rate = vehicle_motion(driver.ego)
+            _, decision = episode.step(mpc)
+        plan = decision.plan
+        _, turn_rate = vehicle_motion(episode.ego)
         assert abs(float(plan.heading_rate[0])) > 1e-3
         assert turn_rate == pytest.approx(float(plan.heading_rate[0]), rel=0.05)
-        assert float(driver.ego.action["acceleration"]) == pytest.approx(float(plan.acceleration[0]), abs=1e-5)
+        assert float(episode.ego.action["acceleration"]) == pytest.approx(float(plan.acceleration[0]), abs=1e-5)
     finally:
-        driver.close()
+        episode.close()
 
 
 def test_idm_traffic_gets_the_scenario_speeds_and_stays_around_the_ego():
     scenario = ScenarioConfig(duration=8.0)
-    driver = HighwayDriver(scenario, seed=3)
+    episode, mpc = HighwayEpisode(scenario, seed=3), make_driver("mpc", scenario)
     try:
-        ego = driver.ego
-        others = [v for v in driver.unwrapped.road.vehicles if v is not ego]
+        ego = episode.ego
+        others = [v for v in episode.unwrapped.road.vehicles if v is not ego]
         assert len(others) == scenario.traffic.vehicles_count
         assert all(7.0 <= v.target_speed <= 12.0 for v in others)
         ahead = [v.position[0] - ego.position[0] for v in others if v.lane_index == ego.lane_index]
         assert all(not (-12.5 < dx < scenario.traffic.initial_clearance) for dx in ahead)
-        while not driver.done:
-            driver.step()
+        while not episode.done:
+            episode.step(mpc)
         behind, front = scenario.traffic.window
-        for vehicle in driver.unwrapped.road.vehicles:
-            assert -behind - 3.0 <= vehicle.position[0] - driver.ego.position[0] <= front + 3.0
+        for vehicle in episode.unwrapped.road.vehicles:
+            assert -behind - 3.0 <= vehicle.position[0] - episode.ego.position[0] <= front + 3.0
     finally:
-        driver.close()
+        episode.close()
 
 
 def test_default_traffic_option_keeps_highway_env_speeds():
     scenario = ScenarioConfig(duration=1.0, traffic=IDMTraffic(target_speeds=None))
-    driver = HighwayDriver(scenario, seed=0)
+    episode = HighwayEpisode(scenario, seed=0)
     try:
-        speeds = [v.target_speed for v in driver.unwrapped.road.vehicles if v is not driver.ego]
+        speeds = [v.target_speed for v in episode.unwrapped.road.vehicles if v is not episode.ego]
         assert min(speeds) >= 20.0
     finally:
-        driver.close()
+        episode.close()
 
 
 # ------------------------------------------------------------------------ behaviour on hand-built scenes

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mmpc.drive import run_episode
-from mmpc.highway import HighwayDriver
+from mmpc.drivers import make_driver
+from mmpc.highway import HighwayEpisode
 from mmpc.ngsim import FOOT, read_ngsim
 from mmpc.scenario import EgoConfig, NGSIMTraffic, ScenarioConfig
 from mmpc.traffic import ReplayVehicle
@@ -122,20 +123,21 @@ def ngsim_scenario(path, **traffic) -> ScenarioConfig:
 @pytest.mark.usefixtures("one_thread")
 def test_replay_follows_the_recording_and_vehicles_come_and_go(ngsim_file):
     recording = read_ngsim(ngsim_file)
-    driver = HighwayDriver(ngsim_scenario(ngsim_file, start_time=15.0), seed=0)
+    scenario = ngsim_scenario(ngsim_file, start_time=15.0)
+    episode, mpc = HighwayEpisode(scenario, seed=0), make_driver("mpc", scenario)
     try:
-        shift = driver.ego.position[0] - 60.0
-        replayed = {v.track.vehicle_id: v for v in driver.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
+        shift = episode.ego.position[0] - 60.0
+        replayed = {v.track.vehicle_id: v for v in episode.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
         assert set(replayed) == {1, 2, 3, 4, 5, 6}
         for _ in range(60):  # 6 s: vehicle 6 (recorded until 19.9 s) leaves
-            driver.step()
-        replayed = {v.track.vehicle_id: v for v in driver.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
+            episode.step(mpc)
+        replayed = {v.track.vehicle_id: v for v in episode.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
         assert set(replayed) == {1, 2, 3, 4, 5}
         track = next(t for t in recording.tracks if t.vehicle_id == 2)
         x, y, _, _ = track.state_at(21.0)
         assert replayed[2].position == pytest.approx(np.array([x + shift, y]), abs=1e-6)
     finally:
-        driver.close()
+        episode.close()
 
 
 @pytest.mark.usefixtures("one_thread")
@@ -145,16 +147,16 @@ def test_vehicles_at_the_ego_start_are_left_out_and_late_ones_enter(ngsim_file):
     car = next(t for t in recording.tracks if t.vehicle_id == 1)
     scenario = ngsim_scenario(ngsim_file, ego_position=float(car.state_at(5.0)[0]) + 5.0)
     scenario = scenario.replace(ego=EgoConfig(speed=12.0, lane=1))
-    driver = HighwayDriver(scenario, seed=0)
+    episode, mpc = HighwayEpisode(scenario, seed=0), make_driver("mpc", scenario)
     try:
-        ids = {v.track.vehicle_id for v in driver.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
+        ids = {v.track.vehicle_id for v in episode.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
         assert 1 not in ids and 4 not in ids  # overlapping the ego; not yet recorded
         for _ in range(55):
-            driver.step()
-        ids = {v.track.vehicle_id for v in driver.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
+            episode.step(mpc)
+        ids = {v.track.vehicle_id for v in episode.unwrapped.road.vehicles if isinstance(v, ReplayVehicle)}
         assert 4 in ids
     finally:
-        driver.close()
+        episode.close()
 
 
 @pytest.mark.usefixtures("one_thread")
@@ -166,4 +168,4 @@ def test_mpc_drives_through_replayed_traffic(ngsim_file):
 
 def test_replay_longer_than_the_recording_is_an_error(ngsim_file):
     with pytest.raises(ValueError, match="exceeds the recording"):
-        HighwayDriver(ngsim_scenario(ngsim_file, start_time=55.0), seed=0)
+        HighwayEpisode(ngsim_scenario(ngsim_file, start_time=55.0), seed=0)

@@ -1,0 +1,212 @@
+"""Drivers: anything that turns the state of E environments into E (acceleration, steering)
+commands, behind one interface, so the closed loop, the benchmark and the evaluation run every
+method the same way.
+
+A driver sees an :class:`Observation` (the road-frame state the MPC uses, plus highway-env's
+kinematics observation for learned policies) and returns a :class:`Decision`. It is batched:
+one :meth:`Driver.decide` call serves E environments stepped in lockstep, which is what lets
+the multi-modal MPC solve all of their goal batches in one optimizer call.
+
+Drivers are named by a spec string (``mpc``, ``frenet``, ``standard-mpc``, ``batch-nlp``,
+``bc:RUN/policy.pt``, ``sb3:MODEL.zip``); :func:`make_driver` builds one for a scenario. The
+baselines and the learned policies are imported only when asked for.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import time
+from typing import TYPE_CHECKING, Callable, NamedTuple, Optional
+
+import numpy as np
+import torch
+
+from mmpc.mpc import MPC, Plan
+
+if TYPE_CHECKING:
+    from mmpc.scenario import ScenarioConfig
+
+
+class Observation(NamedTuple):
+    """What a driver sees of E environments at one control step.
+
+    Fields:
+        ego: (E, 6) ego state in the road frame, as :data:`mmpc.EGO_FIELDS` (x, y [m], psi
+            [rad], v [m/s], a [m/s^2], psidot [rad/s]).
+        vehicles: (E, V, 4) other vehicles' x, y [m], vx, vy [m/s] in the road frame.
+        vehicle_mask: (E, V) bool, True for real vehicles (rows padded when environments have
+            different vehicle counts); ``None``: all real.
+        kinematics: (E, rows, features) float32, highway-env's ``Kinematics`` observation of
+            each environment (what learned policies read); ``None`` where not available.
+        env_ids: (E,) long, which environment each row is, stable over an episode (rows drop
+            out of a lockstep batch as their episodes end); drivers with memory key it on
+            these. ``None``: rows 0..E-1.
+    """
+
+    ego: torch.Tensor
+    vehicles: torch.Tensor
+    vehicle_mask: Optional[torch.Tensor] = None
+    kinematics: Optional[np.ndarray] = None
+    env_ids: Optional[torch.Tensor] = None
+
+    def ids(self) -> torch.Tensor:
+        """(E,) long environment ids (``env_ids`` or 0..E-1)."""
+        return self.env_ids if self.env_ids is not None else torch.arange(self.num_envs)
+
+    @property
+    def num_envs(self) -> int:
+        return self.ego.shape[0]
+
+
+class Candidates(NamedTuple):
+    """The trajectories a planning driver considered (for drawing), environment-major.
+
+    Fields:
+        xy: (E, K, N, 2) road-frame positions of K candidates [m].
+        feasible: (E, K) bool.
+        best: (E,) index of the executed candidate.
+        goals: (E, K, 2) the candidates' goals [m]; ``None`` for samplers without goals.
+    """
+
+    xy: torch.Tensor
+    feasible: torch.Tensor
+    best: torch.Tensor
+    goals: Optional[torch.Tensor] = None
+
+
+class Decision(NamedTuple):
+    """E commands and what a step record needs from the driver.
+
+    Fields:
+        acceleration: (E,) longitudinal acceleration command [m/s^2].
+        steering: (E,) steering angle command [rad].
+        solve_ms: wall time of the whole :meth:`Driver.decide` call (all E) [ms].
+        goal_index: (E,) long, index of the chosen goal/candidate; -1 where the driver has none.
+        feasible_goals: (E,) long, number of feasible candidates; -1 where not applicable.
+        fallback: (E,) bool, the driver executed its fallback (no feasible candidate).
+        plan_cost: (E,) the chosen plan's meta cost as the driver ranked it (NaN: not applicable).
+        candidates: what was considered, for videos; ``None`` when the driver plans nothing.
+        plan: the MPC's full :class:`mmpc.Plan` (MPC drivers only).
+    """
+
+    acceleration: torch.Tensor
+    steering: torch.Tensor
+    solve_ms: float
+    goal_index: torch.Tensor
+    feasible_goals: torch.Tensor
+    fallback: torch.Tensor
+    plan_cost: torch.Tensor
+    candidates: Optional[Candidates] = None
+    plan: Optional[Plan] = None
+
+    @classmethod
+    def command_only(cls, acceleration: torch.Tensor, steering: torch.Tensor, solve_ms: float) -> "Decision":
+        """A decision of a driver without candidates (e.g. a learned policy)."""
+        count = acceleration.shape[0]
+        return cls(
+            acceleration, steering, solve_ms,
+            goal_index=torch.full((count,), -1, dtype=torch.long),
+            feasible_goals=torch.full((count,), -1, dtype=torch.long),
+            fallback=torch.zeros(count, dtype=torch.bool),
+            plan_cost=torch.full((count,), float("nan")),
+        )
+
+
+class Driver(abc.ABC):
+    """Commands for E environments per call.
+
+    Subclasses set :attr:`name` and implement :meth:`decide`; drivers with memory across steps
+    (warm starts, recurrent policies) also override :meth:`reset`.
+    """
+
+    name: str = "driver"
+
+    def reset(self, num_envs: int) -> None:
+        """E new episodes start: forget anything carried from earlier steps."""
+
+    @abc.abstractmethod
+    def decide(self, observation: Observation) -> Decision:
+        """Commands for the E environments of ``observation``."""
+
+
+class MPCDriver(Driver):
+    """The multi-modal MPC (:class:`mmpc.MPC`): one batched optimizer call for all E environments.
+
+    Args:
+        mpc: the MPC (its goal sampler, meta cost and optimizer).
+        name: the driver's name in tables.
+    """
+
+    def __init__(self, mpc: MPC, name: str = "mpc") -> None:
+        self.mpc = mpc
+        self.name = name
+
+    def decide(self, observation: Observation) -> Decision:
+        start = time.perf_counter()
+        plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask)
+        elapsed_ms = (time.perf_counter() - start) * 1e3
+        trajectories = plan.result.trajectories
+        candidates = Candidates(
+            xy=torch.stack([trajectories.x, trajectories.y], dim=-1),
+            feasible=plan.result.feasible,
+            best=plan.selection.index,
+            goals=plan.problem.goals,
+        )
+        return Decision(
+            acceleration=plan.acceleration,
+            steering=plan.steering,
+            solve_ms=elapsed_ms,
+            goal_index=plan.selection.index,
+            feasible_goals=plan.result.feasible.sum(dim=1),
+            fallback=~plan.selection.feasible,
+            plan_cost=plan.selection.cost,
+            candidates=candidates,
+            plan=plan,
+        )
+
+
+def _mpc_driver(scenario: "ScenarioConfig", argument: Optional[str]) -> Driver:
+    from mmpc.scenario import build_mpc
+
+    if argument is not None:
+        raise ValueError(f"driver 'mpc' takes no argument; got 'mpc:{argument}'")
+    return MPCDriver(build_mpc(scenario))
+
+
+#: Driver factories by spec name: ``(scenario, argument) -> Driver`` where ``argument`` is the
+#: text after ``:`` in the spec (a path for learned policies) or ``None``. Values are
+#: ``"module:function"`` strings, imported on use, so optional dependencies (CasADi,
+#: stable-baselines3) load only for the drivers that need them.
+DRIVERS: dict[str, str | Callable[["ScenarioConfig", Optional[str]], Driver]] = {
+    "mpc": _mpc_driver,
+    "frenet": "mmpc.baselines.frenet:make_frenet_driver",
+    "standard-mpc": "mmpc.baselines.standard_mpc:make_standard_mpc_driver",
+    "batch-nlp": "mmpc.baselines.batch_nlp:make_batch_nlp_driver",
+    "bc": "mmpc.imitation.policy:make_policy_driver",
+    "sb3": "mmpc.rl.driver:make_sb3_driver",
+}
+
+
+def driver_names() -> list[str]:
+    return sorted(DRIVERS)
+
+
+def make_driver(spec: str, scenario: "ScenarioConfig") -> Driver:
+    """Build the driver named by ``spec`` for ``scenario``.
+
+    Args:
+        spec: ``NAME`` or ``NAME:ARGUMENT`` with NAME one of :data:`DRIVERS`
+            (e.g. ``frenet``, ``bc:runs/bc/policy.pt``).
+        scenario: the scenario it will drive (objective, road, optimizer settings).
+    """
+    if not isinstance(spec, str) or not spec:
+        raise ValueError(f"driver spec must be a non-empty string such as 'mpc'; got {spec!r}")
+    name, sep, argument = spec.partition(":")
+    if name not in DRIVERS:
+        raise ValueError(f"unknown driver {name!r} in {spec!r}; expected one of {driver_names()}")
+    factory = DRIVERS[name]
+    if isinstance(factory, str):
+        module, _, function = factory.partition(":")
+        factory = getattr(importlib.import_module(module), function)
+    return factory(scenario, argument if sep else None)
