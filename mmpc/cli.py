@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import logging
 import sys
@@ -22,6 +23,11 @@ from mmpc.problem import ProblemBatch
 from mmpc.ranking import select_best
 from mmpc.result import Status
 from mmpc.scenes import demo_scene
+
+
+#: Modules that add their own subcommands: each has ``add_subcommands(subparsers)`` and keeps
+#: its heavy imports (CasADi, Ray, stable-baselines3, Minari) inside the command functions.
+COMMAND_MODULES: tuple[str, ...] = ()
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -222,6 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     drive.add_argument("--threads", type=int, default=1, help="torch threads per episode (default 1)")
     drive.add_argument("--out", default="runs/drive", help="output folder (default runs/drive)")
     drive.set_defaults(func=_drive)
+
+    for module in COMMAND_MODULES:
+        importlib.import_module(module).add_subcommands(sub)
     return parser
 
 
