@@ -106,8 +106,9 @@ class NearLaneGoals:
     The paper's goals all lie a fixed distance ahead (``v_ref * horizon``, or 150-175 m for high
     speed, where the authors' layout also leaves a lane without goals). Behind a slower car with
     the neighbouring lanes occupied none of them is reachable, and the MPC could only fall back.
-    These extra goals sit on the centre of the ego's nearest lane and of the ``lanes_around``
-    lanes either side (clamped to the road, so edge lanes repeat a lane), at
+    These extra goals sit on the centres of the ``2 lanes_around + 1`` lanes nearest the ego's
+    lane: its lane and ``lanes_around`` either side, the window shifted to stay on the road (on
+    an edge lane: the edge lane and the next ``2 lanes_around`` inwards, so no goal repeats), at
     ``x0 + s * horizon`` for every average speed ``s`` in ``speeds``. The end speed is free, so a
     goal short of a leader's predicted position yields a car-following trajectory; the meta cost
     still prefers the fastest feasible goal.
@@ -120,8 +121,8 @@ class NearLaneGoals:
             ``None``: every lane of the road.
 
     Shapes:
-        returns (E, G0 + len(speeds) * L, 2) with L = 2 lanes_around + 1, or the road's lane
-        count when ``lanes_around`` is ``None``.
+        returns (E, G0 + len(speeds) * L, 2) with L = min(2 lanes_around + 1, lane count), or
+        the lane count when ``lanes_around`` is ``None``.
     """
 
     base: GoalSampler
@@ -142,8 +143,9 @@ class NearLaneGoals:
         if self.lanes_around is None:
             lane_y = road.lane_centers(**kw).expand(ego.shape[0], -1)  # (E, L)
         else:
-            offsets = torch.arange(-self.lanes_around, self.lanes_around + 1, device=ego.device)
-            lanes = (road.lane_index(ego[:, EGO_Y])[:, None] + offsets).clamp(0, road.num_lanes - 1)  # (E, L)
+            count = min(2 * self.lanes_around + 1, road.num_lanes)
+            first = (road.lane_index(ego[:, EGO_Y]) - self.lanes_around).clamp(0, road.num_lanes - count)
+            lanes = first[:, None] + torch.arange(count, device=ego.device)  # (E, L)
             lane_y = lanes.to(ego.dtype) * road.lane_width
         ahead = torch.tensor(self.speeds, **kw) * self.horizon  # (S,)
         x = ego[:, EGO_X, None, None] + ahead[None, None, :]  # (E, 1, S)

@@ -101,8 +101,12 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
     goals = sampler(mmpc.ego_state(0.0, 0.4, 0.0, 10.0), road)[0]
     assert goals.shape == (4 + 2 * 3, 2)
     extra = goals[4:]
-    assert sorted(set(extra[:, 1].tolist())) == [0.0, 4.0]  # lane 0 and its one neighbour (the road's edge clamps)
+    assert sorted(extra[:, 1].tolist()) == [0.0, 0.0, 4.0, 4.0, 8.0, 8.0]  # edge lane: the window shifts inwards
     assert sorted(set(extra[:, 0].tolist())) == [40.0, 80.0]
+    middle = sampler(mmpc.ego_state(0.0, 8.2, 0.0, 10.0), road)[0, 4:]
+    assert sorted(set(middle[:, 1].tolist())) == [4.0, 8.0, 12.0]
+    wide = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0,), lanes_around=3)
+    assert sorted(wide(mmpc.ego_state(0.0, 8.0, 0.0, 10.0), road)[0, 4:, 1].tolist()) == [0.0, 4.0, 8.0, 12.0]
     every_lane = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0,), lanes_around=None)
     assert every_lane(mmpc.ego_state(0.0, 0.0, 0.0, 10.0), road)[0, 4:, 1].tolist() == [0.0, 4.0, 8.0, 12.0]
 
