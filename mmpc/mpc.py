@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional
 
 import torch
 
@@ -24,6 +24,8 @@ from mmpc.ranking import Selection, constraint_violation, select_best
 from mmpc.result import SolveResult, Status, Trajectories
 from mmpc.road import Road
 
+#: A selection rule for :meth:`MPC.plan_problem`: ``(result, cost (E, G), violation (E, G)) -> Selection``.
+Selector = Callable[[SolveResult, torch.Tensor, torch.Tensor], Selection]
 
 #: Status bits that make a candidate unfit to drive even as a fallback: a path that breaks the
 #: vehicle model, leaves the heading band or the road, or is numerically broken. (Measured in
@@ -221,7 +223,23 @@ class MPC:
             sound and stays on the road, it only comes too close to an obstacle or exceeds
             ``a_max``); otherwise the command is a lane-keeping brake.
         """
-        problem = self.build_problem(ego, vehicles, vehicle_mask)
+        return self.plan_problem(self.build_problem(ego, vehicles, vehicle_mask))
+
+    @torch.no_grad()
+    def plan_problem(self, problem: ProblemBatch, selector: Optional[Selector] = None) -> Plan:
+        """One MPC step for a problem batch built by the caller (e.g. :meth:`build_problem` with
+        goals of its own added), with an optional selection rule.
+
+        Args:
+            problem: E problems with G goals each.
+            selector: ``selector(result, cost, violation) -> Selection`` over the (E, G)
+                candidates (``violation`` ranks infeasible ones, see :meth:`plan`); default
+                :func:`mmpc.ranking.select_best`, the feasible candidate of lowest meta cost.
+                A selection with ``feasible`` False gets :meth:`plan`'s fallback.
+
+        Returns:
+            A :class:`Plan`, as :meth:`plan`.
+        """
         start = time.perf_counter()
         result = self.optimizer(problem)
         if result.status.is_cuda:
@@ -229,7 +247,11 @@ class MPC:
         solve_ms = (time.perf_counter() - start) * 1e3
         result, road_excess = self._keep_on_road(result, problem.ego)
         cost = self.meta_cost(result.trajectories, self.road)
-        selection = select_best(result, cost, self.optimizer.config, violation=self._violation(result, road_excess))
+        violation = self._violation(result, road_excess)
+        if selector is None:
+            selection = select_best(result, cost, self.optimizer.config, violation=violation)
+        else:
+            selection = selector(result, cost, violation)
         trajectory = result.trajectories.select(selection.index)
         acceleration, heading_rate = self._command(trajectory)
         rows = torch.arange(result.status.shape[0], device=result.status.device)

@@ -1,0 +1,252 @@
+"""Trained stable-baselines3 agents as :class:`mmpc.drivers.Driver` s (``mmpc drive --driver sb3:MODEL.zip``).
+
+:func:`make_sb3_driver` reads the run's ``config.yaml`` (written by ``mmpc train-rl``) to know
+what the model was trained on:
+
+- a safe-layer agent (``--env safe``) picks a goal every ``decision_frames`` control steps from
+  its observation (highway-env kinematics + solver features); the goal is held while the safety
+  layer plans towards it at every step (:class:`SafeAgentDriver`);
+- a plain highway-env agent (``--env highway``) with continuous actions has its action mapped
+  to acceleration and steering; with highway-env's ``DiscreteMetaAction`` its meta-action is
+  executed by a lane and speed controller with highway-env's ``MDPVehicle`` control laws
+  (:class:`MetaActionDriver`). Either holds its action for ``decision_frames`` steps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING, Any, Optional
+
+import numpy as np
+import torch
+
+from mmpc.drivers import Candidates, Decision, Driver, Observation
+from mmpc.problem import EGO_PSI, EGO_PSIDOT, EGO_V, EGO_Y
+
+if TYPE_CHECKING:
+    from mmpc.rl.train import TrainedRun
+    from mmpc.scenario import ScenarioConfig
+
+
+def _flat_kinematics(observation: Observation, rows: list[int], vehicles: int) -> np.ndarray:
+    if observation.kinematics is None:
+        raise ValueError("the sb3 driver needs highway-env's Kinematics observation (`Observation.kinematics`)")
+    kinematics = np.asarray(observation.kinematics, dtype=np.float32)[rows]
+    if kinematics.ndim != 3 or kinematics.shape[1] != vehicles:
+        raise ValueError(f"the agent was trained on {vehicles} Kinematics rows; the observation has shape {kinematics.shape[1:]}")
+    return kinematics.reshape(len(rows), -1)
+
+
+class _Hold:
+    """Per-environment actions held for ``frames`` control steps."""
+
+    def __init__(self, frames: int) -> None:
+        self.frames = frames
+        self.values: dict[int, Any] = {}
+        self.left: dict[int, int] = {}
+
+    def clear(self) -> None:
+        self.values.clear()
+        self.left.clear()
+
+    def due(self, ids: list[int]) -> list[int]:
+        """Rows whose environment needs a new decision."""
+        return [row for row, env in enumerate(ids) if self.left.get(env, 0) <= 0]
+
+    def set(self, env: int, value: Any) -> None:
+        self.values[env] = value
+        self.left[env] = self.frames
+
+    def tick(self, ids: list[int]) -> None:
+        for env in ids:
+            self.left[env] -= 1
+
+
+class SafeAgentDriver(Driver):
+    """A safe-layer agent: its goal choice executed through the safety layer.
+
+    Args:
+        run: the trained run (model, environment settings).
+        scenario: the scenario driven (its MPC supplies the standard goals and the meta cost).
+    """
+
+    name = "sb3-safe"
+
+    def __init__(self, run: "TrainedRun", scenario: "ScenarioConfig") -> None:
+        from mmpc.rl.safety import SafetyLayer
+        from mmpc.scenario import build_mpc
+
+        self.model = run.model
+        self.continuous = run.continuous
+        self.config = run.config.env
+        self.layer = SafetyLayer(build_mpc(scenario), self.config)
+        self.hold = _Hold(self.config.decision_frames)
+
+    def reset(self, num_envs: int) -> None:
+        self.hold.clear()
+
+    def decide(self, observation: Observation) -> Decision:
+        start = time.perf_counter()
+        ids = [int(i) for i in observation.ids()]
+        due = self.hold.due(ids)
+        if due:
+            sub = Observation(observation.ego[due], observation.vehicles[due],
+                              None if observation.vehicle_mask is None else observation.vehicle_mask[due])
+            parts = [_flat_kinematics(observation, due, self.config.kinematics_vehicles)]
+            if self.config.solver_features:
+                features, _ = self.layer.goal_features(sub)
+                parts.append(features.reshape(len(due), -1))
+            vector = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
+            actions, _ = self.model.predict(vector, deterministic=True)
+            if self.continuous:
+                commands = self.layer.continuous_commands(sub.ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
+            else:
+                commands = self.layer.discrete_commands(sub.ego, torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long))
+            for row, command in zip(due, commands):
+                self.hold.set(ids[row], command)
+        commands = torch.stack([self.hold.values[env] for env in ids])
+        safe = self.layer.plan(observation, commands)
+        self.hold.tick(ids)
+        plan = safe.plan
+        trajectories = plan.result.trajectories
+        return Decision(
+            acceleration=plan.acceleration,
+            steering=plan.steering,
+            solve_ms=(time.perf_counter() - start) * 1e3,
+            goal_index=plan.selection.index,
+            feasible_goals=safe.feasible_goals,
+            fallback=safe.fallback,
+            plan_cost=plan.selection.cost,
+            candidates=Candidates(torch.stack([trajectories.x, trajectories.y], dim=-1), plan.result.feasible,
+                                  plan.selection.index, plan.problem.goals),
+            plan=plan,
+        )
+
+
+class ContinuousActionDriver(Driver):
+    """A plain highway-env agent with ``ContinuousAction``: [-1, 1]^2 -> acceleration, steering."""
+
+    name = "sb3"
+
+    def __init__(self, run: "TrainedRun") -> None:
+        from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE
+
+        self.model = run.model
+        self.vehicles = run.config.env.kinematics_vehicles
+        self.ranges = (ACCELERATION_RANGE, STEERING_RANGE)
+        self.hold = _Hold(run.config.env.decision_frames)
+
+    def reset(self, num_envs: int) -> None:
+        self.hold.clear()
+
+    def decide(self, observation: Observation) -> Decision:
+        start = time.perf_counter()
+        ids = [int(i) for i in observation.ids()]
+        due = self.hold.due(ids)
+        if due:
+            actions, _ = self.model.predict(_flat_kinematics(observation, due, self.vehicles), deterministic=True)
+            for row, action in zip(due, np.clip(np.asarray(actions, dtype=np.float64).reshape(len(due), 2), -1.0, 1.0)):
+                self.hold.set(ids[row], action)
+        actions = np.stack([self.hold.values[env] for env in ids])
+        self.hold.tick(ids)
+        (a_low, a_high), (s_low, s_high) = self.ranges
+        acceleration = a_low + 0.5 * (actions[:, 0] + 1.0) * (a_high - a_low)
+        steering = s_low + 0.5 * (actions[:, 1] + 1.0) * (s_high - s_low)
+        return Decision.command_only(torch.as_tensor(acceleration, dtype=torch.float32),
+                                     torch.as_tensor(steering, dtype=torch.float32), (time.perf_counter() - start) * 1e3)
+
+
+class MetaActionDriver(Driver):
+    """A plain highway-env agent with ``DiscreteMetaAction`` (0 LANE_LEFT, 1 IDLE, 2 LANE_RIGHT,
+    3 FASTER, 4 SLOWER), executed by highway-env's ``MDPVehicle`` control laws in the road frame:
+
+    - speed: target speeds (20, 25, 30) m/s; FASTER / SLOWER step the index of the current speed;
+      ``acceleration = (v_target - v) / 0.6 s``;
+    - lane: LANE_LEFT / RIGHT move the target lane (clamped to the road); lateral speed command
+      ``-(y - y_lane) / 0.6 s``, heading reference ``asin(v_lat / v)`` (within +-45 deg), heading
+      rate ``(psi_ref - psi) / 0.2 s``, slip ``asin(L / 2 / v * rate)``, steering
+      ``atan(2 tan(slip))`` (within +-60 deg; L = 5 m).
+    """
+
+    name = "sb3"
+    TARGET_SPEEDS = (20.0, 25.0, 30.0)
+    TAU_ACCELERATION, TAU_HEADING, TAU_LATERAL = 0.6, 0.2, 0.6
+    LENGTH = 5.0
+    MAX_STEERING = math.pi / 3
+
+    def __init__(self, run: "TrainedRun", scenario: "ScenarioConfig") -> None:
+        self.model = run.model
+        self.vehicles = run.config.env.kinematics_vehicles
+        self.road = scenario.road
+        self.hold = _Hold(run.config.env.decision_frames)
+        self.target: dict[int, tuple[int, float]] = {}
+
+    def reset(self, num_envs: int) -> None:
+        self.hold.clear()
+        self.target.clear()
+
+    def _speed_index(self, speed: float) -> int:
+        low, high = self.TARGET_SPEEDS[0], self.TARGET_SPEEDS[-1]
+        return int(np.clip(round((speed - low) / (high - low) * (len(self.TARGET_SPEEDS) - 1)), 0, len(self.TARGET_SPEEDS) - 1))
+
+    def decide(self, observation: Observation) -> Decision:
+        start = time.perf_counter()
+        ids = [int(i) for i in observation.ids()]
+        ego = observation.ego.to(torch.float64)
+        for row, env in enumerate(ids):
+            if env not in self.target:
+                speed = float(ego[row, EGO_V])
+                self.target[env] = (int(self.road.lane_index(ego[row, EGO_Y])), self.TARGET_SPEEDS[self._speed_index(speed)])
+        due = self.hold.due(ids)
+        if due:
+            actions, _ = self.model.predict(_flat_kinematics(observation, due, self.vehicles), deterministic=True)
+            for row, action in zip(due, np.asarray(actions).reshape(-1)):
+                env = ids[row]
+                lane, speed = self.target[env]
+                index = self._speed_index(float(ego[row, EGO_V]))
+                if action == 0:
+                    lane = max(lane - 1, 0)
+                elif action == 2:
+                    lane = min(lane + 1, self.road.num_lanes - 1)
+                elif action == 3:
+                    speed = self.TARGET_SPEEDS[min(index + 1, len(self.TARGET_SPEEDS) - 1)]
+                elif action == 4:
+                    speed = self.TARGET_SPEEDS[max(index - 1, 0)]
+                self.target[env] = (lane, speed)
+                self.hold.set(env, int(action))
+        self.hold.tick(ids)
+        lanes = torch.tensor([self.target[env][0] for env in ids], dtype=torch.float64) * self.road.lane_width
+        speeds = torch.tensor([self.target[env][1] for env in ids], dtype=torch.float64)
+        v = ego[:, EGO_V].clamp_min(1e-3)
+        beta = torch.asin((ego[:, EGO_PSIDOT] * self.LENGTH / 2 / v).clamp(-1.0, 1.0))
+        heading = ego[:, EGO_PSI] - beta  # the body heading; psi is the direction of motion
+        lateral_speed = -(ego[:, EGO_Y] - lanes) / self.TAU_LATERAL
+        heading_ref = torch.asin((lateral_speed / v).clamp(-1.0, 1.0)).clamp(-math.pi / 4, math.pi / 4)
+        rate = (heading_ref - heading) / self.TAU_HEADING
+        slip = torch.asin((self.LENGTH / 2 / v * rate).clamp(-1.0, 1.0))
+        steering = torch.atan(2 * torch.tan(slip)).clamp(-self.MAX_STEERING, self.MAX_STEERING)
+        acceleration = (speeds - ego[:, EGO_V]) / self.TAU_ACCELERATION
+        return Decision.command_only(acceleration.to(torch.float32), steering.to(torch.float32),
+                                     (time.perf_counter() - start) * 1e3)
+
+
+def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:
+    """The driver of ``sb3:MODEL.zip`` (the registry entry ``"sb3"`` of :data:`mmpc.drivers.DRIVERS`).
+
+    Args:
+        scenario: the scenario to drive.
+        path: ``model.zip`` (or a checkpoint) of a run written by ``mmpc train-rl``.
+    """
+    from mmpc.rl.train import load_run
+
+    if not path:
+        raise ValueError("driver 'sb3' needs a model: sb3:RUN/model.zip")
+    run = load_run(path)
+    if scenario.road != run.config.scenario.road:
+        raise ValueError(f"the agent was trained on {run.config.scenario.road}; scenario {scenario.name!r} has {scenario.road}")
+    if run.env_kind == "safe":
+        return SafeAgentDriver(run, scenario)
+    if run.continuous:
+        return ContinuousActionDriver(run)
+    return MetaActionDriver(run, scenario)

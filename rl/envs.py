@@ -1,0 +1,343 @@
+"""Gymnasium environments in which an RL agent chooses goals and the batch optimizer drives.
+
+``mmpc/SafeHighway-v0`` (discrete goals: lane offset x target speed) and
+``mmpc/SafeHighwayContinuous-v0`` (Box goals for SAC / PPO), registered by :mod:`mmpc.rl`.
+
+One agent step lasts ``k = decision_frames`` simulation frames. highway-env applies an action on
+the first frame of its own step only (DESIGN section 5), so the environment runs highway-env at
+one frame per ``env.step`` and drives the inner loop itself: the agent's goal command is held
+for the k frames while the safety layer (:class:`mmpc.rl.safety.SafetyLayer`) replans at every
+frame. Rewards are summed over the frames; the step ends early at a collision.
+
+Several environments advance together through :func:`advance`, which gathers their problems at
+every frame into ONE optimizer call; a single environment's :meth:`SafeHighwayEnv.step` is
+:func:`advance` over itself, and :class:`mmpc.rl.vec_env.SafeHighwayVecEnv` uses it over all of
+its environments.
+
+Observation: highway-env's ``Kinematics`` observation (``kinematics_vehicles`` rows x
+presence, x, y, vx, vy, normalised and clipped to [-1, 1]), flattened, followed (with
+``solver_features``) by (feasible, meta cost, clearance) for each goal of the discrete grid.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Optional, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+from highway_env.envs.common.observation import KinematicObservation
+
+from mmpc.drive import stack_observations
+from mmpc.drivers import Observation
+from mmpc.highway import HighwayEpisode, road_state
+from mmpc.rl.config import RewardConfig, SafeEnvConfig, rl_scenario
+from mmpc.rl.safety import FEATURES_PER_GOAL, SafetyLayer
+from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
+
+#: Features per row of highway-env's Kinematics observation (its defaults).
+KINEMATICS_FEATURES = ("presence", "x", "y", "vx", "vy")
+
+
+class DeferredKinematics(KinematicObservation):
+    """highway-env's ``Kinematics`` observation, computed only when asked for.
+
+    highway-env builds its observation (a pandas frame, ~14 ms here) on every ``env.step``; the
+    safe environments step it once per simulation frame but observe once per agent step. This
+    observation type answers highway-env's per-frame call with a constant placeholder of the
+    right shape and computes the real observation in :meth:`compute`.
+    """
+
+    def __init__(self, env, vehicles_count: int) -> None:
+        super().__init__(env, vehicles_count=vehicles_count)
+        self._placeholder = np.zeros(self.space().shape, dtype=np.float32)
+
+    def observe(self) -> np.ndarray:
+        return self._placeholder.copy()
+
+    def compute(self) -> np.ndarray:
+        """The current ``Kinematics`` observation, (vehicles_count, 5) float32."""
+        return np.asarray(super().observe(), dtype=np.float32)
+
+
+def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
+    """highway-env's reward of the current state (see :class:`mmpc.rl.config.RewardConfig`)."""
+    ego = episode.ego
+    lanes = max(episode.scenario.lanes - 1, 1)
+    lane = int(ego.lane_index[2]) if ego.lane_index is not None else 0
+    low, high = reward.reward_speed_range
+    forward = float(ego.speed * np.cos(ego.heading))
+    scaled = float(np.clip((forward - low) / (high - low), 0.0, 1.0))
+    value = reward.collision_reward * float(ego.crashed) + reward.right_lane_reward * lane / lanes + reward.high_speed_reward * scaled
+    if reward.normalize:
+        best = reward.high_speed_reward + reward.right_lane_reward
+        value = (value - reward.collision_reward) / (best - reward.collision_reward)
+    return value * float(ego.on_road)
+
+
+class WallTime(float):
+    """A wall-clock measurement [ms] in ``info``, e.g. ``solve_ms``.
+
+    It is a plain float for every use (logging, arithmetic, JSON) except equality: any two
+    ``WallTime`` compare equal. Timings are a property of the machine, not of the environment's
+    state, and gymnasium's ``check_env`` requires two steps from the same seed and action to
+    return equal ``info`` dicts.
+    """
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, WallTime) or float.__eq__(self, other)
+
+    def __ne__(self, other: object) -> bool:
+        return not self.__eq__(other)
+
+    __hash__ = float.__hash__
+
+
+class StepOutcome(NamedTuple):
+    """What one agent step gave one environment (gymnasium's ``step`` tuple)."""
+
+    observation: np.ndarray
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: dict
+
+
+class SafeHighwayEnv(gym.Env):
+    """highway-env with the batch optimizer as a safe action layer; the agent picks goals.
+
+    Args:
+        scenario: the driving scenario, a :class:`mmpc.ScenarioConfig` or the name / path of
+            one (default :func:`mmpc.rl.config.rl_scenario`); its ``duration`` is the episode
+            length.
+        config: environment settings (a :class:`SafeEnvConfig` or a mapping of its fields).
+        reward: reward settings (a :class:`RewardConfig` or a mapping of its fields).
+        continuous: Box actions ``[-1, 1]^2`` (lateral target, speed) instead of the discrete
+            grid ``lane_offsets x speeds``.
+        layer: a safety layer to share (environments of one vectorized batch must share one);
+            default: a new one for the scenario.
+        render_mode: ``None`` or ``"rgb_array"``.
+
+    ``info`` of a step: ``intervention`` (bool, some frame overrode the agent),
+    ``intervention_frames``, ``fallback_frames``, ``frames``, ``feasible_goals`` (feasible
+    candidates at the last frame, the agent's included), ``agent_feasible`` (last frame),
+    ``solve_ms`` (mean wall time of the optimizer calls of this step; in a vectorized batch
+    one call serves every environment), ``residuals`` (the executed candidate's obstacle,
+    acceleration and non-holonomic residuals at the last frame), ``speed`` (end) and
+    ``mean_speed`` (over the frames) [m/s], ``crashed``, ``goal`` (the held command y, v).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        scenario: ScenarioConfig | str | None = None,
+        config: SafeEnvConfig | dict | None = None,
+        reward: RewardConfig | dict | None = None,
+        *,
+        continuous: bool = False,
+        layer: Optional[SafetyLayer] = None,
+        render_mode: Optional[str] = None,
+    ) -> None:
+        if scenario is None:
+            scenario = rl_scenario()
+        elif isinstance(scenario, str):
+            scenario = load_scenario(scenario)
+        if not isinstance(scenario, ScenarioConfig):
+            raise TypeError(f"`scenario` must be a ScenarioConfig, a scenario name or None; got {type(scenario).__name__}")
+        self.scenario = scenario
+        self.config = config if isinstance(config, SafeEnvConfig) else SafeEnvConfig(**_tuples(config or {}))
+        self.reward_config = reward if isinstance(reward, RewardConfig) else RewardConfig(**_tuples(reward or {}))
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"`render_mode` must be None or 'rgb_array'; got {render_mode!r}")
+        self.render_mode = render_mode
+        self.continuous = bool(continuous)
+        self.layer = layer if layer is not None else SafetyLayer(build_mpc(scenario), self.config)
+        if self.layer.config != self.config:
+            raise ValueError("`layer` was built for other environment settings than `config`")
+        if self.layer.road != scenario.road:
+            raise ValueError(f"`layer` plans on {self.layer.road}, the scenario's road is {scenario.road}")
+        if self.continuous:
+            self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        else:
+            self.action_space = spaces.Discrete(self.config.num_discrete_goals)
+        size = self.config.kinematics_vehicles * len(KINEMATICS_FEATURES)
+        if self.config.solver_features:
+            size += self.config.num_discrete_goals * FEATURES_PER_GOAL
+        self.observation_space = spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
+        self.episode: Optional[HighwayEpisode] = None
+        self.episode_seed: Optional[int] = None
+
+    # ------------------------------------------------------------------ gymnasium API
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[np.ndarray, dict]:
+        """Start an episode; ``seed`` (or one drawn from the environment's generator) seeds
+        highway-env and the traffic, so a seed fixes the whole episode."""
+        return reset_many([self], [seed])[0]
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        return tuple(advance([self], [action])[0])  # type: ignore[return-value]
+
+    def render(self) -> Optional[np.ndarray]:
+        if self.render_mode != "rgb_array" or self.episode is None:
+            return None
+        return self.episode.env.render()
+
+    def close(self) -> None:
+        if self.episode is not None:
+            self.episode.close()
+            self.episode = None
+
+    # ------------------------------------------------------------------ pieces used by advance
+
+    def begin_episode(self, seed: Optional[int]) -> None:
+        """Create the episode of ``seed`` (``None``: drawn from the environment's generator)."""
+        super().reset(seed=seed)
+        self.close()
+        self.episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31 - 1))
+        self.episode = HighwayEpisode(self.scenario, self.episode_seed, render=self.render_mode == "rgb_array")
+        self._kinematics = DeferredKinematics(self.episode.unwrapped, self.config.kinematics_vehicles)
+        self.episode.unwrapped.observation_type = self._kinematics
+
+    def observation(self, features: Optional[np.ndarray]) -> np.ndarray:
+        """The observation vector: kinematics rows flattened, then the solver features (A, 3)."""
+        if self.episode is None:
+            raise RuntimeError("call reset() before observing")
+        kinematics = self._kinematics.compute()
+        rows = self.config.kinematics_vehicles * len(KINEMATICS_FEATURES)
+        if kinematics.size != rows:
+            raise RuntimeError(f"highway-env's Kinematics observation has shape {kinematics.shape}; expected "
+                               f"({self.config.kinematics_vehicles}, {len(KINEMATICS_FEATURES)})")
+        parts = [kinematics.reshape(-1)]
+        if self.config.solver_features:
+            parts.append(np.asarray(features, dtype=np.float32).reshape(-1))
+        return np.clip(np.concatenate(parts), -1.0, 1.0).astype(np.float32)
+
+    def road_state(self) -> Observation:
+        """The current road-frame state for the safety layer (E = 1, no kinematics)."""
+        state = road_state(self.episode.unwrapped, self.episode.frame, dtype=self.layer.mpc.optimizer.dtype)
+        return Observation(state.ego, state.vehicles)
+
+    def commands(self, ego: torch.Tensor, actions: Sequence[Any]) -> torch.Tensor:
+        """Actions of this environment type -> (E, 2) goal commands at the egos ``ego`` (E, 6)."""
+        if self.continuous:
+            return self.layer.continuous_commands(ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
+        indices = [int(np.asarray(a).reshape(-1)[0]) for a in actions]
+        return self.layer.discrete_commands(ego, torch.as_tensor(indices, dtype=torch.long))
+
+    @staticmethod
+    def _features(envs: Sequence["SafeHighwayEnv"]) -> tuple[list[Optional[np.ndarray]], float]:
+        """Solver features of each environment's current state (one solve for all); ms of it."""
+        if not envs[0].config.solver_features:
+            return [None] * len(envs), 0.0
+        observation = stack_observations([env.road_state() for env in envs], range(len(envs)))
+        features, solve_ms = envs[0].layer.goal_features(observation)
+        return list(features), solve_ms
+
+
+def reset_many(envs: Sequence[SafeHighwayEnv], seeds: Sequence[Optional[int]]) -> list[tuple[np.ndarray, dict]]:
+    """Reset several environments that share one safety layer; one solve for their features.
+
+    Returns:
+        ``(observation, info)`` per environment, as gymnasium's ``reset``.
+    """
+    if len(seeds) != len(envs):
+        raise ValueError(f"`seeds` must hold one seed per environment ({len(envs)}); got {len(seeds)}")
+    for env, seed in zip(envs, seeds):
+        env.begin_episode(seed)
+    features, solve_ms = SafeHighwayEnv._features(envs)
+    return [(env.observation(f), {"solve_ms": WallTime(solve_ms), "episode_seed": env.episode_seed}) for env, f in zip(envs, features)]
+
+
+def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[StepOutcome]:
+    """One agent step of several environments, with ONE optimizer call per simulation frame for
+    all of them (plus one for the solver features of the resulting states).
+
+    Every environment turns its action into a goal command at its current state, holds it for
+    ``decision_frames`` frames and stops early when its ego crashes or its episode's time is up.
+
+    Args:
+        envs: environments that share one safety layer and have been reset.
+        actions: one action per environment.
+
+    Returns:
+        One :class:`StepOutcome` per environment, in order.
+    """
+    if len(envs) == 0:
+        return []
+    if len(actions) != len(envs):
+        raise ValueError(f"`actions` must hold one action per environment ({len(envs)}); got {len(actions)}")
+    layer = envs[0].layer
+    if any(env.layer is not layer for env in envs):
+        raise ValueError("environments advanced together must share one SafetyLayer (pass `layer=` when creating them)")
+    for index, env in enumerate(envs):
+        if env.episode is None:
+            raise RuntimeError(f"environment {index} has no episode: call reset() first")
+        if env.episode.done:
+            raise RuntimeError(f"environment {index}'s episode is over: call reset()")
+    count = len(envs)
+    frames = envs[0].config.decision_frames
+    rewards = np.zeros(count)
+    speeds: list[list[float]] = [[] for _ in envs]
+    interventions = np.zeros(count, dtype=int)
+    fallbacks = np.zeros(count, dtype=int)
+    last: list[dict] = [{} for _ in envs]
+    solve_ms: list[float] = []
+    commands: Optional[torch.Tensor] = None
+    for frame in range(frames):
+        active = [i for i, env in enumerate(envs) if not env.episode.done]
+        if not active:
+            break
+        observation = stack_observations([envs[i].road_state() for i in active], active)
+        if commands is None:
+            commands = envs[0].commands(observation.ego, actions)  # frame 0: every env is active
+        safe = layer.plan(observation, commands[active])
+        solve_ms.append(safe.plan.solve_ms)
+        rows = torch.arange(len(active))
+        executed = safe.plan.selection.index
+        result = safe.plan.result
+        for row, i in enumerate(active):
+            env = envs[i]
+            env.episode.apply(float(safe.plan.acceleration[row]), float(safe.plan.steering[row]))
+            intervened = bool(safe.intervention[row])
+            rewards[i] += frame_reward(env.episode, env.reward_config) - env.config.intervention_penalty * intervened
+            interventions[i] += intervened
+            fallbacks[i] += bool(safe.fallback[row])
+            speeds[i].append(float(env.episode.ego.speed))
+            last[i] = {
+                "feasible_goals": int(safe.feasible_goals[row]),
+                "agent_feasible": bool(safe.agent_feasible[row]),
+                "residuals": {
+                    "obstacle": float(result.residual_obstacle[rows[row], executed[row]]),
+                    "acceleration": float(result.residual_acceleration[rows[row], executed[row]]),
+                    "nonholonomic": float(result.residual_nonholonomic[rows[row], executed[row]]),
+                },
+            }
+    features, features_ms = SafeHighwayEnv._features(envs)
+    if envs[0].config.solver_features:
+        solve_ms.append(features_ms)
+    mean_ms = float(np.mean(solve_ms)) if solve_ms else 0.0
+    outcomes = []
+    for i, env in enumerate(envs):
+        episode = env.episode
+        crashed = bool(episode.ego.crashed)
+        info = {
+            "intervention": bool(interventions[i] > 0),
+            "intervention_frames": int(interventions[i]),
+            "fallback_frames": int(fallbacks[i]),
+            "frames": len(speeds[i]),
+            "solve_ms": WallTime(mean_ms),
+            "speed": float(episode.ego.speed),
+            "mean_speed": float(np.mean(speeds[i])),
+            "crashed": crashed,
+            "goal": tuple(float(c) for c in commands[i]),
+            **last[i],
+        }
+        truncated = not crashed and episode.done
+        outcomes.append(StepOutcome(env.observation(features[i]), float(rewards[i]), crashed, truncated, info))
+    return outcomes
+
+
+def _tuples(values: dict) -> dict:
+    return {key: tuple(value) if isinstance(value, list) else value for key, value in dict(values).items()}

@@ -1,0 +1,363 @@
+"""Train stable-baselines3 agents on the safe environments (or on plain highway-env, the
+unprotected baseline) and evaluate them on fixed seeds.
+
+A run directory holds::
+
+    config.yaml          the resolved configuration (algorithm, environment, action space, seed, budget)
+    scenario.yaml        its scenario alone, for ``mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip``
+    tb/<algo>_1/         TensorBoard event files: SB3's scalars plus solver/, safety/, driving/
+    checkpoints/         <algo>_<steps>_steps.zip every ``train.checkpoint_every`` steps
+    model.zip            the final model
+    eval.json            the evaluation: collision_rate, mean_speed, mean_return,
+                         intervention_rate, episodes, and one row per episode
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any, Callable, NamedTuple, Optional, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+import yaml
+
+from mmpc.rl.config import ALGORITHMS, RLConfig
+
+logger = logging.getLogger(__name__)
+
+#: Environments ``train`` can train on: the safe layer or plain highway-env.
+ENV_KINDS = ("safe", "highway")
+#: stable-baselines3 classes by algorithm name.
+ALGORITHM_CLASSES = {"dqn": "DQN", "ppo": "PPO", "sac": "SAC"}
+
+
+def algorithm_class(algo: str) -> type:
+    """The stable-baselines3 class of ``algo`` (``dqn``, ``ppo``, ``sac``)."""
+    if algo not in ALGORITHM_CLASSES:
+        raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHM_CLASSES)}")
+    return getattr(importlib.import_module("stable_baselines3"), ALGORITHM_CLASSES[algo])
+
+
+# ----------------------------------------------------------------------------------- plain baseline
+
+
+class HighwayBaseline(gym.Wrapper):
+    """Plain highway-env set up like a scenario: same road, traffic density, episode length,
+    reward and observation as the safe environments, and highway-env's own action at
+    ``frequency / decision_frames`` Hz (the agent's decision rate in the safe environments).
+
+    Differences that remain: highway-env's traffic without :mod:`mmpc.traffic`'s initial
+    clearance; the reward is highway-env's one per agent step (the safe environments sum it over
+    the step's frames).
+
+    ``info`` adds ``mean_speed`` (the ego's speed at the end of the step) [m/s] and ``frames``.
+    """
+
+    def __init__(self, config: RLConfig, *, continuous: bool) -> None:
+        from mmpc.highway import env_config
+
+        scenario = config.scenario
+        frames = config.env.decision_frames
+        values = env_config(scenario)
+        values.update(config.reward.highway_env_config())
+        values["observation"] = {"type": "Kinematics", "vehicles_count": config.env.kinematics_vehicles}
+        values["policy_frequency"] = scenario.frequency / frames
+        if not continuous:
+            values["action"] = {"type": "DiscreteMetaAction"}
+        super().__init__(gym.make(scenario.env_id, config=values))
+        self.ego_speed = scenario.ego.speed
+        self.frames = frames
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict]:
+        observation, info = self.env.reset(**kwargs)
+        ego = self.env.unwrapped.vehicle
+        ego.speed = self.ego_speed
+        return self.env.unwrapped.observation_type.observe(), info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        info = dict(info, mean_speed=float(info.get("speed", self.env.unwrapped.vehicle.speed)), frames=self.frames)
+        info["crashed"] = bool(self.env.unwrapped.vehicle.crashed)
+        return observation, reward, terminated, truncated, info
+
+
+def make_highway_env(config: RLConfig, *, continuous: bool = False) -> gym.Env:
+    """The unprotected baseline environment (flattened ``Kinematics`` observation)."""
+    return gym.wrappers.FlattenObservation(HighwayBaseline(config, continuous=continuous))
+
+
+# ----------------------------------------------------------------------------------- evaluation
+
+
+class EpisodeRow(NamedTuple):
+    """One evaluation episode."""
+
+    seed: int
+    crashed: bool
+    episode_return: float
+    mean_speed: float
+    steps: int
+    frames: int
+    intervention_frames: int
+
+
+def summarize(rows: Sequence[EpisodeRow], *, safe: bool) -> dict:
+    """``collision_rate``, ``mean_speed`` (mean of the episodes' frame-averaged speeds) [m/s],
+    ``mean_return``, ``intervention_rate`` (share of frames; ``None`` without a safety layer),
+    ``episodes``, and the rows."""
+    frames = sum(r.frames for r in rows)
+    return {
+        "episodes": len(rows),
+        "collision_rate": float(np.mean([r.crashed for r in rows])),
+        "mean_speed": float(np.mean([r.mean_speed for r in rows])),
+        "mean_return": float(np.mean([r.episode_return for r in rows])),
+        "intervention_rate": (sum(r.intervention_frames for r in rows) / frames) if safe and frames else None,
+        "seeds": [r.seed for r in rows],
+        "per_episode": [r._asdict() for r in rows],
+    }
+
+
+def evaluate(
+    policy: Callable[[np.ndarray], np.ndarray],
+    config: RLConfig,
+    *,
+    env_kind: str,
+    continuous: bool,
+    seeds: Sequence[int],
+    lockstep: int = 10,
+    on_episode: Optional[Callable[[EpisodeRow], None]] = None,
+) -> dict:
+    """Run one episode per seed with a policy and summarize them (:func:`summarize`).
+
+    Args:
+        policy: ``observations (B, obs) -> actions (B, ...)`` (e.g. a model's deterministic
+            ``predict``).
+        config: the run's configuration.
+        env_kind: ``safe`` or ``highway``.
+        continuous: Box actions.
+        seeds: one episode per seed.
+        lockstep: safe environments: episodes run together, one batched solve per frame.
+        on_episode: called with every finished episode.
+    """
+    if env_kind not in ENV_KINDS:
+        raise ValueError(f"`env_kind` must be one of {ENV_KINDS}; got {env_kind!r}")
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("`seeds` must not be empty")
+    rows: list[EpisodeRow] = []
+    if env_kind == "safe":
+        from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
+        from mmpc.rl.safety import SafetyLayer
+        from mmpc.scenario import build_mpc
+
+        layer = SafetyLayer(build_mpc(config.scenario), config.env)
+        envs = [SafeHighwayEnv(config.scenario, config.env, config.reward, continuous=continuous, layer=layer)
+                for _ in range(min(lockstep, len(seeds)))]
+        try:
+            for start in range(0, len(seeds), len(envs)):
+                chunk = seeds[start:start + len(envs)]
+                running = envs[:len(chunk)]
+                observations = [obs for obs, _ in reset_many(running, chunk)]
+                stats = [_EpisodeStats(seed) for seed in chunk]
+                active = list(range(len(chunk)))
+                while active:
+                    actions = policy(np.stack([observations[i] for i in active]))
+                    outcomes = advance([running[i] for i in active], list(actions))
+                    for i, outcome in zip(active, outcomes):
+                        observations[i] = outcome.observation
+                        stats[i].add(outcome.reward, outcome.info)
+                    finished = [i for i, o in zip(active, outcomes) if o.terminated or o.truncated]
+                    for i in finished:
+                        rows.append(stats[i].row())
+                        if on_episode is not None:
+                            on_episode(rows[-1])
+                    active = [i for i in active if i not in finished]
+        finally:
+            for env in envs:
+                env.close()
+    else:
+        env = make_highway_env(config, continuous=continuous)
+        try:
+            for seed in seeds:
+                observation, _ = env.reset(seed=seed)
+                stats = _EpisodeStats(seed)
+                done = False
+                while not done:
+                    action = policy(observation[None])[0]
+                    observation, reward, terminated, truncated, info = env.step(action)
+                    stats.add(float(reward), info)
+                    done = terminated or truncated
+                rows.append(stats.row())
+                if on_episode is not None:
+                    on_episode(rows[-1])
+        finally:
+            env.close()
+    rows.sort(key=lambda r: seeds.index(r.seed))
+    return summarize(rows, safe=env_kind == "safe")
+
+
+class _EpisodeStats:
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+        self.total = 0.0
+        self.steps = 0
+        self.frames = 0
+        self.speed_sum = 0.0
+        self.intervened = 0
+        self.crashed = False
+
+    def add(self, reward: float, info: dict) -> None:
+        frames = int(info.get("frames", 1))
+        self.total += reward
+        self.steps += 1
+        self.frames += frames
+        self.speed_sum += float(info["mean_speed"]) * frames
+        self.intervened += int(info.get("intervention_frames", 0))
+        self.crashed = self.crashed or bool(info.get("crashed", False))
+
+    def row(self) -> EpisodeRow:
+        return EpisodeRow(self.seed, self.crashed, self.total, self.speed_sum / max(self.frames, 1), self.steps,
+                          self.frames, self.intervened)
+
+
+# ----------------------------------------------------------------------------------- training
+
+
+def make_training_env(config: RLConfig, *, env_kind: str, continuous: bool, seed: int):
+    """The vectorized training environment (``train.n_envs`` environments, monitored)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
+
+    n_envs = config.train.n_envs
+    if env_kind == "safe":
+        from mmpc.rl.vec_env import SafeHighwayVecEnv
+
+        venv = SafeHighwayVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous)
+    elif env_kind == "highway":
+        venv = DummyVecEnv([lambda: make_highway_env(config, continuous=continuous) for _ in range(n_envs)])
+    else:
+        raise ValueError(f"`env_kind` must be one of {ENV_KINDS}; got {env_kind!r}")
+    venv.seed(seed)
+    return VecMonitor(venv)
+
+
+def algorithm_kwargs(config: RLConfig, algo: str) -> dict:
+    """The run's constructor arguments of ``algo``; unknown names raise ``ValueError``."""
+    kwargs = dict(config.algorithms.get(algo, {}))
+    allowed = set(inspect.signature(algorithm_class(algo).__init__).parameters) - {"self", "policy", "env"}
+    unknown = sorted(set(kwargs) - allowed)
+    if unknown:
+        raise ValueError(f"unknown argument(s) {unknown} in `algorithms.{algo}`; {ALGORITHM_CLASSES[algo]} accepts {sorted(allowed)}")
+    return kwargs
+
+
+def train(
+    config: RLConfig,
+    algo: str,
+    timesteps: int,
+    out: Path,
+    *,
+    env_kind: str = "safe",
+    seed: int = 0,
+    progress_bar: bool = False,
+    evaluate_after: bool = True,
+) -> dict:
+    """Train ``algo`` for ``timesteps`` environment steps, save it, evaluate it.
+
+    Args:
+        config: the run's configuration.
+        algo: ``dqn``, ``ppo`` or ``sac``.
+        timesteps: environment (agent) steps, summed over the vectorized environments.
+        out: the run directory (created; see the module docstring).
+        env_kind: ``safe`` (the goal-choosing environments) or ``highway`` (plain highway-env).
+        seed: seeds the model and the training environments.
+        progress_bar: SB3's progress bar.
+        evaluate_after: run the evaluation (``train.eval_episodes`` episodes) and write eval.json.
+
+    Returns:
+        The evaluation summary (``{}`` without evaluation).
+    """
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+
+    from mmpc.rl.callbacks import SafetyTensorboardCallback
+
+    if algo not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
+    if env_kind not in ENV_KINDS:
+        raise ValueError(f"`env_kind` must be one of {ENV_KINDS}; got {env_kind!r}")
+    if not isinstance(timesteps, int) or timesteps < 1:
+        raise ValueError(f"`timesteps` must be an int >= 1; got {timesteps!r}")
+    continuous = config.action_for(algo) == "continuous"
+    kwargs = algorithm_kwargs(config, algo)
+    torch.set_num_threads(config.train.torch_threads)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete", "timesteps": timesteps,
+           "seed": seed, "config": config.to_dict()}
+    (out / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
+    # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
+    (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
+    env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
+    model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
+    checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1), str(out / "checkpoints"),
+                                     name_prefix=algo)
+    start = time.perf_counter()
+    try:
+        model.learn(timesteps, callback=CallbackList([checkpoints, SafetyTensorboardCallback(config.train.log_every)]),
+                    tb_log_name=algo, progress_bar=progress_bar)
+    finally:
+        env.close()
+    train_s = time.perf_counter() - start
+    model.save(out / "model.zip")
+    logger.info("trained %s on %s for %d steps in %.0f s", algo, env_kind, timesteps, train_s)
+    if not evaluate_after:
+        return {}
+    summary = evaluate_run(model, config, env_kind=env_kind, continuous=continuous)
+    summary = {"algo": algo, "env": env_kind, "timesteps": timesteps, "train_seconds": train_s, **summary}
+    (out / "eval.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def evaluate_run(model: Any, config: RLConfig, *, env_kind: str, continuous: bool,
+                 on_episode: Optional[Callable[[EpisodeRow], None]] = None) -> dict:
+    """Evaluate a model on the config's fixed seeds (``train.eval_seed`` + 0 .. eval_episodes - 1)."""
+    seeds = range(config.train.eval_seed, config.train.eval_seed + config.train.eval_episodes)
+
+    def policy(observations: np.ndarray) -> np.ndarray:
+        actions, _ = model.predict(observations, deterministic=True)
+        return actions
+
+    return evaluate(policy, config, env_kind=env_kind, continuous=continuous, seeds=seeds,
+                    lockstep=config.train.eval_envs, on_episode=on_episode)
+
+
+class TrainedRun(NamedTuple):
+    """A trained run read back: the model and how it was trained."""
+
+    model: Any
+    algo: str
+    env_kind: str
+    continuous: bool
+    config: RLConfig
+
+
+def load_run(path: str | Path) -> TrainedRun:
+    """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
+    (the model's folder or the one above, for checkpoints)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no model file {path}")
+    for folder in (path.parent, path.parent.parent):
+        if (folder / "config.yaml").is_file():
+            run = yaml.safe_load((folder / "config.yaml").read_text())
+            break
+    else:
+        raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc train-rl`?")
+    config = RLConfig.from_dict(run["config"], where=f"{path.parent / 'config.yaml'}")
+    model = algorithm_class(run["algo"]).load(str(path), device="cpu")
+    return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)

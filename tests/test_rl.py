@@ -1,0 +1,228 @@
+"""mmpc.rl: the safe goal-choosing environments, the batched VecEnv, training with TensorBoard
+scalars, evaluation and the sb3 driver. Real highway-env, real SB3, real event files."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+import yaml
+
+import mmpc.rl
+from mmpc.drive import run_episode
+from mmpc.drivers import Observation, make_driver
+from mmpc.highway import HighwayEpisode
+from mmpc.problem import ego_state
+from mmpc.rl.config import RLConfig, load_rl_config
+from mmpc.rl.envs import frame_reward
+from mmpc.rl.safety import SafetyLayer
+from mmpc.scenario import build_mpc
+
+
+@pytest.fixture(scope="module")
+def smoke() -> RLConfig:
+    """The CI-sized configuration: 2 s episodes, a cheap optimizer."""
+    return load_rl_config("smoke")
+
+
+def make(env_id: str, smoke: RLConfig) -> gym.Env:
+    return gym.make(env_id, scenario=smoke.scenario, config=smoke.env, reward=smoke.reward)
+
+
+@pytest.mark.parametrize("env_id", mmpc.rl.ENV_IDS)
+def test_check_env_passes_on_every_registered_id(env_id, smoke, one_thread):
+    from gymnasium.utils.env_checker import check_env as gym_check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = make(env_id, smoke)
+    try:
+        gym_check_env(env.unwrapped, skip_render_check=True)
+        sb3_check_env(env.unwrapped, warn=True)
+    finally:
+        env.close()
+    expected = gym.spaces.Box if "Continuous" in env_id else gym.spaces.Discrete
+    assert isinstance(env.action_space, expected)
+
+
+def test_step_info_and_observation(smoke, one_thread):
+    env = make("mmpc/SafeHighway-v0", smoke)
+    observation, _ = env.reset(seed=3)
+    grid = smoke.env.num_discrete_goals
+    assert observation.shape == (25 + 3 * grid,)
+    features = observation[25:].reshape(grid, 3)
+    assert set(np.unique(features[:, 0])) <= {0.0, 1.0} and features[:, 0].sum() >= 1  # some goal is feasible
+    _, reward, terminated, truncated, info = env.step(grid - 1)  # right neighbour lane, fastest speed
+    for key in ("intervention", "feasible_goals", "solve_ms", "residuals", "agent_feasible", "mean_speed"):
+        assert key in info
+    assert info["frames"] == smoke.env.decision_frames
+    assert info["solve_ms"] > 0 and info["feasible_goals"] >= 1
+    assert set(info["residuals"]) == {"obstacle", "acceleration", "nonholonomic"}
+    # the summed reward of k frames lies in k x [0, 1] minus the penalties
+    assert -smoke.env.intervention_penalty * info["frames"] <= reward <= info["frames"]
+    assert info["intervention"] == (info["intervention_frames"] > 0)
+    assert not terminated
+    env.close()
+
+
+def test_frame_reward_equals_highway_envs_own(smoke, one_thread):
+    episode = HighwayEpisode(smoke.scenario, seed=5)
+    try:
+        for acceleration, steering in ((1.0, 0.0), (0.0, 0.05), (-2.0, -0.05)):
+            episode.apply(acceleration, steering)
+            assert frame_reward(episode, smoke.reward) == pytest.approx(episode.reward, abs=1e-9)
+    finally:
+        episode.close()
+
+
+def test_layer_follows_a_feasible_agent_and_intervenes_otherwise(smoke, one_thread):
+    layer = SafetyLayer(build_mpc(smoke.scenario), smoke.env)
+    ego = ego_state([0.0, 0.0], [4.0, 4.0], [0.0, 0.0], [25.0, 25.0])
+    # a slow car 50 m ahead in the ego's lane (both environments); the left lane is free
+    vehicles = torch.tensor([[[50.0, 4.0, 10.0, 0.0]], [[50.0, 4.0, 10.0, 0.0]]])
+    commands = torch.tensor([[0.0, 25.0],    # env 0: left lane at 25 m/s: free
+                             [4.0, 25.0]])   # env 1: through the slow car at 25 m/s: infeasible
+    safe = layer.plan(Observation(ego, vehicles), commands)
+    assert safe.agent_feasible.tolist() == [True, False]
+    assert safe.intervention.tolist() == [False, True]
+    index = safe.plan.selection.index
+    assert int(index[0]) == 0
+    # env 1 executes the feasible goal nearest to its own in (dv / 5 m/s, dy / 4 m)
+    goals, feasible = safe.plan.problem.goals[1], safe.plan.result.feasible[1]
+    distance = torch.hypot((goals[:, 0] - goals[0, 0]) / (8.0 * 5.0), (goals[:, 1] - goals[0, 1]) / 4.0)
+    distance[~feasible] = math.inf
+    assert bool(feasible[index[1]]) and int(index[1]) == int(distance.argmin())
+    assert not bool(safe.fallback.any())
+
+
+def test_discrete_and_continuous_commands(smoke):
+    layer = SafetyLayer(build_mpc(smoke.scenario), smoke.env)
+    ego = ego_state([0.0, 0.0], [0.0, 8.0], [0.0, 0.0], [20.0, 20.0])
+    speeds = len(smoke.env.speeds)
+    # offset -1 from lane 0 clamps to lane 0; offset +1 from lane 2 (the right lane) clamps to lane 2
+    commands = layer.discrete_commands(ego, torch.tensor([0, 2 * speeds + 1]))
+    assert commands.tolist() == [[0.0, smoke.env.speeds[0]], [8.0, smoke.env.speeds[1]]]
+    continuous = layer.continuous_commands(ego, torch.tensor([[1.0, -1.0], [-0.5, 1.0]]))
+    assert continuous.tolist() == [[4.0, smoke.env.speed_range[0]], [6.0, smoke.env.speed_range[1]]]
+    with pytest.raises(ValueError, match="discrete actions must lie in"):
+        layer.discrete_commands(ego, torch.tensor([0, 99]))
+    with pytest.raises(ValueError, match="must be finite"):
+        layer.continuous_commands(ego, torch.tensor([[math.nan, 0.0], [0.0, 0.0]]))
+
+
+def test_batched_vecenv_matches_separate_solves(smoke, one_thread):
+    from mmpc.rl.vec_env import SafeHighwayVecEnv
+
+    results = []
+    for batched in (True, False):
+        venv = SafeHighwayVecEnv(3, smoke.scenario, smoke.env, smoke.reward, batched=batched)
+        venv.seed(11)
+        observations = [venv.reset()]
+        rewards = []
+        for action in ([0, 3, 5], [4, 1, 2]):
+            observation, reward, _, _ = venv.step(np.array(action))
+            observations.append(observation)
+            rewards.append(reward)
+        venv.close()
+        results.append((np.stack(observations), np.stack(rewards)))
+    (obs_batched, rew_batched), (obs_separate, rew_separate) = results
+    np.testing.assert_allclose(obs_batched, obs_separate, atol=1e-3)
+    np.testing.assert_allclose(rew_batched, rew_separate, atol=1e-3)
+
+
+def test_config_rejects_unknown_keys_and_wrong_action_spaces(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"env": {"decision_frame": 5}}))
+    with pytest.raises(ValueError, match="unknown key"):
+        load_rl_config(path)
+    with pytest.raises(ValueError, match="cannot train on continuous"):
+        RLConfig(action="continuous").action_for("dqn")
+    with pytest.raises(ValueError, match="must be >="):
+        RLConfig(env=dataclasses.replace(RLConfig().env, speeds=(40.0,)))
+    assert RLConfig.from_dict(RLConfig().to_dict()) == RLConfig()
+
+
+def test_smoke_training_writes_tensorboard_scalars_eval_and_drives(smoke, tmp_path, one_thread):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from mmpc.rl.callbacks import SCALAR_TAGS
+    from mmpc.rl.train import train
+
+    out = tmp_path / "run"
+    summary = train(smoke, "dqn", 24, out, seed=1)
+    (run_dir,) = (out / "tb").iterdir()
+    events = EventAccumulator(str(run_dir))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert set(SCALAR_TAGS) <= tags
+    assert "rollout/exploration_rate" in tags  # SB3's own scalars in the same files
+    for tag in SCALAR_TAGS:
+        values = [event.value for event in events.Scalars(tag)]
+        assert values and all(math.isfinite(v) for v in values)
+    assert 0.0 <= events.Scalars("safety/intervention_rate")[-1].value <= 1.0
+    assert events.Scalars("driving/mean_speed")[-1].value > 5.0
+
+    written = json.loads((out / "eval.json").read_text())
+    for key in ("collision_rate", "mean_speed", "mean_return", "intervention_rate", "episodes"):
+        assert written[key] == summary[key]
+    assert written["episodes"] == smoke.train.eval_episodes
+    assert written["seeds"] == [smoke.train.eval_seed + i for i in range(smoke.train.eval_episodes)]
+    assert (out / "model.zip").is_file() and list((out / "checkpoints").glob("dqn_*_steps.zip"))
+
+    # the report reads the same event files and eval.json back
+    from mmpc.rl.report import plot_curves, results_table
+
+    table, figures = results_table({"safe": out})
+    assert figures["safe"]["collision_rate"] == summary["collision_rate"] and "| safe | dqn | safe | 24 |" in table
+    assert plot_curves({"safe": out}, tmp_path / "curves.png").stat().st_size > 10_000
+
+    # the trained agent drives through the driver registry, its goals through the safety layer
+    driver = make_driver(f"sb3:{out / 'model.zip'}", smoke.scenario)
+    result = run_episode(smoke.scenario, seed=2, driver=driver)
+    assert len(result.records) == round(smoke.scenario.duration * smoke.scenario.frequency)
+    assert all(record.goal_index >= 0 and record.feasible_goals >= 1 for record in result.records)
+
+
+def test_plain_highway_baseline_trains_and_its_meta_actions_drive(smoke, tmp_path, one_thread):
+    from mmpc.rl.train import train
+
+    out = tmp_path / "plain"
+    summary = train(smoke, "dqn", 16, out, env_kind="highway", seed=1)
+    assert summary["intervention_rate"] is None and summary["episodes"] == smoke.train.eval_episodes
+    driver = make_driver(f"sb3:{out / 'model.zip'}", smoke.scenario)
+    result = run_episode(smoke.scenario, seed=2, driver=driver)
+    speeds = [record.v for record in result.records]
+    assert len(speeds) == 20 and 15.0 < np.mean(speeds) < 32.0
+    # lane keeping: the meta-action controller holds the ego near a lane centre
+    assert all(abs(record.y - 4.0 * round(record.y / 4.0)) < 2.0 for record in result.records)
+
+
+def test_rl_command_lines_reject_bad_arguments(capsys, tmp_path):
+    from mmpc.cli import main
+
+    assert main(["train-rl", "--algo", "dqn", "--config", "smoke", "--timesteps", "0", "--out", str(tmp_path)]) == 2
+    assert "--timesteps must be >= 1" in capsys.readouterr().err
+    assert main(["rl-report", "no-label-here"]) == 2
+    assert "expected LABEL=RUN_DIR" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match="shipped configs"):
+        main(["train-rl", "--algo", "dqn", "--config", "no_such_config", "--timesteps", "8", "--out", str(tmp_path)])
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_ppo_and_sac_train_on_their_action_spaces(algo, smoke, tmp_path, one_thread):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from mmpc.rl.train import load_run, train
+
+    out = tmp_path / algo
+    assert train(smoke, algo, 16, out, seed=0, evaluate_after=False) == {}
+    run = load_run(out / "model.zip")
+    assert run.algo == algo and run.env_kind == "safe" and run.continuous == (algo == "sac")
+    (folder,) = (out / "tb").iterdir()
+    events = EventAccumulator(str(folder))
+    events.Reload()
+    assert {"solver/solve_ms", "safety/intervention_rate"} <= set(events.Tags()["scalars"])
