@@ -1,0 +1,250 @@
+"""Behaviour cloning: regress the expert's commands on the kinematics observation
+(``mmpc imitate bc``).
+
+Loss: mean squared error between the policy's and the expert's standardised commands,
+``L = mean_s || u_hat(o_s) - (u_s - mu_u) / sigma_u ||^2`` (see :mod:`mmpc.imitation.policy`),
+minimised with Adam over mini-batches. A fraction of the *episodes* is held out (whole
+episodes, so that consecutive, nearly identical states do not leak into validation); the
+checkpoint keeps the weights of the epoch with the lowest held-out loss. Scalars go to
+TensorBoard (``train/loss``, ``val/loss``, ``val/rmse_acceleration`` [m/s^2],
+``val/rmse_steering`` [rad]) with the hyperparameters as text.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, NamedTuple, Optional
+
+import numpy as np
+import torch
+import yaml
+
+from mmpc.config import dataclass_from_dict
+from mmpc.imitation.dataset import Transitions
+from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
+
+logger = logging.getLogger(__name__)
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "imitation"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Supervised training of :class:`MLPPolicy`.
+
+    Attributes:
+        epochs: passes over the training set [-].
+        batch_size: samples per Adam step [-].
+        learning_rate: Adam step size [-].
+        weight_decay: Adam (L2) weight decay [-].
+        validation_fraction: share of episodes held out for validation, in [0, 1) [-].
+        seed: seeds the split, the initialisation and the batch order.
+        policy: the architecture.
+    """
+
+    epochs: int = 40
+    batch_size: int = 256
+    learning_rate: float = 1e-3
+    weight_decay: float = 0.0
+    validation_fraction: float = 0.2
+    seed: int = 0
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "seed"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name == "seed" else 1):
+                raise ValueError(f"`{name}` must be an int >= {0 if name == 'seed' else 1}; got {value!r}")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise ValueError(f"`learning_rate` must be a finite number > 0; got {self.learning_rate}")
+        if not self.weight_decay >= 0:
+            raise ValueError(f"`weight_decay` must be >= 0; got {self.weight_decay}")
+        if not 0 <= self.validation_fraction < 1:
+            raise ValueError(f"`validation_fraction` must be in [0, 1); got {self.validation_fraction}")
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any], *, where: str = "training config") -> "TrainConfig":
+        values = dict(values)
+        if "policy" in values:
+            values["policy"] = PolicyConfig.from_dict(values["policy"] or {})
+        return dataclass_from_dict(cls, values, where=where)
+
+
+def load_yaml_config(cls, name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None):
+    """Load ``configs/imitation/<name>.yaml`` (or a path) into ``cls`` (a config with ``from_dict``);
+    ``overrides`` replace top-level keys."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = CONFIG_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(f"imitation config {str(name_or_path)!r}: no file {path}")
+    values = yaml.safe_load(path.read_text()) or {}
+    values.update(overrides or {})
+    return cls.from_dict(values, where=f"imitation config {path}")
+
+
+class History(NamedTuple):
+    """Per-epoch losses of one training run (``val_*`` NaN without a validation set)."""
+
+    train_loss: list[float]
+    val_loss: list[float]
+    val_rmse: list[tuple[float, float]]
+    best_epoch: int
+
+
+def split_by_episode(episodes: np.ndarray, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean (train, validation) masks over samples, holding out ``fraction`` of the distinct
+    episodes (at least one when ``fraction > 0`` and there are two or more)."""
+    unique = np.unique(episodes)
+    held = int(round(fraction * len(unique)))
+    if fraction > 0 and len(unique) >= 2:
+        held = min(max(held, 1), len(unique) - 1)
+    else:
+        held = 0
+    chosen = np.random.default_rng(seed).permutation(unique)[:held]
+    validation = np.isin(episodes, chosen)
+    return ~validation, validation
+
+
+def _evaluate(policy: MLPPolicy, observations: torch.Tensor, commands: torch.Tensor,
+              actions: torch.Tensor) -> tuple[float, tuple[float, float]]:
+    with torch.no_grad():
+        loss = torch.mean((policy.standardized(observations, commands) - policy.standardize_actions(actions)) ** 2)
+        rmse = torch.sqrt(torch.mean((policy(observations, commands) - actions) ** 2, dim=0))
+    return float(loss), (float(rmse[0]), float(rmse[1]))
+
+
+def train_policy(
+    data: Transitions,
+    config: TrainConfig = TrainConfig(),
+    *,
+    writer=None,
+    tag: str = "",
+    on_epoch: Optional[Callable[[int, float, float], None]] = None,
+) -> tuple[MLPPolicy, History]:
+    """Fit a new :class:`MLPPolicy` to ``data``.
+
+    Args:
+        data: (observation, expert command) pairs with their episode ids.
+        config: training settings.
+        writer: a ``torch.utils.tensorboard.SummaryWriter`` (optional).
+        tag: prefix of the scalar names (e.g. ``"round_2/"`` in DAgger).
+        on_epoch: called as ``on_epoch(epoch, train_loss, val_loss)``.
+
+    Returns:
+        The policy with the weights of the best validation epoch (the last epoch without a
+        validation set) and the :class:`History`.
+    """
+    if data.observations.shape[0] != data.actions.shape[0] or data.actions.ndim != 2 or data.actions.shape[1] != 2:
+        raise ValueError(f"`data` must pair (S, R, F) observations with (S, 2) actions; got {data.observations.shape} "
+                         f"and {data.actions.shape}")
+    if data.commands.shape != data.actions.shape or data.episodes.shape != data.actions.shape[:1]:
+        raise ValueError(f"`data.commands` must be (S, 2) and `data.episodes` (S,); got {data.commands.shape}, "
+                         f"{data.episodes.shape} for S = {data.actions.shape[0]}")
+    if not all(np.isfinite(a).all() for a in (data.observations, data.commands, data.actions)):
+        raise ValueError("`data` holds NaN or inf observations, commands or actions")
+    train_mask, val_mask = split_by_episode(data.episodes, config.validation_fraction, config.seed)
+    generator = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)
+    observations = torch.as_tensor(data.observations, dtype=torch.float32)
+    commands = torch.as_tensor(data.commands, dtype=torch.float32)
+    actions = torch.as_tensor(data.actions, dtype=torch.float32)
+    train, val = torch.as_tensor(train_mask), torch.as_tensor(val_mask)
+    train_obs, train_cmd, train_act = observations[train], commands[train], actions[train]
+    val_obs, val_cmd, val_act = observations[val], commands[val], actions[val]
+    policy = MLPPolicy(tuple(data.observations.shape[1:]), config.policy)
+    policy.fit_normalization(train_obs, train_cmd, train_act)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    targets = policy.standardize_actions(train_act)
+    history = History([], [], [], -1)
+    best_state, best_loss = None, math.inf
+    count = train_obs.shape[0]
+    for epoch in range(config.epochs):
+        policy.train()
+        order = torch.randperm(count, generator=generator)
+        total = 0.0
+        for start in range(0, count, config.batch_size):
+            index = order[start:start + config.batch_size]
+            loss = torch.mean((policy.standardized(train_obs[index], train_cmd[index]) - targets[index]) ** 2)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += float(loss.detach()) * index.numel()
+        policy.eval()
+        train_loss = total / count
+        val_loss, rmse = _evaluate(policy, val_obs, val_cmd, val_act) if val_obs.shape[0] else (math.nan, (math.nan, math.nan))
+        history.train_loss.append(train_loss)
+        history.val_loss.append(val_loss)
+        history.val_rmse.append(rmse)
+        score = val_loss if val_obs.shape[0] else -epoch  # without validation: keep the last epoch
+        if score < best_loss:
+            best_loss, best_state = score, copy.deepcopy(policy.state_dict())
+            history = history._replace(best_epoch=epoch)
+        if writer is not None:
+            writer.add_scalar(f"{tag}train/loss", train_loss, epoch)
+            if val_obs.shape[0]:
+                writer.add_scalar(f"{tag}val/loss", val_loss, epoch)
+                writer.add_scalar(f"{tag}val/rmse_acceleration", rmse[0], epoch)
+                writer.add_scalar(f"{tag}val/rmse_steering", rmse[1], epoch)
+        if on_epoch is not None:
+            on_epoch(epoch, train_loss, val_loss)
+    policy.load_state_dict(best_state)
+    logger.info("trained on %d samples (%d held out): best epoch %d, val loss %.4g", count, val_obs.shape[0],
+                history.best_epoch, history.val_loss[history.best_epoch])
+    return policy.eval(), history
+
+
+def hyperparameters_text(config: Any) -> str:
+    """A config as a markdown table row list for TensorBoard's text tab."""
+    flat = json.loads(json.dumps(asdict(config), default=list))
+    return "\n".join(["| key | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in flat.items()])
+
+
+def run_bc(
+    dataset_dir: Path,
+    out: Path,
+    config: TrainConfig = TrainConfig(),
+    *,
+    on_epoch: Optional[Callable[[int, float, float], None]] = None,
+) -> dict:
+    """Behaviour cloning from a demonstrations directory (``mmpc demos --out``).
+
+    Writes ``out/policy.pt`` (best validation epoch), ``out/train.json`` (per-epoch losses,
+    the config, the dataset) and TensorBoard events under ``out/tb``.
+
+    Returns:
+        The ``train.json`` content.
+    """
+    from torch.utils.tensorboard import SummaryWriter
+
+    from mmpc.imitation.dataset import dataset_transitions, open_dataset
+
+    dataset = open_dataset(Path(dataset_dir))
+    data = dataset_transitions(dataset)
+    scenario = dataset.storage.metadata.get("mmpc_scenario", {}).get("name")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with SummaryWriter(str(out / "tb")) as writer:
+        writer.add_text("hyperparameters", hyperparameters_text(config))
+        policy, history = train_policy(data, config, writer=writer, on_epoch=on_epoch)
+    report = {
+        "dataset": str(dataset_dir),
+        "dataset_id": dataset.spec.dataset_id,
+        "episodes": int(dataset.total_episodes),
+        "samples": int(data.actions.shape[0]),
+        "config": json.loads(json.dumps(asdict(config), default=list)),
+        "best_epoch": history.best_epoch,
+        "val_loss": history.val_loss[history.best_epoch],
+        "val_rmse_acceleration": history.val_rmse[history.best_epoch][0],
+        "val_rmse_steering": history.val_rmse[history.best_epoch][1],
+        "train_loss": history.train_loss,
+        "val_loss_per_epoch": history.val_loss,
+    }
+    save_policy(out / "policy.pt", policy, scenario=scenario, info={k: report[k] for k in ("dataset_id", "samples", "best_epoch", "val_loss")})
+    (out / "train.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
+    return report

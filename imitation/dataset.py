@@ -1,0 +1,400 @@
+"""A demonstrations directory: finished episodes staged one file each, a manifest naming the
+run, and the Minari dataset built from them.
+
+Layout of ``DIR``::
+
+    manifest.json                   what generated the episodes (scenario, lockstep, format)
+    episodes/seed_000123.npz        one finished episode each, written atomically
+    minari/mmpc/<name>-expert-v0/   the Minari dataset (``data/main_data.hdf5``, ``metadata.json``)
+
+Resuming: an episode file appears only complete (written to a temporary name, flushed, then
+renamed), so an interrupted run leaves finished episodes and nothing half-written; a re-run
+skips them. The Minari dataset is rebuilt from the staged files (into a temporary folder
+swapped in at the end), so it always holds exactly the requested episodes, each once.
+
+Loading (Minari's documented local path): ``MINARI_DATASETS_PATH=DIR/minari`` and
+``minari.load_dataset("mmpc/cruise-expert-v0")``, or :func:`open_dataset` (``DIR`` in, a
+``minari.MinariDataset`` out).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import warnings
+import zipfile
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import Iterator, NamedTuple, Optional, Sequence
+
+import numpy as np
+
+from mmpc.imitation.rollout import INFO_FIELDS, Episode
+from mmpc.scenario import ScenarioConfig
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "mmpc-demonstrations"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+EPISODES = "episodes"
+MINARI_ROOT = "minari"
+#: Packages whose versions go into the manifest and the dataset metadata.
+PACKAGES = ("mmpc", "torch", "numpy", "gymnasium", "highway-env", "minari")
+
+
+class DemonstrationsError(RuntimeError):
+    """A directory that is not (or not this run's) demonstrations directory, or a damaged one."""
+
+
+def package_versions() -> dict[str, Optional[str]]:
+    """Installed versions of :data:`PACKAGES` (``None`` where not installed)."""
+    versions: dict[str, Optional[str]] = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def scenario_dict(scenario: ScenarioConfig) -> dict:
+    """The scenario as plain JSON data (tuples become lists; objective/traffic keep their ``type``)."""
+    values = dataclasses.asdict(scenario)
+    values["objective"] = {"type": scenario.objective.kind, **values["objective"]}
+    values["traffic"] = {"type": scenario.traffic.kind, **values["traffic"]}
+    return json.loads(json.dumps(values))
+
+
+def dataset_id(scenario: ScenarioConfig) -> str:
+    """Minari id of a scenario's expert dataset: ``mmpc/<scenario>-expert-v0``."""
+    name = "".join(c if c.isalnum() else "_" for c in scenario.name)
+    return f"mmpc/{name}-expert-v0"
+
+
+@dataclasses.dataclass(frozen=True)
+class Manifest:
+    """What makes two runs' episodes the same: the scenario (seeds aside), the lockstep chunk size
+    (lockstep batches round differently from single solves) and the file format.
+
+    Attributes:
+        scenario: :func:`scenario_dict` of the scenario (its ``seeds`` are not part of it; the
+            episodes' seeds are chosen on the command line).
+        lockstep: episodes per lockstep chunk (chunk k holds seeds ``k * lockstep ...``).
+        packages: package versions of the run that created the directory (informative only).
+    """
+
+    scenario: dict
+    lockstep: int
+    packages: dict
+
+    def identity(self) -> str:
+        """SHA-256 of the scenario and lockstep (what a resumed run must match)."""
+        scenario = {k: v for k, v in self.scenario.items() if k != "seeds"}
+        text = json.dumps({"scenario": scenario, "lockstep": self.lockstep, "format": FORMAT_VERSION}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def to_json(self) -> str:
+        return json.dumps({"format": FORMAT, "version": FORMAT_VERSION, "identity": self.identity(),
+                           "scenario": self.scenario, "lockstep": self.lockstep, "packages": self.packages}, indent=2)
+
+    @classmethod
+    def read(cls, path: Path) -> "Manifest":
+        try:
+            values = json.loads(path.read_text())
+            if values.get("format") != FORMAT:
+                raise DemonstrationsError(f"{path}: `format` is {values.get('format')!r}, expected {FORMAT!r}")
+            if values.get("version") != FORMAT_VERSION:
+                raise DemonstrationsError(f"{path}: format version {values.get('version')!r}; this mmpc reads version {FORMAT_VERSION}")
+            manifest = cls(values["scenario"], int(values["lockstep"]), values.get("packages", {}))
+        except (ValueError, KeyError, TypeError) as error:
+            raise DemonstrationsError(f"{path} is corrupt ({type(error).__name__}: {error}); "
+                                      "remove the directory or choose another --out") from error
+        if values.get("identity") != manifest.identity():
+            raise DemonstrationsError(f"{path} is corrupt: its identity hash does not match its contents; "
+                                      "remove the directory or choose another --out")
+        return manifest
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through ``write(handle)`` to a temporary file in ``path``'s folder, flush it to disk,
+    then rename it onto ``path`` (readers see the old file or the complete new one)."""
+    handle = tempfile.NamedTemporaryFile("wb", dir=path.parent, prefix=".tmp-", suffix=path.suffix, delete=False)
+    try:
+        with handle:
+            write(handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(handle.name, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(handle.name)
+        raise
+
+
+def save_episode(path: Path, episode: Episode) -> None:
+    """Write one episode atomically as ``.npz``."""
+    arrays = {
+        "seed": np.int64(episode.seed),
+        "observations": episode.observations,
+        "actions": episode.actions,
+        "rewards": episode.rewards,
+        "terminations": episode.terminations,
+        "truncations": episode.truncations,
+        **{f"info_{name}": values for name, values in episode.infos.items()},
+    }
+    _atomic_write(path, lambda handle: np.savez(handle, **arrays))
+
+
+def load_episode(path: Path) -> Episode:
+    """Read an episode written by :func:`save_episode`; a damaged file raises :class:`DemonstrationsError`."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            infos = {name: data[f"info_{name}"] for name in INFO_FIELDS}
+            episode = Episode(int(data["seed"]), data["observations"], data["actions"], data["rewards"],
+                              data["terminations"], data["truncations"], infos)
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise DemonstrationsError(f"episode file {path} is damaged ({type(error).__name__}: {error}); "
+                                  "delete it and re-run to regenerate that episode") from error
+    steps = episode.actions.shape[0]
+    shapes_ok = (episode.observations.shape[0] == steps + 1 and episode.actions.shape == (steps, 2)
+                 and all(a.shape[0] == steps for a in (episode.rewards, episode.terminations, episode.truncations))
+                 and all(v.shape[0] == steps + 1 for v in infos.values()))
+    if not shapes_ok:
+        raise DemonstrationsError(f"episode file {path} has inconsistent array lengths; delete it and re-run")
+    return episode
+
+
+class DemonstrationsDir:
+    """A demonstrations directory opened for one run (see the module docstring).
+
+    Args:
+        root: the directory (created when missing).
+        manifest: this run's manifest. An empty or missing ``root`` gets it; an existing one
+            must carry the same identity.
+
+    Raises:
+        DemonstrationsError: ``root`` holds something else (no manifest, another format, a
+            corrupt manifest) or another run's episodes (different scenario or lockstep).
+    """
+
+    def __init__(self, root: Path, manifest: Manifest) -> None:
+        self.root = Path(root)
+        self.manifest = manifest
+        path = self.root / MANIFEST
+        if self.root.exists() and not self.root.is_dir():
+            raise DemonstrationsError(f"--out {self.root} exists and is not a directory")
+        if path.exists():
+            existing = Manifest.read(path)
+            if existing.identity() != manifest.identity():
+                changed = [k for k in manifest.scenario if k != "seeds" and manifest.scenario[k] != existing.scenario.get(k)]
+                if existing.lockstep != manifest.lockstep:
+                    changed.append("lockstep")
+                raise DemonstrationsError(
+                    f"{self.root} holds demonstrations of another configuration (differs in: {', '.join(changed) or 'format'}); "
+                    "re-run with the same scenario and --lockstep to resume, or choose another --out")
+        elif self.root.exists() and any(self.root.iterdir()):
+            raise DemonstrationsError(f"{self.root} is not empty and has no {MANIFEST}: it is not an mmpc demonstrations "
+                                      "directory; refusing to write into it (choose another --out)")
+        else:
+            self.root.mkdir(parents=True, exist_ok=True)
+            _atomic_write(path, lambda handle: handle.write(manifest.to_json().encode()))
+        self.episodes_dir.mkdir(exist_ok=True)
+        for stale in self.episodes_dir.glob(".tmp-*"):  # left by a process killed mid-write
+            stale.unlink()
+
+    @property
+    def episodes_dir(self) -> Path:
+        return self.root / EPISODES
+
+    def episode_path(self, seed: int) -> Path:
+        return self.episodes_dir / f"seed_{seed:06d}.npz"
+
+    def finished_seeds(self) -> set[int]:
+        """Seeds whose episode file is present."""
+        seeds = set()
+        for path in self.episodes_dir.glob("seed_*.npz"):
+            try:
+                seeds.add(int(path.stem.removeprefix("seed_")))
+            except ValueError as error:
+                raise DemonstrationsError(f"unexpected file {path} in {self.episodes_dir}") from error
+        return seeds
+
+    def write(self, episode: Episode) -> Path:
+        path = self.episode_path(episode.seed)
+        save_episode(path, episode)
+        return path
+
+    def read(self, seed: int) -> Episode:
+        return load_episode(self.episode_path(seed))
+
+
+def minari_dataset_path(root: Path, scenario_name_or_id: str) -> Path:
+    """Folder of the Minari dataset (the one holding ``data/``) inside a demonstrations directory."""
+    identifier = scenario_name_or_id if "/" in scenario_name_or_id else f"mmpc/{scenario_name_or_id}-expert-v0"
+    return Path(root) / MINARI_ROOT / identifier
+
+
+@contextlib.contextmanager
+def _datasets_path(path: Path) -> Iterator[None]:
+    """Point Minari's ``MINARI_DATASETS_PATH`` at ``path`` for the duration."""
+    previous = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(Path(path).resolve())  # Minari mis-joins relative roots
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = previous
+
+
+def _require_minari():
+    try:
+        import minari
+    except ImportError as error:
+        raise ImportError("Minari datasets need the optional extra: pip install 'mmpc[datasets]'") from error
+    return minari
+
+
+def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: Sequence[int]):
+    """(Re)build the Minari dataset of ``directory`` from the staged episodes of ``seeds``.
+
+    The dataset is written under a temporary folder and swapped in, so an interrupted build
+    leaves the previous dataset (or none) and the staged episodes intact.
+
+    Args:
+        directory: the demonstrations directory.
+        scenario: the scenario the episodes were driven in (for the env spec and metadata).
+        seeds: the episodes to include, in this order (all must be staged).
+
+    Returns:
+        The ``minari.MinariDataset``.
+    """
+    minari = _require_minari()
+    import gymnasium as gym
+    from gymnasium import spaces
+    from minari.data_collector import EpisodeBuffer
+
+    from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE, env_config
+
+    missing = sorted(set(seeds) - directory.finished_seeds())
+    if missing:
+        raise DemonstrationsError(f"cannot build the dataset: episodes of seeds {missing[:10]} are not staged")
+    identifier = dataset_id(scenario)
+    episodes = [directory.read(seed) for seed in seeds]
+    buffers = [
+        EpisodeBuffer(id=index, seed=episode.seed, observations=episode.observations, actions=episode.actions,
+                      rewards=episode.rewards, terminations=episode.terminations, truncations=episode.truncations,
+                      infos=dict(episode.infos))
+        for index, episode in enumerate(episodes)
+    ]
+    observation_shape = episodes[0].observations.shape[1:]
+    env = gym.make(scenario.env_id, config=env_config(scenario))  # its spec (with the config) goes into the dataset
+    building = directory.root / ".minari-building"
+    shutil.rmtree(building, ignore_errors=True)
+    with _datasets_path(building), warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # no code permalink / author: not errors
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id=identifier,
+            buffer=buffers,
+            env=env,
+            algorithm_name="mmpc multi-modal MPC expert",
+            observation_space=spaces.Box(-np.inf, np.inf, shape=observation_shape, dtype=np.float32),
+            action_space=spaces.Box(np.array([ACCELERATION_RANGE[0], STEERING_RANGE[0]], dtype=np.float32),
+                                    np.array([ACCELERATION_RANGE[1], STEERING_RANGE[1]], dtype=np.float32)),
+            description=(
+                f"Multi-modal MPC (mmpc) driving highway-env scenario '{scenario.name}'. Observations: highway-env's "
+                "Kinematics observation; actions: executed (acceleration [m/s^2], steering [rad]) (highway-env's "
+                "[-1, 1] action scaled by its ranges); infos[t]: the decision at observations[t] (goal index, "
+                "plan and meta cost, solver residuals, road-frame ego state), last row -1/NaN. The env spec "
+                "rebuilds highway-env with the scenario's config; mmpc's traffic controller (slow target speeds, "
+                "respawn window) is in the metadata's mmpc_scenario, applied by mmpc.highway.HighwayEpisode."
+            ),
+            data_format="hdf5",
+            requirements=[f"mmpc=={package_versions()['mmpc']}"],
+        )
+        dataset.storage.update_metadata({
+            "mmpc_scenario": scenario_dict(scenario),
+            "mmpc_seeds": [int(s) for s in seeds],
+            "mmpc_lockstep": directory.manifest.lockstep,
+            "mmpc_packages": package_versions(),
+        })
+    env.close()
+    target = directory.root / MINARI_ROOT
+    retired = directory.root / ".minari-retired"
+    shutil.rmtree(retired, ignore_errors=True)
+    if target.exists():
+        os.replace(target, retired)
+    os.replace(building, target)
+    shutil.rmtree(retired, ignore_errors=True)
+    return open_dataset(directory.root, identifier)
+
+
+def built_seeds(root: Path, identifier: str) -> Optional[list[int]]:
+    """Seeds of the dataset already built in ``root`` (``None``: none built or unreadable)."""
+    path = Path(root) / MINARI_ROOT / identifier / "data" / "metadata.json"
+    try:
+        return [int(s) for s in json.loads(path.read_text())["mmpc_seeds"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def open_dataset(root: Path, identifier: Optional[str] = None):
+    """The Minari dataset in demonstrations directory ``root``.
+
+    Args:
+        root: the ``--out`` folder of ``mmpc demos``.
+        identifier: the dataset id (default: the only one there).
+
+    Returns:
+        ``minari.MinariDataset``.
+    """
+    minari = _require_minari()
+    base = Path(root) / MINARI_ROOT
+    if identifier is None:
+        found = sorted(p.parent.relative_to(base).as_posix() for p in base.glob("*/*/data")) if base.is_dir() else []
+        if len(found) != 1:
+            raise DemonstrationsError(f"{root}: expected one Minari dataset under {base}; found {found or 'none'} "
+                                      "(run `mmpc demos --out` to completion first)")
+        identifier = found[0]
+    with _datasets_path(base):
+        return minari.load_dataset(identifier)
+
+
+class Transitions(NamedTuple):
+    """State-action pairs for supervised learning.
+
+    Fields:
+        observations: (S, R, F) float32 kinematics observations at which an action was taken.
+        commands: (S, 2) float32 the command the ego was executing there (a [m/s^2], psidot
+            [rad/s]; the infos' ``ego[:, 4:6]``).
+        actions: (S, 2) float32 (acceleration [m/s^2], steering [rad]).
+        episodes: (S,) int64 index of the episode each pair came from (for held-out splits).
+    """
+
+    observations: np.ndarray
+    commands: np.ndarray
+    actions: np.ndarray
+    episodes: np.ndarray
+
+
+def dataset_transitions(dataset) -> Transitions:
+    """All (observation, action) pairs of a Minari dataset (the final observation of each
+    episode, which has no action, is left out)."""
+    observations, commands, actions, indices = [], [], [], []
+    for episode in dataset.iterate_episodes():
+        steps = len(episode.actions)
+        observations.append(np.asarray(episode.observations[:steps], dtype=np.float32))
+        commands.append(np.asarray(episode.infos["ego"][:steps, 4:6], dtype=np.float32))
+        actions.append(np.asarray(episode.actions, dtype=np.float32))
+        indices.append(np.full(steps, episode.id, dtype=np.int64))
+    if not observations:
+        raise DemonstrationsError("the dataset holds no episodes")
+    return Transitions(np.concatenate(observations), np.concatenate(commands), np.concatenate(actions), np.concatenate(indices))

@@ -1,0 +1,205 @@
+"""Lockstep rollouts that record what an imitation learner needs: highway-env's kinematics
+observation, the executed (acceleration, steering) command, the reward, the episode's end, and
+the deciding driver's diagnostics.
+
+One driver call per control step serves every episode still running (for the MPC expert: one
+optimizer call over all their goal batches), as in :func:`mmpc.drive.run_lockstep`; here each
+finished episode is handed to a callback at once (so a generator can write it to disk before
+the others end) as an :class:`Episode` of numpy arrays.
+
+Alignment (Minari's): ``observations`` has T + 1 rows (the state after the last command
+included), ``actions``, ``rewards``, ``terminations`` and ``truncations`` T rows; the info
+arrays have T + 1 rows, row t describing the decision taken at ``observations[t]``; the last
+row (no decision) holds -1 / NaN / False, its ``ego`` the final state.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, NamedTuple, Optional, Sequence
+
+import numpy as np
+import torch
+
+from mmpc.drive import stack_observations
+from mmpc.drivers import Decision, Driver, Observation
+from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE, HighwayEpisode
+from mmpc.problem import EGO_V, EGO_Y
+from mmpc.scenario import ScenarioConfig
+
+#: Per-step info arrays of an :class:`Episode`: name -> (dtype, per-row shape, value of the final row).
+INFO_FIELDS: dict[str, tuple[type, tuple[int, ...], float]] = {
+    "goal_index": (np.int64, (), -1),           # chosen goal of the expert (-1: the driver has none)
+    "feasible_goals": (np.int64, (), -1),       # number of feasible candidates (-1: not applicable)
+    "fallback": (np.bool_, (), False),          # no candidate was feasible
+    "plan_cost": (np.float64, (), math.nan),    # the chosen plan's meta cost as the MPC ranked it
+    "meta_cost": (np.float64, (), math.nan),    # the scenario's meta-cost term at this state
+    "residual_obstacle": (np.float64, (), math.nan),       # chosen plan's final residuals
+    "residual_nonholonomic": (np.float64, (), math.nan),
+    "residual_acceleration": (np.float64, (), math.nan),
+    "solve_ms": (np.float64, (), math.nan),     # wall time of the decision (all lockstep rows) [ms]
+    "ego": (np.float32, (6,), math.nan),        # road-frame ego state x, y, psi, v, a, psidot
+}
+
+
+class Episode(NamedTuple):
+    """One recorded episode (T control steps).
+
+    Fields:
+        seed: the episode's seed.
+        observations: (T + 1, R, F) float32 highway-env kinematics observations.
+        actions: (T, 2) float32 executed (acceleration [m/s^2], steering [rad]), clipped to
+            highway-env's ranges as applied.
+        rewards: (T,) float64 highway-env's reward after each command.
+        terminations: (T,) bool, True on the step the ego crashed.
+        truncations: (T,) bool, True on the last step of an episode that reached the duration.
+        infos: :data:`INFO_FIELDS` name -> (T + 1, ...) array.
+    """
+
+    seed: int
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminations: np.ndarray
+    truncations: np.ndarray
+    infos: dict[str, np.ndarray]
+
+    @property
+    def steps(self) -> int:
+        return int(self.actions.shape[0])
+
+
+class Rollout(NamedTuple):
+    """An episode and, when asked for, the driver's input at each of its T steps (E = 1 each),
+    which an expert can label later (DAgger)."""
+
+    episode: Episode
+    states: Optional[list[Observation]]
+
+
+def executed_command(acceleration: float, steering: float) -> tuple[float, float]:
+    """The command highway-env applies: clipped to :data:`ACCELERATION_RANGE` / :data:`STEERING_RANGE`."""
+    return (min(max(acceleration, ACCELERATION_RANGE[0]), ACCELERATION_RANGE[1]),
+            min(max(steering, STEERING_RANGE[0]), STEERING_RANGE[1]))
+
+
+def decision_infos(decision: Decision, observation: Observation, scenario: ScenarioConfig) -> dict[str, np.ndarray]:
+    """The :data:`INFO_FIELDS` of each of the E rows of a decision, as (E, ...) arrays."""
+    count = observation.num_envs
+    infos = {
+        "goal_index": decision.goal_index.numpy().astype(np.int64),
+        "feasible_goals": decision.feasible_goals.numpy().astype(np.int64),
+        "fallback": decision.fallback.numpy().astype(np.bool_),
+        "plan_cost": decision.plan_cost.double().numpy(),
+        "meta_cost": np.array([scenario.objective.stage_cost(float(e[EGO_V]), float(e[EGO_Y]), scenario.road)
+                               for e in observation.ego], dtype=np.float64),
+        "solve_ms": np.full(count, decision.solve_ms, dtype=np.float64),
+        "ego": observation.ego.float().numpy(),
+    }
+    for name in ("residual_obstacle", "residual_nonholonomic", "residual_acceleration"):
+        if decision.plan is None:
+            infos[name] = np.full(count, math.nan)
+        else:
+            rows = torch.arange(count)
+            infos[name] = getattr(decision.plan.result, name)[rows, decision.goal_index].double().numpy()
+    return infos
+
+
+class _Recorder:
+    """Rows of one episode while it runs."""
+
+    def __init__(self, seed: int, keep_states: bool) -> None:
+        self.seed = seed
+        self.observations: list[np.ndarray] = []
+        self.actions: list[tuple[float, float]] = []
+        self.rewards: list[float] = []
+        self.infos: list[dict[str, np.ndarray]] = []
+        self.states: Optional[list[Observation]] = [] if keep_states else None
+
+    def finish(self, episode: HighwayEpisode) -> Rollout:
+        final = episode.observe()
+        self.observations.append(final.kinematics[0])
+        steps = len(self.actions)
+        infos = {}
+        for name, (dtype, shape, fill) in INFO_FIELDS.items():
+            column = np.full((steps + 1, *shape), fill, dtype=dtype)
+            for t, row in enumerate(self.infos):
+                column[t] = row[name]
+            infos[name] = column
+        infos["ego"][steps] = final.ego[0].float().numpy()
+        infos["meta_cost"][steps] = episode.scenario.objective.stage_cost(
+            float(final.ego[0, EGO_V]), float(final.ego[0, EGO_Y]), episode.scenario.road)
+        terminations = np.zeros(steps, dtype=np.bool_)
+        truncations = np.zeros(steps, dtype=np.bool_)
+        if steps:
+            crashed = bool(episode.ego.crashed)
+            terminations[-1] = crashed
+            truncations[-1] = not crashed
+        recorded = Episode(
+            seed=self.seed,
+            observations=np.stack(self.observations).astype(np.float32),
+            actions=np.asarray(self.actions, dtype=np.float32).reshape(steps, 2),
+            rewards=np.asarray(self.rewards, dtype=np.float64),
+            terminations=terminations,
+            truncations=truncations,
+            infos=infos,
+        )
+        return Rollout(recorded, self.states)
+
+
+def rollout_lockstep(
+    scenario: ScenarioConfig,
+    seeds: Sequence[int],
+    driver: Driver,
+    *,
+    keep_states: bool = False,
+    on_finished: Optional[Callable[[Rollout], None]] = None,
+) -> list[Rollout]:
+    """Drive one episode per seed in lockstep with ``driver`` and record every step.
+
+    Args:
+        scenario: the scenario (its ``duration`` sets the length; an episode ends early at a
+            collision).
+        seeds: distinct seeds, at least one.
+        driver: who drives (the MPC expert for demonstrations, a learner for DAgger).
+        keep_states: also keep the driver's input of every step (:attr:`Rollout.states`).
+        on_finished: called with each episode as soon as it ends.
+
+    Returns:
+        One :class:`Rollout` per seed, in the order of ``seeds``.
+    """
+    seeds = list(seeds)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"`seeds` must be distinct and at least one; got {seeds}")
+    episodes = [HighwayEpisode(scenario, seed) for seed in seeds]
+    recorders = [_Recorder(seed, keep_states) for seed in seeds]
+    finished: list[Optional[Rollout]] = [None] * len(seeds)
+    try:
+        driver.reset(len(episodes))
+        while True:
+            active = [i for i, episode in enumerate(episodes) if not episode.done and finished[i] is None]
+            for i, episode in enumerate(episodes):
+                if episode.done and finished[i] is None:
+                    finished[i] = recorders[i].finish(episode)
+                    if on_finished is not None:
+                        on_finished(finished[i])
+            if not active:
+                break
+            singles = [episodes[i].observe() for i in active]
+            observation = stack_observations(singles, active)
+            decision = driver.decide(observation)
+            infos = decision_infos(decision, observation, scenario)
+            for row, i in enumerate(active):
+                command = executed_command(float(decision.acceleration[row]), float(decision.steering[row]))
+                recorder = recorders[i]
+                recorder.observations.append(observation.kinematics[row])
+                recorder.infos.append({name: values[row] for name, values in infos.items()})
+                if recorder.states is not None:
+                    recorder.states.append(singles[row])
+                episodes[i].apply(*command)
+                recorder.actions.append(command)
+                recorder.rewards.append(episodes[i].reward)
+    finally:
+        for episode in episodes:
+            episode.close()
+    return [rollout for rollout in finished if rollout is not None]
