@@ -27,7 +27,7 @@ from mmpc.scenes import demo_scene
 
 #: Modules that add their own subcommands: each has ``add_subcommands(subparsers)`` and keeps
 #: its heavy imports (CasADi, Ray, stable-baselines3, Minari) inside the command functions.
-COMMAND_MODULES: tuple[str, ...] = ("mmpc.imitation.cli", "mmpc.rl.cli")
+COMMAND_MODULES: tuple[str, ...] = ("mmpc.imitation.cli", "mmpc.rl.cli", "mmpc.bench")
 
 
 def _int_list(text: str) -> tuple[int, ...]:
