@@ -27,7 +27,7 @@ from mmpc.scenes import demo_scene
 
 #: Modules that add their own subcommands: each has ``add_subcommands(subparsers)`` and keeps
 #: its heavy imports (CasADi, Ray, stable-baselines3, Minari) inside the command functions.
-COMMAND_MODULES: tuple[str, ...] = ("mmpc.imitation.cli", "mmpc.rl.cli", "mmpc.bench")
+COMMAND_MODULES: tuple[str, ...] = ("mmpc.evaluate_cli", "mmpc.imitation.cli", "mmpc.rl.cli", "mmpc.bench")
 
 
 def _int_list(text: str) -> tuple[int, ...]:
@@ -148,18 +148,19 @@ def _drive(args: argparse.Namespace) -> int:
         scenarios.append(scenario)
     out = Path(args.out)
     if args.seeds is not None:
-        from mmpc.evaluate import evaluate, format_table
+        from mmpc.evaluate import EvaluationConfig, evaluate, format_table
 
         episodes = len(scenarios) * len(args.seeds)
+        config = EvaluationConfig(drivers=(args.driver,), seeds=args.seeds, workers=args.workers, threads=args.threads,
+                                  episode_layout="{scenario}/seed_{seed}", collision_videos=True, report=False)
         with tqdm(total=episodes, desc="episodes", unit="ep") as bar:
             def progress(row: dict) -> None:
                 bar.update(1)
-                bar.set_postfix_str(f"{row['scenario']} seed {row['seed']}: collisions {row['collisions']}")
+                bar.set_postfix_str(f"{row['scenario']} seed {row['seed']}: {row['status']}, collisions {row['collisions']}")
 
-            _, summary = evaluate(scenarios, args.seeds, out, workers=args.workers, threads=args.threads,
-                                  driver=args.driver, on_episode=progress)
+            _, summary = evaluate(scenarios, out, config, on_episode=progress)
         print(format_table(summary))
-        print(f"wrote {out / 'summary.json'} and one folder per episode under {out}")
+        print(f"wrote {out / 'summary.json'}, {out / 'episodes.csv'} and one folder per episode under {out}")
         return 0
     if len(scenarios) != 1:
         print("mmpc drive: error: several scenarios need --seeds", file=sys.stderr)
@@ -241,7 +242,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print("mmpc: error: --goals must be >= 1", file=sys.stderr)
         return 2
     for name in ("workers", "threads"):
-        if getattr(args, name, 1) < 1:
+        if getattr(args, name, None) is not None and getattr(args, name) < 1:
             print(f"mmpc: error: --{name} must be >= 1", file=sys.stderr)
             return 2
     if getattr(args, "duration", None) is not None and not args.duration > 0:

@@ -4,7 +4,7 @@ with 2 workers). The same run from the command line:
 
 import pytest
 
-from mmpc.evaluate import evaluate, format_table
+from mmpc.evaluate import EvaluationConfig, evaluate, format_table
 from mmpc.scenario import load_scenario
 
 
@@ -12,7 +12,9 @@ from mmpc.scenario import load_scenario
 def test_twenty_seeds_in_dense_traffic(tmp_path):
     scenarios = [load_scenario("cruise"), load_scenario("high_speed")]
     assert all(s.traffic.vehicles_density >= 1.5 and s.duration == 40.0 for s in scenarios)
-    _, summary = evaluate(scenarios, range(20), tmp_path, workers=2)
+    config = EvaluationConfig(seeds=tuple(range(20)), workers=2, episode_layout="{scenario}/seed_{seed}",
+                              collision_videos=True, report=False)
+    _, summary = evaluate(scenarios, tmp_path, config)
     table = format_table(summary)
     for entry in summary:  # every collision comes with its video
         for seed in entry["collision_seeds"]:

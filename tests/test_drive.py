@@ -10,7 +10,7 @@ import pytest
 
 from mmpc.cli import _seed_list, main
 from mmpc.drive import run_episode, write_outputs
-from mmpc.evaluate import format_table, summarize
+from mmpc.evaluate import format_table, read_episodes, summarize
 from mmpc.metrics import StepRecord, episode_metrics
 from mmpc.scenario import ScenarioConfig, load_scenario
 
@@ -77,8 +77,8 @@ def test_drive_cli_evaluates_scenarios_over_seeds(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "cruise" in printed and "high_speed" in printed and "collisions" in printed
     report = json.loads((tmp_path / "summary.json").read_text())
-    assert [(e["scenario"], e["seed"]) for e in report["episodes"]] == [
-        ("cruise", 0), ("cruise", 1), ("high_speed", 0), ("high_speed", 1)]
+    assert [(e["scenario"], e["seed"], e["status"]) for e in read_episodes(tmp_path / "episodes.csv")] == [
+        ("cruise", 0, "ok"), ("cruise", 1, "ok"), ("high_speed", 0, "ok"), ("high_speed", 1, "ok")]
     assert [s["episodes"] for s in report["summary"]] == [2, 2]
     assert (tmp_path / "high_speed" / "seed_1" / "steps.csv").exists()
 

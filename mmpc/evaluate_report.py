@@ -1,0 +1,291 @@
+"""Summaries of an evaluation: per driver x scenario means with 95 % confidence intervals, a
+plain-text and a markdown table, a comparison figure and TensorBoard scalars.
+
+Intervals:
+
+- a mean over n episodes: Student's t interval ``mean +- t_{0.975, n-1} s / sqrt(n)`` with
+  ``s`` the sample standard deviation (none for n < 2);
+- the collision rate k / n: Wilson's score interval
+  ``(p + z^2/2n +- z sqrt(p (1-p) / n + z^2 / 4n^2)) / (1 + z^2/n)``, z = 1.96, which stays
+  inside [0, 1] and is not empty at k = 0.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from pathlib import Path
+from statistics import NormalDist
+from typing import Optional, Sequence
+
+#: Metrics averaged over episodes, with a confidence interval (``<key>_ci``).
+MEAN_METRICS = (
+    "mean_speed", "meta_cost_mean", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean",
+    "lane_changes", "fallback_steps", "plan_cost_mean", "solve_ms_mean", "solve_ms_per_episode_mean",
+)
+
+#: Rows of the plain-text table: (key, header, format).
+TABLE = (
+    ("episodes", "episodes", "{:d}"),
+    ("errors", "errors", "{:d}"),
+    ("collisions", "collisions", "{:d}"),
+    ("collision_rate", "collision rate", "{:.3f}"),
+    ("offroad", "offroad steps", "{:d}"),
+    ("mean_speed", "mean v [m/s]", "{:.2f}"),
+    ("meta_cost_mean", "meta cost", "{:.3f}"),
+    ("speed_residual_mean", "(v-v_c)^2 [m2/s2]", "{:.3f}"),
+    ("right_lane_distance_mean", "right-lane dist [m]", "{:.2f}"),
+    ("lin_acc_mean", "|a| [m/s2]", "{:.2f}"),
+    ("ang_acc_mean", "|psi''| [rad/s2]", "{:.3f}"),
+    ("lane_changes", "lane changes", "{:.1f}"),
+    ("fallback_steps", "fallback steps", "{:.1f}"),
+    ("solve_ms_mean", "solve ms mean", "{:.1f}"),
+    ("solve_ms_per_episode_mean", "solve ms / episode", "{:.1f}"),
+    ("solve_ms_max", "solve ms max", "{:.1f}"),
+)
+
+#: Rows of the markdown table and panels of the figure: (key, label).
+COMPARED = (
+    ("collision_rate", "collision rate"),
+    ("mean_speed", "mean speed [m/s]"),
+    ("meta_cost_mean", "meta cost (driven, per step)"),
+    ("solve_ms_mean", "solve ms per decision"),
+    ("solve_ms_per_episode_mean", "solve ms per episode-step"),
+)
+
+_Z = NormalDist().inv_cdf(0.975)
+
+
+def t_quantile_975(dof: int) -> float:
+    """Student's t 0.975 quantile for ``dof`` >= 1 degrees of freedom.
+
+    Exact for 1 and 2 (``tan(0.475 pi)``, ``sqrt(2) * 0.95 / sqrt(1 - 0.95^2)``); from 3 on the
+    Cornish-Fisher expansion in 1/dof to the fourth order around the normal quantile (relative
+    error < 2e-3 at dof = 3, < 1e-5 from dof = 10).
+    """
+    if not isinstance(dof, int) or dof < 1:
+        raise ValueError(f"`dof` must be an int >= 1; got {dof!r}")
+    if dof == 1:
+        return math.tan(0.475 * math.pi)
+    if dof == 2:
+        return 0.95 * math.sqrt(2.0 / (1.0 - 0.95**2))
+    z = _Z
+    terms = (
+        (z**3 + z) / 4,
+        (5 * z**5 + 16 * z**3 + 3 * z) / 96,
+        (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384,
+        (79 * z**9 + 776 * z**7 + 1482 * z**5 - 1920 * z**3 - 945 * z) / 92160,
+    )
+    return z + sum(term / dof ** (k + 1) for k, term in enumerate(terms))
+
+
+def mean_ci(values: Sequence[float]) -> tuple[Optional[float], Optional[list[float]]]:
+    """Mean and 95 % t interval ``[low, high]`` of the finite ``values`` (``None``: none / n < 2)."""
+    finite = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return None, None
+    n = len(finite)
+    mean = sum(finite) / n
+    if n < 2:
+        return mean, None
+    std = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
+    half = t_quantile_975(n - 1) * std / math.sqrt(n)
+    return mean, [mean - half, mean + half]
+
+
+def wilson_ci(successes: int, trials: int) -> Optional[list[float]]:
+    """95 % Wilson score interval of a rate ``successes / trials`` (``None`` for no trials)."""
+    if trials <= 0:
+        return None
+    p = successes / trials
+    denominator = 1 + _Z**2 / trials
+    centre = (p + _Z**2 / (2 * trials)) / denominator
+    half = _Z * math.sqrt(p * (1 - p) / trials + _Z**2 / (4 * trials**2)) / denominator
+    return [max(0.0, centre - half), min(1.0, centre + half)]
+
+
+def _finite(value: Optional[float]) -> Optional[float]:
+    return value if value is not None and math.isfinite(value) else None
+
+
+def summarize(rows: Sequence[dict]) -> list[dict]:
+    """One entry per (driver, scenario), in order of first appearance.
+
+    Args:
+        rows: episode rows (:data:`mmpc.evaluate.COLUMNS`); rows without ``status`` count as
+            finished, rows without ``driver`` are grouped under ``driver = None``.
+
+    Returns:
+        Entries with ``driver``, ``scenario``, ``episodes`` (finished ones), ``errors`` and
+        ``error_seeds``, ``collisions`` and ``collision_seeds``, ``collision_rate`` and
+        ``collision_rate_ci`` (Wilson), ``offroad`` (steps, summed), ``solve_ms_max``,
+        ``min_clearance`` (smallest), and for each of :data:`MEAN_METRICS` the mean over the
+        finished episodes where it is finite and ``<key>_ci`` (t interval, ``None`` for fewer
+        than two). Missing values are ``None`` (JSON ``null``).
+    """
+    summary = []
+    for driver, scenario in dict.fromkeys((row.get("driver"), row["scenario"]) for row in rows):
+        mine = [row for row in rows if row.get("driver") == driver and row["scenario"] == scenario]
+        done = [row for row in mine if row.get("status", "ok") == "ok"]
+        collisions = sum(int(row["collisions"]) for row in done)
+        entry: dict = {
+            "driver": driver,
+            "scenario": scenario,
+            "episodes": len(done),
+            "errors": len(mine) - len(done),
+            "error_seeds": [row["seed"] for row in mine if row.get("status", "ok") != "ok"],
+            "collisions": collisions,
+            "collision_seeds": [row["seed"] for row in done if row["collisions"]],
+            "collision_rate": collisions / len(done) if done else None,
+            "collision_rate_ci": wilson_ci(collisions, len(done)),
+            "offroad": sum(int(row["offroad"]) for row in done),
+            "solve_ms_max": _finite(max((row["solve_ms_max"] for row in done), default=None)),
+            "min_clearance": _finite(min((row["min_clearance"] for row in done if row.get("min_clearance") is not None),
+                                         default=None)),
+        }
+        for key in MEAN_METRICS:
+            entry[key], entry[f"{key}_ci"] = mean_ci([row.get(key) for row in done])
+        summary.append(entry)
+    return summary
+
+
+def _labels(summary: Sequence[dict]) -> list[tuple[str, str]]:
+    """(driver line, scenario line) per column; the driver line is empty for a single driver."""
+    several = len({entry["driver"] for entry in summary}) > 1
+    return [(str(entry["driver"]) if several else "", entry["scenario"]) for entry in summary]
+
+
+def format_table(summary: Sequence[dict]) -> str:
+    """Plain-text table of :func:`summarize` entries, one column per driver x scenario, then
+    the seeds of collisions and errors."""
+    labels = _labels(summary)
+    width = max([12, *(len(part) for label in labels for part in label)])
+    lines = []
+    if any(driver for driver, _ in labels):
+        lines.append(f"{'driver':<22}" + "".join(f"{driver:>{width + 2}}" for driver, _ in labels))
+    lines.append(f"{'scenario' if lines else '':<22}" + "".join(f"{scenario:>{width + 2}}" for _, scenario in labels))
+    for key, header, fmt in TABLE:
+        cells = []
+        for entry in summary:
+            value = entry.get(key)
+            cells.append("-" if value is None or (isinstance(value, float) and math.isnan(value)) else fmt.format(value))
+        lines.append(f"{header:<22}" + "".join(f"{cell:>{width + 2}}" for cell in cells))
+    for entry, (driver, scenario) in zip(summary, labels):
+        where = f"{driver} / {scenario}" if driver else scenario
+        if entry["collisions"]:
+            lines.append(f"collisions in {where}: seeds {entry['collision_seeds']}")
+        if entry.get("errors"):
+            lines.append(f"errors in {where}: seeds {entry['error_seeds']}")
+    return "\n".join(lines)
+
+
+def _cell(entry: dict, key: str) -> str:
+    value, interval = entry.get(key), entry.get(f"{key}_ci")
+    if value is None:
+        return "-"
+    digits = 3 if abs(value) < 10 else 2 if abs(value) < 100 else 1
+    if interval is None:
+        return f"{value:.{digits}f}"
+    if key == "collision_rate":
+        return f"{value:.{digits}f} [{interval[0]:.{digits}f}, {interval[1]:.{digits}f}]"
+    return f"{value:.{digits}f} ± {(interval[1] - interval[0]) / 2:.{digits}f}"
+
+
+def format_markdown(summary: Sequence[dict]) -> str:
+    """Markdown: per scenario a table with the drivers side by side; means ± the half-width of
+    their 95 % interval, the collision rate with its Wilson interval."""
+    parts = []
+    for scenario in dict.fromkeys(entry["scenario"] for entry in summary):
+        mine = [entry for entry in summary if entry["scenario"] == scenario]
+        header = "| " + " | ".join(["", *(f"`{entry['driver']}`" for entry in mine)]) + " |"
+        lines = [f"### {scenario}", "", header, "|" + "---|" * (len(mine) + 1)]
+        lines.append("| episodes (errors) | " + " | ".join(f"{e['episodes']} ({e['errors']})" for e in mine) + " |")
+        for key, label in COMPARED:
+            lines.append(f"| {label} | " + " | ".join(_cell(entry, key) for entry in mine) + " |")
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts) + "\n\n95 % intervals: t interval of the mean (±: half-width); Wilson for the collision rate.\n"
+
+
+def plot_comparison(summary: Sequence[dict], path: str | Path) -> Path:
+    """Grouped bars per scenario, one bar per driver, with 95 % intervals, one panel per
+    :data:`COMPARED` metric."""
+    import matplotlib.pyplot as plt
+
+    from mmpc.plotting import save_figure
+
+    scenarios = list(dict.fromkeys(entry["scenario"] for entry in summary))
+    drivers = list(dict.fromkeys(entry["driver"] for entry in summary))
+    fig, axes = plt.subplots(1, len(COMPARED), figsize=(3.6 * len(COMPARED), 3.6))
+    width = 0.8 / len(drivers)
+    for ax, (key, label) in zip(axes, COMPARED):
+        for d, driver in enumerate(drivers):
+            xs, heights, errors = [], [], [[], []]
+            for s, scenario in enumerate(scenarios):
+                entry = next((e for e in summary if e["driver"] == driver and e["scenario"] == scenario), None)
+                if entry is None or entry.get(key) is None:
+                    continue
+                value, interval = entry[key], entry.get(f"{key}_ci") or [entry[key], entry[key]]
+                xs.append(s + (d - (len(drivers) - 1) / 2) * width)
+                heights.append(value)
+                errors[0].append(value - interval[0])
+                errors[1].append(interval[1] - value)
+            ax.bar(xs, heights, width, yerr=errors, capsize=3, label=str(driver))
+        ax.set_xticks(range(len(scenarios)), scenarios)
+        ax.set_title(label, fontsize=10)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("drivers x scenarios (95 % intervals)", fontsize=11)
+    return save_figure(fig, path)
+
+
+def write_tensorboard(rows: Sequence[dict], summary: Sequence[dict], logdir: str | Path) -> Path:
+    """TensorBoard scalars, one run per driver (``logdir/<driver>``): per finished episode
+    ``<scenario>/<metric>`` at step = seed; per scenario ``summary/<scenario>/<metric>`` (and
+    ``..._ci_low`` / ``..._ci_high``) at step 0. The folder is rebuilt from ``rows`` on every
+    call (written aside, then swapped in), so a resumed evaluation holds each episode once."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    from mmpc.evaluate import driver_slug
+
+    logdir = Path(logdir)
+    staging = logdir.with_name(f".{logdir.name}.tmp-{os.getpid()}")
+    shutil.rmtree(staging, ignore_errors=True)
+    for driver in dict.fromkeys(row["driver"] for row in rows):
+        writer = SummaryWriter(log_dir=str(staging / driver_slug(str(driver))))
+        try:
+            for row in rows:
+                if row["driver"] != driver or row.get("status", "ok") != "ok":
+                    continue
+                for key in ("collisions", *MEAN_METRICS):
+                    value = row.get(key)
+                    if value is not None and math.isfinite(value):
+                        writer.add_scalar(f"{row['scenario']}/{key}", value, global_step=row["seed"])
+            for entry in summary:
+                if entry["driver"] != driver:
+                    continue
+                for key in ("collision_rate", *MEAN_METRICS):
+                    if entry.get(key) is None:
+                        continue
+                    writer.add_scalar(f"summary/{entry['scenario']}/{key}", entry[key], global_step=0)
+                    if entry.get(f"{key}_ci") is not None:
+                        writer.add_scalar(f"summary/{entry['scenario']}/{key}_ci_low", entry[f"{key}_ci"][0], global_step=0)
+                        writer.add_scalar(f"summary/{entry['scenario']}/{key}_ci_high", entry[f"{key}_ci"][1], global_step=0)
+        finally:
+            writer.close()
+    shutil.rmtree(logdir, ignore_errors=True)
+    if staging.exists():
+        os.replace(staging, logdir)
+    return logdir
+
+
+def write_report(rows: Sequence[dict], summary: Sequence[dict], out: str | Path) -> list[Path]:
+    """``summary.md``, ``compare.png`` and ``tensorboard/`` in ``out``; returns the paths."""
+    out = Path(out)
+    markdown = out / "summary.md"
+    markdown.write_text(format_markdown(summary))
+    paths = [markdown]
+    if any(entry["episodes"] for entry in summary):
+        paths.append(plot_comparison(summary, out / "compare.png"))
+    paths.append(write_tensorboard(rows, summary, out / "tensorboard"))
+    return paths
+
