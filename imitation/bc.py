@@ -22,9 +22,8 @@ from typing import Any, Callable, Mapping, NamedTuple, Optional
 
 import numpy as np
 import torch
-import yaml
 
-from mmpc.config import dataclass_from_dict
+from mmpc.config import dataclass_from_dict, read_config_yaml
 from mmpc.imitation.dataset import Transitions
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
 
@@ -78,12 +77,7 @@ class TrainConfig:
 def load_yaml_config(cls, name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None):
     """Load ``configs/imitation/<name>.yaml`` (or a path) into ``cls`` (a config with ``from_dict``);
     ``overrides`` replace top-level keys."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = CONFIG_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        raise FileNotFoundError(f"imitation config {str(name_or_path)!r}: no file {path}")
-    values = yaml.safe_load(path.read_text()) or {}
+    path, values = read_config_yaml(name_or_path, CONFIG_DIR, "imitation config", "configs")
     values.update(overrides or {})
     return cls.from_dict(values, where=f"imitation config {path}")
 

@@ -30,6 +30,31 @@ def dataclass_from_dict(cls: type[T], values: Mapping[str, Any], *, where: str =
     return cls(**values)
 
 
+def read_config_yaml(name_or_path: str | Path, directory: Path, what: str, listing: str) -> tuple[Path, dict]:
+    """Read a YAML config given by a path or by the name of a file shipped in ``directory``.
+
+    Args:
+        name_or_path: a path (with a suffix) or a shipped file's stem, e.g. ``"cruise"``.
+        directory: the folder of the shipped ``<name>.yaml`` files.
+        what: what the file is, for messages (e.g. ``"scenario"``).
+        listing: what the shipped files are called in the message (e.g. ``"scenarios"``).
+
+    Returns:
+        The resolved path and the parsed values (``{}`` for an empty file).
+
+    Raises:
+        FileNotFoundError: no such file; the message lists the shipped names.
+    """
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = directory / f"{name_or_path}.yaml"
+    if not path.is_file():
+        shipped = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
+        raise FileNotFoundError(f"{what} {str(name_or_path)!r}: no file {path}; shipped {listing}: {shipped}")
+    with open(path, encoding="utf-8") as handle:
+        return path, yaml.safe_load(handle) or {}
+
+
 def _require(condition: bool, message: str) -> None:
     if not condition:
         raise ValueError(message)

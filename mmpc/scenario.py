@@ -19,9 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
-import yaml
 
-from mmpc.config import OptimizerConfig, dataclass_from_dict
+from mmpc.config import OptimizerConfig, dataclass_from_dict, read_config_yaml
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig
@@ -453,14 +452,7 @@ def load_scenario(name_or_path: str | Path, overrides: Optional[Mapping[str, Any
             the shipped names.
         ValueError: an invalid or unknown key.
     """
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = SCENARIO_DIR / f"{name_or_path}.yaml"
-    if not path.is_file():
-        shipped = sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml")) if SCENARIO_DIR.is_dir() else []
-        raise FileNotFoundError(f"scenario {str(name_or_path)!r}: no file {path}; shipped scenarios: {shipped}")
-    with open(path, encoding="utf-8") as handle:
-        values = yaml.safe_load(handle) or {}
+    path, values = read_config_yaml(name_or_path, SCENARIO_DIR, "scenario", "scenarios")
     for dotted, value in (overrides or {}).items():
         *sections, key = dotted.split(".")
         target = values

@@ -20,9 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-import yaml
 
-from mmpc.config import dataclass_from_dict
+from mmpc.config import dataclass_from_dict, read_config_yaml
 from mmpc.scenario import CruiseObjective, EgoConfig, IDMTraffic, ScenarioConfig, load_scenario
 
 #: Algorithms ``mmpc train-rl`` knows, with the action space each trains on by default.
@@ -299,14 +298,7 @@ def load_rl_config(path: Optional[str | Path] = None) -> RLConfig:
     """
     if path is None:
         return RLConfig()
-    path = Path(path)
-    if not path.suffix:
-        path = RL_CONFIG_DIR / f"{path}.yaml"
-    if not path.is_file():
-        shipped = sorted(p.stem for p in RL_CONFIG_DIR.glob("*.yaml")) if RL_CONFIG_DIR.is_dir() else []
-        raise FileNotFoundError(f"rl config {str(path)!r} does not exist; shipped configs: {shipped}")
-    with open(path, encoding="utf-8") as handle:
-        values = yaml.safe_load(handle) or {}
+    path, values = read_config_yaml(path, RL_CONFIG_DIR, "rl config", "configs")
     return RLConfig.from_dict(values, where=f"rl config {path}")
 
 
