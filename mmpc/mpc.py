@@ -253,14 +253,32 @@ class MPC:
         else:
             selection = selector(result, cost, violation)
         trajectory = result.trajectories.select(selection.index)
-        acceleration, heading_rate = self._command(trajectory)
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0
-        acceleration, heading_rate = self._fallback(problem.ego, selection.feasible | drivable, acceleration, heading_rate)
-        speed = problem.ego[:, EGO_V].clamp_min(1.0)
+        acceleration, steering, heading_rate = self.command(problem.ego, trajectory, selection.feasible | drivable)
+        return Plan(problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms)
+
+    def command(
+        self, ego: torch.Tensor, trajectory: Trajectories, usable: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The commands that execute E chosen plans (any planner's, e.g. the baselines').
+
+        Args:
+            ego: (E, 6) current states.
+            trajectory: the chosen plans, every field (E, N), at ``trajectory.times``.
+            usable: (E,) bool; rows where it is False get the lane-keeping brake instead.
+
+        Returns:
+            acceleration (E,) [m/s^2] and heading rate (E,) [rad/s] averaged over the command
+            window, and steering ``atan(L psidot / v)`` (E,) [rad] clamped to ``max_steering``,
+            as (acceleration, steering, heading_rate).
+        """
+        acceleration, heading_rate = self._command(trajectory)
+        acceleration, heading_rate = self._fallback(ego, usable, acceleration, heading_rate)
+        speed = ego[:, EGO_V].clamp_min(1.0)
         steering = torch.atan(self.config.wheelbase * heading_rate / speed)
         steering = steering.clamp(-self.config.max_steering, self.config.max_steering)
-        return Plan(problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms)
+        return acceleration, steering, heading_rate
 
     def _keep_on_road(self, result: SolveResult, ego: torch.Tensor) -> tuple[SolveResult, torch.Tensor]:
         """Flag candidates that leave the road as :attr:`Status.OFF_ROAD`.

@@ -23,10 +23,10 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from mmpc.baselines.common import commands, obstacles_for, rank
+from mmpc.baselines.common import checked_ego, obstacles_for, ranked_decision
 from mmpc.baselines.nlp import NLPConfig, TrajectoryNLP, resample
 from mmpc.config import OptimizerConfig
-from mmpc.drivers import Candidates, Decision, Driver, Observation
+from mmpc.drivers import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.road import Road
 
@@ -128,9 +128,7 @@ class BatchNLPDriver(Driver):
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         mpc = self.mpc
-        ego = observation.ego.to(torch.float64)
-        if ego.ndim != 2 or ego.shape[1] != 6 or not torch.isfinite(ego).all():
-            raise ValueError(f"`ego` must be a finite (E, 6) tensor; got shape {tuple(ego.shape)}")
+        ego = checked_ego(observation, torch.float64)
         goals = mpc.goal_sampler(ego, mpc.road)
         goals = goals[:, goal_subset(goals.shape[1], self.batch)]  # (E, B, 2)
         knot_times = torch.as_tensor(self.solver.times, dtype=torch.float64)
@@ -144,24 +142,7 @@ class BatchNLPDriver(Driver):
         states = np.stack([r[0] for r in results]).reshape(e, b, *results[0][0].shape)
         feasible = torch.tensor([r[1] for r in results]).reshape(e, b)
         trajectories = resample(states, self.solver.times, mpc.optimizer.times.to(torch.float64))  # (E, B, N)
-        cost = mpc.meta_cost(trajectories, mpc.road)
-        ranked = rank(cost, feasible)
-        chosen = trajectories.select(ranked.index)
-        acceleration, steering = commands(mpc, ego, chosen, ranked.feasible)
-        elapsed_ms = (time.perf_counter() - start) * 1e3
-        return Decision(
-            acceleration=acceleration.float(),
-            steering=steering.float(),
-            solve_ms=elapsed_ms,
-            goal_index=torch.where(ranked.feasible, ranked.index, torch.full_like(ranked.index, -1)),
-            feasible_goals=feasible.sum(dim=1),
-            fallback=~ranked.feasible,
-            plan_cost=ranked.cost.float(),
-            candidates=Candidates(
-                xy=torch.stack([trajectories.x, trajectories.y], dim=-1).float(), feasible=feasible,
-                best=ranked.index, goals=goals.float(),
-            ),
-        )
+        return ranked_decision(mpc, ego, trajectories, feasible, start, goals)
 
 
 def make_batch_nlp_driver(scenario, argument: Optional[str]) -> Driver:

@@ -10,12 +10,14 @@ window; ``steering = atan(L psidot / v)``; the lane-keeping brake where nothing 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import time
+from typing import NamedTuple, Optional
 
 import torch
 
+from mmpc.drivers import Candidates, Decision, Observation
 from mmpc.mpc import MPC, nearest_obstacles
-from mmpc.problem import EGO_V, predict_constant_velocity
+from mmpc.problem import predict_constant_velocity
 from mmpc.result import Trajectories
 
 
@@ -56,21 +58,51 @@ def rank(cost: torch.Tensor, feasible: torch.Tensor) -> Ranked:
     return Ranked(index, chosen, any_feasible)
 
 
-def commands(mpc: MPC, ego: torch.Tensor, trajectory: Trajectories, usable: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(acceleration (E,) [m/s^2], steering (E,) [rad]) from the chosen plans, as :meth:`mmpc.MPC.plan`
-    extracts them; rows where ``usable`` is False get the MPC's lane-keeping brake.
+def checked_ego(observation: Observation, dtype: torch.dtype) -> torch.Tensor:
+    """The observation's ego states as ``dtype``, refused unless finite and (E, 6)."""
+    ego = observation.ego.to(dtype)
+    if ego.ndim != 2 or ego.shape[1] != 6 or not torch.isfinite(ego).all():
+        raise ValueError(f"`ego` must be a finite (E, 6) tensor; got shape {tuple(ego.shape)}")
+    return ego
+
+
+def ranked_decision(
+    mpc: MPC,
+    ego: torch.Tensor,
+    trajectories: Trajectories,
+    feasible: torch.Tensor,
+    start: float,
+    goals: Optional[torch.Tensor] = None,
+) -> Decision:
+    """Rank C candidates per problem by ``mpc``'s meta cost, execute the best feasible one (the
+    lane-keeping brake where none is), and report it as a :class:`mmpc.drivers.Decision`.
 
     Args:
-        mpc: the scenario's MPC (its command window, wheelbase, steering limit and fallback).
+        mpc: the scenario's MPC (meta cost, road, command extraction, output dtype).
         ego: (E, 6) current states.
-        trajectory: the chosen plans, every field (E, N), at ``trajectory.times``.
-        usable: (E,) bool.
+        trajectories: the candidates, every field (E, C, N).
+        feasible: (E, C) bool.
+        start: ``time.perf_counter()`` at the start of the decision.
+        goals: (E, C, 2) the candidates' goals [m], if they have goals.
     """
-    acceleration, heading_rate = mpc._command(trajectory)
-    acceleration, heading_rate = mpc._fallback(ego, usable, acceleration, heading_rate)
-    speed = ego[:, EGO_V].clamp_min(1.0)
-    steering = torch.atan(mpc.config.wheelbase * heading_rate / speed)
-    return acceleration, steering.clamp(-mpc.config.max_steering, mpc.config.max_steering)
+    dtype = mpc.optimizer.dtype
+    cost = mpc.meta_cost(trajectories, mpc.road)
+    ranked = rank(cost, feasible)
+    acceleration, steering, _ = mpc.command(ego, trajectories.select(ranked.index), ranked.feasible)
+    elapsed_ms = (time.perf_counter() - start) * 1e3
+    return Decision(
+        acceleration=acceleration.to(dtype),
+        steering=steering.to(dtype),
+        solve_ms=elapsed_ms,
+        goal_index=torch.where(ranked.feasible, ranked.index, torch.full_like(ranked.index, -1)),
+        feasible_goals=feasible.sum(dim=1),
+        fallback=~ranked.feasible,
+        plan_cost=ranked.cost.to(dtype),
+        candidates=Candidates(
+            xy=torch.stack([trajectories.x, trajectories.y], dim=-1).to(dtype), feasible=feasible,
+            best=ranked.index, goals=None if goals is None else goals.to(dtype),
+        ),
+    )
 
 
 def with_goal_axis(trajectory: Trajectories) -> Trajectories:

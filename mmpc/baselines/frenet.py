@@ -28,9 +28,9 @@ from typing import Optional
 
 import torch
 
-from mmpc.baselines.common import commands, obstacles_for, rank
+from mmpc.baselines.common import checked_ego, obstacles_for, ranked_decision
 from mmpc.config import dataclass_from_dict
-from mmpc.drivers import Candidates, Decision, Driver, Observation
+from mmpc.drivers import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
 from mmpc.result import Trajectories
@@ -268,30 +268,12 @@ class FrenetDriver(Driver):
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         mpc = self.planner.mpc
-        ego = observation.ego.to(mpc.optimizer.dtype)
+        ego = checked_ego(observation, mpc.optimizer.dtype)
         vehicles = observation.vehicles.to(ego.dtype)
-        if ego.ndim != 2 or ego.shape[1] != 6 or not torch.isfinite(ego).all():
-            raise ValueError(f"`ego` must be a finite (E, 6) tensor; got shape {tuple(ego.shape)}")
         trajectories = self.planner.candidates(ego)
         obstacles, mask = obstacles_for(mpc, ego, vehicles, observation.vehicle_mask, trajectories.times)
         feasible = self.planner.feasible(ego, trajectories, obstacles, mask)
-        cost = mpc.meta_cost(trajectories, mpc.road)
-        ranked = rank(cost, feasible)
-        chosen = trajectories.select(ranked.index)
-        acceleration, steering = commands(mpc, ego, chosen, ranked.feasible)
-        elapsed_ms = (time.perf_counter() - start) * 1e3
-        return Decision(
-            acceleration=acceleration,
-            steering=steering,
-            solve_ms=elapsed_ms,
-            goal_index=torch.where(ranked.feasible, ranked.index, torch.full_like(ranked.index, -1)),
-            feasible_goals=feasible.sum(dim=1),
-            fallback=~ranked.feasible,
-            plan_cost=ranked.cost,
-            candidates=Candidates(
-                xy=torch.stack([trajectories.x, trajectories.y], dim=-1), feasible=feasible, best=ranked.index,
-            ),
-        )
+        return ranked_decision(mpc, ego, trajectories, feasible, start)
 
 
 def make_frenet_driver(scenario, argument: Optional[str]) -> Driver:

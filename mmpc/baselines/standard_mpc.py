@@ -17,7 +17,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from mmpc.baselines.common import commands, obstacles_for, with_goal_axis
+from mmpc.baselines.common import checked_ego, obstacles_for, with_goal_axis
 from mmpc.baselines.nlp import NLPConfig, NLPSolution, TrajectoryNLP, resample
 from mmpc.drivers import Candidates, Decision, Driver, Observation
 from mmpc.mpc import MPC
@@ -59,9 +59,7 @@ class StandardMPCDriver(Driver):
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         mpc = self.mpc
-        ego = observation.ego.to(torch.float64)
-        if ego.ndim != 2 or ego.shape[1] != 6 or not torch.isfinite(ego).all():
-            raise ValueError(f"`ego` must be a finite (E, 6) tensor; got shape {tuple(ego.shape)}")
+        ego = checked_ego(observation, torch.float64)
         knot_times = torch.as_tensor(self.nlp.times, dtype=torch.float64)
         obstacles, mask = obstacles_for(mpc, ego, observation.vehicles.to(torch.float64), observation.vehicle_mask, knot_times)
         solutions = []
@@ -80,7 +78,7 @@ class StandardMPCDriver(Driver):
         trajectory = resample(np.stack([s.states for s in solutions]), self.nlp.times, times)  # fields (E, N)
         feasible = torch.tensor([s.feasible for s in solutions])
         cost = mpc.meta_cost(with_goal_axis(trajectory), mpc.road)[:, 0]
-        acceleration, steering = commands(mpc, ego, trajectory, feasible)
+        acceleration, steering, _ = mpc.command(ego, trajectory, feasible)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         count = ego.shape[0]
         return Decision(
