@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Any, Optional
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Optional
 
 import numpy as np
 import torch
@@ -58,6 +58,17 @@ class _Hold:
         self.values[env] = value
         self.left[env] = self.frames
 
+    def refresh(self, ids: list[int], fresh: Callable[[list[int]], Iterable[Any]]) -> list[Any]:
+        """The held value of every row of ``ids`` after rows that are due got ``fresh(due_rows)``;
+        then one control step passes."""
+        due = self.due(ids)
+        if due:
+            for row, value in zip(due, fresh(due)):
+                self.set(ids[row], value)
+        values = [self.values[env] for env in ids]
+        self.tick(ids)
+        return values
+
     def tick(self, ids: list[int]) -> None:
         for env in ids:
             self.left[env] -= 1
@@ -86,28 +97,25 @@ class SafeAgentDriver(Driver):
     def reset(self, num_envs: int) -> None:
         self.hold.clear()
 
+    def _goal_commands(self, observation: Observation, due: list[int]) -> torch.Tensor:
+        """The agent's new goal commands for the rows ``due``."""
+        sub = Observation(observation.ego[due], observation.vehicles[due],
+                          None if observation.vehicle_mask is None else observation.vehicle_mask[due])
+        parts = [_flat_kinematics(observation, due, self.config.kinematics_vehicles)]
+        if self.config.solver_features:
+            features, _ = self.layer.goal_features(sub)
+            parts.append(features.reshape(len(due), -1))
+        vector = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
+        actions, _ = self.model.predict(vector, deterministic=True)
+        if self.continuous:
+            return self.layer.continuous_commands(sub.ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
+        return self.layer.discrete_commands(sub.ego, torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long))
+
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         ids = [int(i) for i in observation.ids()]
-        due = self.hold.due(ids)
-        if due:
-            sub = Observation(observation.ego[due], observation.vehicles[due],
-                              None if observation.vehicle_mask is None else observation.vehicle_mask[due])
-            parts = [_flat_kinematics(observation, due, self.config.kinematics_vehicles)]
-            if self.config.solver_features:
-                features, _ = self.layer.goal_features(sub)
-                parts.append(features.reshape(len(due), -1))
-            vector = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
-            actions, _ = self.model.predict(vector, deterministic=True)
-            if self.continuous:
-                commands = self.layer.continuous_commands(sub.ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
-            else:
-                commands = self.layer.discrete_commands(sub.ego, torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long))
-            for row, command in zip(due, commands):
-                self.hold.set(ids[row], command)
-        commands = torch.stack([self.hold.values[env] for env in ids])
+        commands = torch.stack(self.hold.refresh(ids, lambda due: self._goal_commands(observation, due)))
         safe = self.layer.plan(observation, commands)
-        self.hold.tick(ids)
         plan = safe.plan
         trajectories = plan.result.trajectories
         return Decision(
@@ -140,16 +148,15 @@ class ContinuousActionDriver(Driver):
     def reset(self, num_envs: int) -> None:
         self.hold.clear()
 
+    def _actions(self, observation: Observation, due: list[int]) -> np.ndarray:
+        """The agent's new actions in [-1, 1]^2 for the rows ``due``."""
+        actions, _ = self.model.predict(_flat_kinematics(observation, due, self.vehicles), deterministic=True)
+        return np.clip(np.asarray(actions, dtype=np.float64).reshape(len(due), 2), -1.0, 1.0)
+
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         ids = [int(i) for i in observation.ids()]
-        due = self.hold.due(ids)
-        if due:
-            actions, _ = self.model.predict(_flat_kinematics(observation, due, self.vehicles), deterministic=True)
-            for row, action in zip(due, np.clip(np.asarray(actions, dtype=np.float64).reshape(len(due), 2), -1.0, 1.0)):
-                self.hold.set(ids[row], action)
-        actions = np.stack([self.hold.values[env] for env in ids])
-        self.hold.tick(ids)
+        actions = np.stack(self.hold.refresh(ids, lambda due: self._actions(observation, due)))
         (a_low, a_high), (s_low, s_high) = self.ranges
         acceleration = a_low + 0.5 * (actions[:, 0] + 1.0) * (a_high - a_low)
         steering = s_low + 0.5 * (actions[:, 1] + 1.0) * (s_high - s_low)
