@@ -102,7 +102,10 @@ def wilson_ci(successes: int, trials: int) -> Optional[list[float]]:
     denominator = 1 + _Z**2 / trials
     centre = (p + _Z**2 / (2 * trials)) / denominator
     half = _Z * math.sqrt(p * (1 - p) / trials + _Z**2 / (4 * trials**2)) / denominator
-    return [max(0.0, centre - half), min(1.0, centre + half)]
+    # The bounds are exact at the ends: rounding would put 0 (or 1) just outside its own interval.
+    low = 0.0 if successes == 0 else max(0.0, centre - half)
+    high = 1.0 if successes == trials else min(1.0, centre + half)
+    return [low, high]
 
 
 def _finite(value: Optional[float]) -> Optional[float]:

@@ -81,6 +81,10 @@ def test_intervals_match_tables():
     assert wilson_ci(0, 10) == pytest.approx([0.0, 0.2775], abs=1e-4)  # the textbook value
     assert wilson_ci(5, 10) == pytest.approx([0.2366, 0.7634], abs=1e-4)
     assert wilson_ci(0, 0) is None
+    for trials in range(1, 60):  # the rate lies inside its own interval (0 and 1 exactly at the ends)
+        for successes in (0, trials // 2, trials):
+            low, high = wilson_ci(successes, trials)
+            assert low <= successes / trials <= high
     with pytest.raises(ValueError, match="dof"):
         t_quantile_975(0)
 
