@@ -10,7 +10,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, TypeVar
+from typing import Any, Mapping, Optional, TypeVar
 
 import yaml
 
@@ -81,6 +81,12 @@ class OptimizerConfig:
         max_obstacles: largest number of obstacle slots M a problem may carry.
         max_heading_deg: heading band around the road direction; outside it a trajectory is
             infeasible (the paper's assumption 2) [deg].
+        heading_target_deg: when set, the heading step clips its targets ``atan2(ydot, xdot)``
+            to +-this band, which turns the heading band from a filter on finished trajectories
+            into a constraint of the iterations (the NLP baselines bound psi the same way);
+            ``None`` leaves the targets unclipped, as in the paper. Set it a little inside
+            ``max_heading_deg``: the smooth heading polynomial overshoots clipped targets
+            slightly [deg].
         start_acceleration: also constrain the initial acceleration to the ego's current one.
         obstacle_tolerance: feasible trajectories keep normalised obstacle distance >= 1 - this [-].
         acceleration_tolerance: allowed excess of the acceleration norm over a_max [m/s^2].
@@ -103,6 +109,7 @@ class OptimizerConfig:
     v_max: float = 30.0
     max_obstacles: int = 10
     max_heading_deg: float = 13.0
+    heading_target_deg: Optional[float] = None
     start_acceleration: bool = True
     obstacle_tolerance: float = 0.01
     acceleration_tolerance: float = 0.05
@@ -146,6 +153,14 @@ class OptimizerConfig:
             0 < self.max_heading_deg < 90,
             f"`max_heading_deg` must be in (0, 90); got {self.max_heading_deg}",
         )
+        if self.heading_target_deg is not None:
+            _require(
+                isinstance(self.heading_target_deg, (int, float))
+                and not isinstance(self.heading_target_deg, bool)
+                and 0 < self.heading_target_deg <= self.max_heading_deg,
+                f"`heading_target_deg` must be null or in (0, max_heading_deg={self.max_heading_deg}]; "
+                f"got {self.heading_target_deg!r}",
+            )
         for name in (
             "obstacle_tolerance",
             "acceleration_tolerance",

@@ -3,7 +3,8 @@
 One iteration, for every (problem, goal) element at once:
 
 1. position QP (x and y): one cached KKT operator times ``[c, u, lambda, b]``;
-2. heading QP: pull ``psi = P c_psi`` towards ``atan2(ydot, xdot)``; cached operator;
+2. heading QP: pull ``psi = P c_psi`` towards ``atan2(ydot, xdot)`` (clipped to the heading band
+   when ``config.heading_target_deg`` is set); cached operator;
    ``lambda_psi -= rho P^T (psi - atan2(ydot, xdot))`` (the sign that converges; the paper's
    printed update has it reversed);
 3. speed: ``v = clip((xdot, ydot) . (cos psi, sin psi), v_min, v_max)`` — the projection on the
@@ -126,7 +127,9 @@ class BatchOptimizer(nn.Module):
             [self.config.ellipse_a, self.config.ellipse_b], dtype=dtype, device=device
         ).view(2, 1, 1)
         self.register_buffer("semi_axes", semi_axes, persistent=False)
-        self._limits = _Limits(self.config.v_min, self.config.v_max, self.config.a_max)
+        cfg = self.config
+        heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
+        self._limits = _Limits(cfg.v_min, cfg.v_max, cfg.a_max, heading)
         self.compiled = compile
         if compile:
             # Chunks of unrolled iterations: one compiled graph serves every chunk (the
@@ -347,9 +350,10 @@ class BatchOptimizer(nn.Module):
 class _Limits(NamedTuple):
     """Bounds used inside the iterations (Python floats: constants to a compiler)."""
 
-    v_min: float
-    v_max: float
-    a_max: float
+    v_min: float  # m/s
+    v_max: float  # m/s
+    a_max: float  # m/s^2
+    heading: Optional[float]  # rad, the band the heading targets are clipped to; None: unclipped
 
 
 class _State(NamedTuple):
@@ -401,6 +405,8 @@ def _iterate(
         c = _position_qp(position[u], stacked, num_problems)
         samples = (samples_operator @ c).view(3 * n, 2, num_problems, num_goals)
         psi_target = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0]).view(n, -1)  # (N, B)
+        if limits.heading is not None:
+            psi_target = psi_target.clamp(-limits.heading, limits.heading)
         c_psi = heading[u] @ torch.cat([psi_target, multipliers_psi, b_heading])
         psi = heading_basis @ c_psi
         multipliers_psi = torch.addmm(multipliers_psi, heading_gather[u], psi_target - psi)

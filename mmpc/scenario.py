@@ -37,6 +37,11 @@ HIGHWAY_ELLIPSE = (8.0, 3.0)
 #: heading, and a three-lane cut at 11 degrees ended in a collision in closed loop (cruise,
 #: seed 12); with 8 degrees none of 40 evaluation episodes collided.
 HIGHWAY_MAX_HEADING_DEG = 8.0
+#: Band [deg] the heading step's targets are clipped to, 0.9 x the band above (the heading
+#: polynomial overshoots clipped targets slightly). On 200 dense cruise states it raised the
+#: feasible goal-directed problems from 1444 to 1905 of 3600 (heading failures 1886 -> 833), and
+#: over 20 seeds x 40 s the cruise meta cost from 3.65 to 2.15 and high speed from 67.1 to 44.4.
+HIGHWAY_HEADING_TARGET_DEG = 7.2
 #: Folder of the scenarios that ship with the repository.
 SCENARIO_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
@@ -335,8 +340,8 @@ class ScenarioConfig:
         env_id: highway-env environment (``highway-v0`` checks collisions between all vehicles).
         ego: the controlled vehicle at the start.
         traffic: the other vehicles.
-        optimizer: batch optimizer settings (default: the authors' with :data:`HIGHWAY_ELLIPSE`
-            and :data:`HIGHWAY_MAX_HEADING_DEG`).
+        optimizer: batch optimizer settings (default: the authors' with :data:`HIGHWAY_ELLIPSE`,
+            :data:`HIGHWAY_MAX_HEADING_DEG` and :data:`HIGHWAY_HEADING_TARGET_DEG`).
         mpc: receding-horizon settings.
     """
 
@@ -351,7 +356,10 @@ class ScenarioConfig:
     traffic: Traffic = field(default_factory=IDMTraffic)
     optimizer: OptimizerConfig = field(
         default_factory=lambda: OptimizerConfig(
-            ellipse_a=HIGHWAY_ELLIPSE[0], ellipse_b=HIGHWAY_ELLIPSE[1], max_heading_deg=HIGHWAY_MAX_HEADING_DEG
+            ellipse_a=HIGHWAY_ELLIPSE[0],
+            ellipse_b=HIGHWAY_ELLIPSE[1],
+            max_heading_deg=HIGHWAY_MAX_HEADING_DEG,
+            heading_target_deg=HIGHWAY_HEADING_TARGET_DEG,
         )
     )
     mpc: MPCConfig = field(default_factory=MPCConfig)

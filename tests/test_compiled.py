@@ -8,7 +8,8 @@ from tests.conftest import small_config
 
 
 def test_compiled_matches_eager():
-    config = small_config(num_steps=100, order=10, iterations=20, max_obstacles=10)
+    # heading_target_deg: the clipped heading step is part of the compiled graph too
+    config = small_config(num_steps=100, order=10, iterations=20, max_obstacles=10, heading_target_deg=6.0)
     eager = mmpc.BatchOptimizer(config)
     compiled = mmpc.BatchOptimizer(config, compile=True)
     assert compiled.chunk == 10

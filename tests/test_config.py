@@ -15,7 +15,8 @@ def test_defaults_are_the_authors_numbers():
     "field, value",
     [("horizon", -1.0), ("num_steps", 1), ("order", 2), ("iterations", 0), ("v_max", 0.05),
      ("a_max", 0.0), ("max_heading_deg", 95.0), ("rho_growth", 0.9), ("num_steps", 10.5),
-     ("ellipse_a", float("nan")), ("max_obstacles", -1)],
+     ("ellipse_a", float("nan")), ("max_obstacles", -1), ("heading_target_deg", 14.0),
+     ("heading_target_deg", 0.0), ("heading_target_deg", float("nan"))],
 )
 def test_invalid_values_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):

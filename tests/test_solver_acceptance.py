@@ -90,3 +90,22 @@ def test_blocked_goal_is_flagged_not_feasible(optimizer64):
     result = optimizer64(mmpc.ProblemBatch(ego, goals, obstacles))
     assert not result.feasible.any()
     assert result.status[0, 0] & mmpc.Status.OBSTACLE
+
+
+def test_heading_target_turns_the_heading_band_into_a_constraint():
+    """A lane change of 8 m over 100 m: the unclipped S-curve peaks at ~8.4 deg; with the
+    heading step's targets clipped to 6 deg the same goal is still reached, inside the band."""
+    import mmpc
+
+    ego = mmpc.ego_state(0.0, 0.0, 0.0, 14.0, dtype=torch.float64)
+    goals = torch.tensor([[[100.0, 8.0]]], dtype=torch.float64)
+    problem = mmpc.ProblemBatch(ego, goals, torch.zeros(1, 0, 100, 2, dtype=torch.float64))
+    peaks = {}
+    for target in (None, 6.0):
+        optimizer = mmpc.BatchOptimizer(mmpc.OptimizerConfig(heading_target_deg=target), dtype=torch.float64)
+        result = optimizer(problem)
+        assert result.feasible.all()
+        assert abs(float(result.trajectories.y[0, 0, -1]) - 8.0) < 1e-3
+        peaks[target] = math.degrees(float(result.max_heading_deviation))
+    assert peaks[None] > 8.0
+    assert peaks[6.0] < 6.2
