@@ -1,12 +1,16 @@
 """Solver benchmark: ms per solve vs batch size and obstacle count; table, JSON and plot.
 
 Every timing follows warm-up solves; CUDA timings synchronise before reading the clock. The
-numbers are medians and 90th percentiles over ``repeats`` solves.
+variants (eager, compiled) of one row are timed in turn, one solve of each per round, so that
+a change of machine load hits both alike. The numbers are medians and 90th percentiles over
+``repeats`` rounds, of wall time and (on the CPU) of the solving thread's CPU time, which a
+busy shared machine inflates less; each row records the 1-minute load average.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import platform
 import statistics
 import time
@@ -110,11 +114,41 @@ def time_solver(solve: Callable[[], object], device: torch.device, repeats: int,
     return samples
 
 
+def time_interleaved(
+    solves: dict[str, Callable[[], object]], device: torch.device, repeats: int, warmup: int, budget: float
+) -> dict[str, tuple[list[float], list[float]]]:
+    """Wall and thread CPU times [ms] of each ``solves[name]()``, called in turn every round.
+
+    Returns:
+        name -> (wall times, CPU times of the calling thread), one entry per round; at least 3
+        rounds, then up to ``repeats`` while the rounds so far took less than ``budget`` seconds.
+    """
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for solve in solves.values():
+        for _ in range(warmup):
+            solve()
+    sync()
+    times: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in solves}
+    start = time.perf_counter()
+    rounds = 0
+    while rounds < repeats and (rounds < 3 or time.perf_counter() - start < budget):
+        for name, solve in solves.items():
+            wall, cpu = time.perf_counter(), time.thread_time()
+            solve()
+            sync()
+            times[name][0].append((time.perf_counter() - wall) * 1e3)
+            times[name][1].append((time.thread_time() - cpu) * 1e3)
+        rounds += 1
+    return times
+
+
 def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) -> dict:
     """Measure every row, print a table, write ``out/bench_solver.json`` and ``out/bench_solver.png``.
 
-    Each row: device, variant, batch, obstacles, ms_median, ms_p90, solves, and
-    ``roofline_fraction`` = (least bytes per solve / median time) / measured copy bandwidth.
+    Each row: device, variant, batch, obstacles, ms_median, ms_p90, cpu_ms_median (CPU rows),
+    solves, load_1min, and ``roofline_fraction`` = (least bytes per solve / median time) /
+    measured copy bandwidth; compiled rows also ``speedup_vs_eager`` (wall) and
+    ``cpu_speedup_vs_eager``, from the same interleaved rounds.
     """
     rows = []
     bandwidths = {}
@@ -128,15 +162,19 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
             device = torch.device(device_name)
             bandwidths[device_name] = memory_bandwidth(device)
             log(f"{device_name}: copy bandwidth {bandwidths[device_name] / 1e9:.1f} GB/s")
-            for variant in spec.variants:
-                optimizer = BatchOptimizer(spec.config, device=device, compile=variant == "compiled")
-                for obstacles in spec.obstacles:
-                    for batch in spec.batches:
-                        rows.append(_measure(spec, optimizer, device, variant, batch, obstacles, bandwidths[device_name]))
-                        row = rows[-1]
-                        log(f"{row['device']:>5} {variant:>9} M={obstacles:<3} B={batch:<6} median {row['ms_median']:9.2f} ms"
-                            f"   p90 {row['ms_p90']:9.2f} ms   roofline {100 * row['roofline_fraction']:5.1f} %"
-                            f"   ({row['solves']} solves)")
+            optimizers = {
+                variant: BatchOptimizer(spec.config, device=device, compile=variant == "compiled")
+                for variant in spec.variants
+            }
+            for obstacles in spec.obstacles:
+                for batch in spec.batches:
+                    measured = _measure(spec, optimizers, device, batch, obstacles, bandwidths[device_name])
+                    for row in measured:
+                        cpu = "" if row["cpu_ms_median"] is None else f" (cpu {row['cpu_ms_median']:9.2f})"
+                        log(f"{row['device']:>5} {row['variant']:>9} M={obstacles:<3} B={batch:<6} median "
+                            f"{row['ms_median']:9.2f} ms{cpu}   p90 {row['ms_p90']:9.2f} ms   roofline "
+                            f"{100 * row['roofline_fraction']:5.1f} %   ({row['solves']} solves, load {row['load_1min']:.1f})")
+                    rows.extend(measured)
     finally:
         torch.set_num_threads(previous_threads)
     _log_speedups(rows, log)
@@ -157,37 +195,49 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
     return report
 
 
-def _measure(spec: SolverBenchmark, optimizer: BatchOptimizer, device: torch.device, variant: str,
-             batch: int, obstacles: int, bandwidth: float) -> dict:
-    problem = benchmark_problem(batch, obstacles, optimizer.times.cpu())
+def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], device: torch.device,
+             batch: int, obstacles: int, bandwidth: float) -> list[dict]:
+    """One row per variant, timed in the same interleaved rounds."""
+    first = next(iter(optimizers.values()))
+    problem = benchmark_problem(batch, obstacles, first.times.cpu())
     problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
     with torch.inference_mode():
-        samples = time_solver(lambda: optimizer(problem), device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
-    samples.sort()
-    median = statistics.median(samples)
-    return {
-        "device": device.type,
-        "variant": variant,
-        "threads": spec.threads if device.type == "cpu" else None,
-        "batch": batch,
-        "obstacles": obstacles,
-        "iterations": spec.config.iterations,
-        "ms_median": median,
-        "ms_p90": samples[min(len(samples) - 1, int(0.9 * len(samples)))],
-        "solves": len(samples),
-        "roofline_fraction": bytes_per_solve(batch, obstacles, spec.config) / (median * 1e-3) / bandwidth,
-    }
+        solves = {variant: (lambda optimizer=optimizer: optimizer(problem)) for variant, optimizer in optimizers.items()}
+        times = time_interleaved(solves, device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
+    load = os.getloadavg()[0]
+    rows = []
+    for variant, (wall, cpu) in times.items():
+        wall = sorted(wall)
+        median = statistics.median(wall)
+        rows.append({
+            "device": device.type,
+            "variant": variant,
+            "threads": spec.threads if device.type == "cpu" else None,
+            "batch": batch,
+            "obstacles": obstacles,
+            "iterations": spec.config.iterations,
+            "ms_median": median,
+            "ms_p90": wall[min(len(wall) - 1, int(0.9 * len(wall)))],
+            "cpu_ms_median": statistics.median(cpu) if device.type == "cpu" else None,
+            "solves": len(wall),
+            "load_1min": load,
+            "roofline_fraction": bytes_per_solve(batch, obstacles, spec.config) / (median * 1e-3) / bandwidth,
+        })
+    return rows
 
 
 def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
-    """Compiled over eager speed-up, side by side from the same run."""
-    eager = {(r["device"], r["batch"], r["obstacles"]): r["ms_median"] for r in rows if r["variant"] == "eager"}
+    """Compiled over eager speed-up, side by side from the same interleaved rounds."""
+    eager = {(r["device"], r["batch"], r["obstacles"]): r for r in rows if r["variant"] == "eager"}
     for row in rows:
         key = (row["device"], row["batch"], row["obstacles"])
         if row["variant"] == "compiled" and key in eager:
-            row["speedup_vs_eager"] = eager[key] / row["ms_median"]
-            log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is "
-                f"{row['speedup_vs_eager']:.2f}x faster than eager")
+            row["speedup_vs_eager"] = eager[key]["ms_median"] / row["ms_median"]
+            text = f"{row['speedup_vs_eager']:.2f}x"
+            if row["cpu_ms_median"] is not None:
+                row["cpu_speedup_vs_eager"] = eager[key]["cpu_ms_median"] / row["cpu_ms_median"]
+                text += f" (cpu time {row['cpu_speedup_vs_eager']:.2f}x)"
+            log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is {text} faster than eager")
 
 
 def _vectorized_comparison(spec: SolverBenchmark, log: Callable[[str], None]) -> dict:

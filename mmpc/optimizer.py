@@ -10,7 +10,8 @@ One iteration, for every (problem, goal) element at once:
 3. speed: ``v = clip((xdot, ydot) . (cos psi, sin psi), v_min, v_max)`` — the projection on the
    heading, which minimises the non-holonomic penalty for fixed psi (the paper uses the norm);
 4. obstacles: every trajectory point is projected radially out of every ellipse — the closed
-   forms of alpha and d = max(1, r) without trigonometry;
+   forms of alpha and d = max(1, r) without trigonometry; only the push summed over the
+   obstacles leaves the step (compiled, the (M, N, E, G) offsets are never stored);
 5. acceleration: projected onto the disc of radius a_max — the closed forms of alpha_a, d_a;
 6. ``lambda -= rho F^T (F c - g)``, with the residual mapped to coefficient space once and
    reused by the next position QP.
@@ -41,6 +42,8 @@ _PARKED_DISTANCE = 1.0e5
 _EPS_SQUARED = 1.0e-12
 #: Iterations per compiled graph in the ``compile=True`` path.
 _COMPILED_CHUNK = 10
+#: Widest SIMD register the compiled CPU kernels use (AVX-512) [bytes].
+_SIMD_BYTES = 64
 
 
 class _Residuals(NamedTuple):
@@ -48,23 +51,21 @@ class _Residuals(NamedTuple):
 
     stacked: torch.Tensor  # (3N, 2, E, G) [obstacle push; acceleration residual; velocity residual]
     speed: torch.Tensor  # (N, E, G) v [m/s]
-    offset_x: torch.Tensor  # (M, N, E, G) point minus obstacle centre along x, in units of a
-    offset_y: torch.Tensor  # (M, N, E, G) the same along y, in units of b
-    outward: torch.Tensor  # (M, N, E, G) (1/r - 1)_+: how far each point is pushed out, relative
 
 
 class _Prepared(NamedTuple):
     """Validated inputs in the ego-relative frame, in the module's dtype and solver layout."""
 
     origin: torch.Tensor  # (E, 2) ego start position [m]
-    b_position: torch.Tensor  # (n_eq, 2 E G) boundary values of x and y
-    b_heading: torch.Tensor  # (4, E G) boundary values of psi
+    b_position: torch.Tensor  # (n_eq, 2 E G') boundary values of x and y
+    b_heading: torch.Tensor  # (4, E G') boundary values of psi
     obstacles: torch.Tensor  # (M, N, 2, E, 1) obstacle centres / semi-axes, absent slots parked
     mask: torch.Tensor  # (E, M) bool
     counts: torch.Tensor  # (E,) int64 number of present obstacles
     uniform_count: Optional[int]  # the count when it is the same for every problem
-    goal_ahead: torch.Tensor  # (E, G) bool
-    num_goals: int
+    goal_ahead: torch.Tensor  # (E, G') bool
+    num_goals: int  # G', the goals solved for: the G given and `padding` copies of the last
+    padding: int  # goals appended to fill SIMD vectors (compiled CPU path), dropped from the result
 
 
 class BatchOptimizer(nn.Module):
@@ -89,8 +90,11 @@ class BatchOptimizer(nn.Module):
         compile: run the iterations through ``torch.compile`` (fused elementwise kernels, one
             call per chunk of iterations). The first solve of every new batch shape compiles
             (tens of seconds on a CPU); later solves are several times faster than eager. On
-            CUDA each chunk is replayed as a CUDA graph. Eager (the default) is the reference
-            and supports autograd everywhere.
+            the CPU the cold start and the outputs are compiled too, C++ wrappers call the
+            kernels, and a small batch is padded with copies of its last goal to whole SIMD
+            vectors (the copies are dropped from the result). On CUDA each chunk is replayed
+            as a CUDA graph. Eager (the default) is the reference and supports autograd
+            everywhere.
 
     Shapes:
         see :class:`mmpc.ProblemBatch` (inputs) and :class:`mmpc.SolveResult` (outputs).
@@ -129,20 +133,27 @@ class BatchOptimizer(nn.Module):
         self.register_buffer("semi_axes", semi_axes, persistent=False)
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
-        self._limits = _Limits(cfg.v_min, cfg.v_max, cfg.a_max, heading)
+        self._limits = _Limits(cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b)
         self.compiled = compile
+        self._start, self._summarise, self._iterate = _start, _summarise, _iterate
+        self.chunk = self.config.iterations
         if compile:
             # Chunks of unrolled iterations: one compiled graph serves every chunk (the
             # operators are arguments), so compile time stays bounded while the per-call
             # overhead is paid once per chunk rather than once per iteration.
             self.chunk = min(_COMPILED_CHUNK, self.config.iterations)
-            # On CUDA "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
-            mode = "reduce-overhead" if torch.device(device or "cpu").type == "cuda" else None
-            self._iterate = torch.compile(_iterate, fullgraph=True, mode=mode)
-            logger.info("BatchOptimizer: iterations compiled in chunks of %d (mode=%s)", self.chunk, mode)
-        else:
-            self.chunk = self.config.iterations
-            self._iterate = _iterate
+            if torch.device(device or "cpu").type == "cuda":
+                # "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
+                self._iterate = torch.compile(_iterate, fullgraph=True, mode="reduce-overhead")
+            else:
+                # A C++ wrapper calls the kernels, without Python between them; the cold start
+                # and the outputs are compiled too (at small batch their eager op-by-op
+                # dispatch would cost as much as the iterations).
+                options = {"cpp_wrapper": True}
+                self._start = torch.compile(_start, fullgraph=True, options=options)
+                self._summarise = torch.compile(_summarise, fullgraph=True, options=options)
+                self._iterate = torch.compile(_iterate, fullgraph=True, options=options)
+            logger.info("BatchOptimizer: iterations compiled in chunks of %d", self.chunk)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -168,19 +179,8 @@ class BatchOptimizer(nn.Module):
                 NaN/inf in the ego state, the goals or a present obstacle, a negative speed.
         """
         prepared = self._prepare(problem)
-        n = self.config.num_steps
-        num_problems, num_goals = prepared.mask.shape[0], prepared.num_goals
-        batch = num_problems * num_goals
-
-        c = self.position_init @ prepared.b_position  # (K, 2B)
-        samples = (self.samples @ c).view(3 * n, 2, num_problems, num_goals)
-        psi = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
-        residuals = _closed_form_steps(samples, psi, prepared.obstacles, self.semi_axes, self._limits)
-        state = _State(
-            c=c,
-            scaled_residual=self.gather[0] @ residuals.stacked.view(3 * n, -1),
-            multipliers=torch.zeros_like(c),
-            multipliers_psi=c.new_zeros(c.shape[0], batch),
+        state = self._start(
+            prepared.b_position, prepared.obstacles, self.position_init, self.samples, self.gather[0], self._limits
         )
         records: list[torch.Tensor] = []
         for first in range(0, self.config.iterations, self.chunk):
@@ -192,99 +192,17 @@ class BatchOptimizer(nn.Module):
             state, step = self._iterate(
                 state, prepared.b_position, prepared.b_heading, prepared.obstacles, position,
                 self.gather[first:last], self.heading[first:last], self.heading_gather[first:last],
-                self.samples, self.heading_basis, self.semi_axes, self._limits, history,
+                self.samples, self.heading_basis, self._limits, history,
             )
             records.extend(step.records)
-        return self._finish(prepared, state.c, step.c_psi, step.samples, step.residuals, records if history else None)
-
-    # ----------------------------------------------------------------------------- outputs
-
-    def _finish(
-        self,
-        prepared: _Prepared,
-        c: torch.Tensor,
-        c_psi: torch.Tensor,
-        samples: torch.Tensor,
-        residuals: _Residuals,
-        records: Optional[list[torch.Tensor]],
-    ) -> SolveResult:
-        cfg = self.config
-        n = cfg.num_steps
-        num_problems, num_goals = prepared.mask.shape[0], prepared.num_goals
-
-        def batch_first(t: torch.Tensor) -> torch.Tensor:  # (N, E, G) -> (E, G, N)
-            return t.permute(1, 2, 0).contiguous()
-
-        position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
-        psi = (self.heading_basis @ c_psi).view(n, num_problems, num_goals)
-        psidot = (self.heading_rate_basis @ c_psi).view(n, num_problems, num_goals)
-
-        norms = _residual_norms(residuals, self.semi_axes)
-        distance_squared = residuals.offset_x**2 + residuals.offset_y**2  # (M, N, E, G)
-        present = prepared.mask.T[:, None, :, None]
-        inf = torch.full((), float("inf"), dtype=self.dtype, device=self.device)
-        distance_squared = torch.where(present, distance_squared, inf)
-        # An always-absent extra slot keeps the minimum defined (+inf) when M = 0.
-        distance_squared = torch.cat([distance_squared, inf.expand(1, *distance_squared.shape[1:])])
-        min_distance = distance_squared.amin(dim=(0, 1)).sqrt()
-        start_distance = distance_squared[:, 0].amin(dim=0)
-
-        acceleration_norm = (acceleration * acceleration).sum(dim=1).sqrt()  # (N, E, G)
-        velocity_residual = residuals.stacked[2 * n :]
-        nonholonomic_error = (velocity_residual * velocity_residual).sum(dim=1).sqrt()
-        path_speed = (velocity * velocity).sum(dim=1).sqrt()
-        heading_deviation = psi.abs().amax(dim=0)
-        max_acceleration = acceleration_norm.amax(dim=0)
-        max_nonholonomic = nonholonomic_error.amax(dim=0)
-
-        max_heading = math.radians(cfg.max_heading_deg)
-        bits = [
-            (min_distance < 1.0 - cfg.obstacle_tolerance, Status.OBSTACLE),
-            (max_acceleration > cfg.a_max + cfg.acceleration_tolerance, Status.ACCELERATION),
-            (max_nonholonomic > cfg.nonholonomic_tolerance, Status.NONHOLONOMIC),
-            (heading_deviation > max_heading, Status.HEADING),
-            (
-                (path_speed.amax(dim=0) > cfg.v_max + cfg.speed_tolerance)
-                | (path_speed.amin(dim=0) < cfg.v_min - cfg.speed_tolerance),
-                Status.SPEED,
-            ),
-            (start_distance < 1.0, Status.START_IN_COLLISION),
-            (~prepared.goal_ahead, Status.GOAL_BEHIND),
-        ]
-        status = torch.zeros(num_problems, num_goals, dtype=torch.int32, device=self.device)
-        for condition, flag in bits:
-            status = status | condition.to(torch.int32) * int(flag)
-
-        origin = prepared.origin[:, None, None, :]  # (E, 1, 1, 2)
-        fields = [
-            batch_first(position[:, 0]) + origin[..., 0],
-            batch_first(position[:, 1]) + origin[..., 1],
-            batch_first(psi),
-            batch_first(residuals.speed),
-            batch_first(velocity[:, 0]),
-            batch_first(velocity[:, 1]),
-            batch_first(acceleration[:, 0]),
-            batch_first(acceleration[:, 1]),
-            batch_first(psidot),
-        ]
-        k = c.shape[0]
-        coefficients = torch.cat(
-            [c.view(k, 2, num_problems, num_goals), c_psi.view(k, 1, num_problems, num_goals)], dim=1
-        ).permute(2, 3, 1, 0)
-        finite = torch.stack([f.isfinite().all(dim=-1) for f in fields]).all(dim=0)
-        finite = finite & coefficients.isfinite().flatten(2).all(dim=-1)
-        status = status | (~finite).to(torch.int32) * int(Status.NUMERICAL)
-        fields, coefficients, norms, scalars = _replace_nonfinite(
-            finite,
-            prepared.origin,
-            fields,
-            coefficients,
-            norms,
-            [min_distance, heading_deviation, max_acceleration, max_nonholonomic],
+        num_goals = prepared.num_goals - prepared.padding
+        fields, coefficients, norms, scalars, status = self._summarise(
+            state.c, step, prepared.obstacles, prepared.mask, prepared.origin, prepared.goal_ahead, num_goals,
+            self.heading_basis, self.heading_rate_basis, self.config, self._limits,
         )
-        history = None
-        if records is not None:
-            history = torch.nan_to_num(torch.stack(records), nan=float("inf"))
+        history_norms = None
+        if history:
+            history_norms = torch.nan_to_num(torch.stack(records)[:, :, :num_goals], nan=float("inf"))
         return SolveResult(
             trajectories=Trajectories(self.times, *fields),
             coefficients=coefficients,
@@ -297,7 +215,7 @@ class BatchOptimizer(nn.Module):
             max_nonholonomic_error=scalars[3],
             status=status,
             feasible=status == 0,
-            history=history,
+            history=history_norms,
         )
 
     # ----------------------------------------------------------------------------- inputs
@@ -305,7 +223,11 @@ class BatchOptimizer(nn.Module):
     def _prepare(self, problem: ProblemBatch) -> _Prepared:
         ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
         cfg = self.config
-        num_problems, num_goals = goals.shape[0], goals.shape[1]
+        padding = 0
+        if self.compiled and self.device.type == "cpu":
+            padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
+            goals = torch.cat([goals, goals[:, -1:].expand(-1, padding, -1)], dim=1)
+        num_goals = goals.shape[1]
         origin = ego[:, EGO_X : EGO_Y + 1]  # (E, 2)
         psi0, v0 = ego[:, EGO_PSI], ego[:, EGO_V]
         a0, psidot0 = ego[:, EGO_A], ego[:, EGO_PSIDOT]
@@ -344,16 +266,33 @@ class BatchOptimizer(nn.Module):
             uniform_count=uniform,
             goal_ahead=relative_goals[..., 0] > 0,
             num_goals=num_goals,
+            padding=padding,
         )
 
 
+def _goal_padding(num_problems: int, num_goals: int, element_size: int) -> int:
+    """Goals to append so that a row of E G' elements fills whole SIMD vectors (compiled CPU path).
+
+    The batch is the innermost, contiguous dimension of every fused kernel; a row that ends in
+    a partial vector takes masked loads and stores. Padding is used only where it adds less
+    than one vector per row (always for E = 1), so it never adds work to a large batch.
+    """
+    width = _SIMD_BYTES // element_size
+    for padded in range(num_goals, num_goals + width + 1):
+        if num_problems * padded % width == 0:
+            return padded - num_goals if num_problems * (padded - num_goals) < width else 0
+    return 0
+
+
 class _Limits(NamedTuple):
-    """Bounds used inside the iterations (Python floats: constants to a compiler)."""
+    """Constants of the iterations, as Python floats: constants to a compiler (no memory reads)."""
 
     v_min: float  # m/s
     v_max: float  # m/s
     a_max: float  # m/s^2
     heading: Optional[float]  # rad, the band the heading targets are clipped to; None: unclipped
+    ellipse_a: float  # m, obstacle ellipse semi-axis along x
+    ellipse_b: float  # m, along y
 
 
 class _State(NamedTuple):
@@ -385,7 +324,6 @@ def _iterate(
     heading_gather: torch.Tensor,
     samples_operator: torch.Tensor,
     heading_basis: torch.Tensor,
-    semi_axes: torch.Tensor,
     limits: _Limits,
     history: bool,
 ) -> tuple[_State, _Step]:
@@ -407,14 +345,16 @@ def _iterate(
         psi_target = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0]).view(n, -1)  # (N, B)
         if limits.heading is not None:
             psi_target = psi_target.clamp(-limits.heading, limits.heading)
-        c_psi = heading[u] @ torch.cat([psi_target, multipliers_psi, b_heading])
+        heading_rhs = torch.cat([psi_target, multipliers_psi, b_heading])
+        c_psi = heading[u] @ heading_rhs
         psi = heading_basis @ c_psi
-        multipliers_psi = torch.addmm(multipliers_psi, heading_gather[u], psi_target - psi)
-        residuals = _closed_form_steps(samples, psi.view(n, num_problems, num_goals), obstacles, semi_axes, limits)
+        # The targets read back from the right-hand side: a compiler would otherwise recompute atan2.
+        multipliers_psi = torch.addmm(multipliers_psi, heading_gather[u], heading_rhs[:n] - psi)
+        residuals = _closed_form_steps(samples, psi.view(n, num_problems, num_goals), obstacles, limits)
         scaled_residual = gather[u] @ residuals.stacked.view(3 * n, -1)
         multipliers = multipliers - scaled_residual
         if history:
-            records.append(_residual_norms(residuals, semi_axes))
+            records.append(_residual_norms(residuals, _obstacle_offsets(samples[:n], obstacles, limits), limits))
     return _State(c, scaled_residual, multipliers, multipliers_psi), _Step(c_psi, samples, residuals, records)
 
 
@@ -430,7 +370,7 @@ def _position_qp(operator: torch.Tensor, stacked: torch.Tensor, num_problems: in
 
 
 def _closed_form_steps(
-    samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor, semi_axes: torch.Tensor, limits: _Limits
+    samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor, limits: _Limits
 ) -> _Residuals:
     """Closed-form speed, obstacle and acceleration steps and the residual F c - g.
 
@@ -438,8 +378,7 @@ def _closed_form_steps(
         samples: (3N, 2, E, G) [position; acceleration; velocity] relative to the start.
         psi: (N, E, G) heading [rad].
         obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
-        semi_axes: (2, 1, 1) ellipse semi-axes (a, b) [m].
-        limits: speed and acceleration bounds.
+        limits: speed and acceleration bounds, ellipse semi-axes.
     """
     n = psi.shape[0]
     position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
@@ -452,26 +391,49 @@ def _closed_form_steps(
     excess = torch.rsub(inverse_norm, 1.0, alpha=limits.a_max).clamp_min(0.0)
     acceleration_residual = acceleration * excess
 
+    offset_x, offset_y, outward = _obstacle_offsets(position, obstacles, limits)
+    push = torch.stack([(offset_x * outward).sum(dim=0) * limits.ellipse_a, (offset_y * outward).sum(dim=0) * limits.ellipse_b], dim=1)
+    return _Residuals(stacked=torch.cat([push, acceleration_residual, velocity_residual]), speed=speed)
+
+
+def _obstacle_offsets(
+    position: torch.Tensor, obstacles: torch.Tensor, limits: _Limits
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every point relative to every ellipse, in semi-axis units: ``(dx, dy, (1/r - 1)_+)``.
+
+    ``r = sqrt(dx^2 + dy^2)`` is the normalised distance; the projection of a point inside
+    the ellipse (r < 1) onto its boundary moves it by ``(dx, dy) (1/r - 1)`` (times the
+    semi-axes in metres), a point outside is left where it is.
+
+    Args:
+        position: (N, 2, E, G) sample positions relative to the start [m].
+        obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
+        limits: holds the ellipse semi-axes (a, b) [m].
+
+    Returns:
+        dx, dy, outward, each (M, N, E, G). Inside a compiled chunk these are never stored:
+        the sums over M fuse into one pass over the positions.
+    """
     # x and y as separate contiguous planes: far fewer memory passes than an axis dimension.
-    offset_x = position[:, 0] / semi_axes[0] - obstacles[:, :, 0]  # (M, N, E, G)
-    offset_y = position[:, 1] / semi_axes[1] - obstacles[:, :, 1]
+    offset_x = position[:, 0] / limits.ellipse_a - obstacles[:, :, 0]
+    offset_y = position[:, 1] / limits.ellipse_b - obstacles[:, :, 1]
     distance_squared = offset_x * offset_x + offset_y * offset_y
     outward = distance_squared.clamp_min(_EPS_SQUARED).rsqrt().sub(1.0).clamp_min(0.0)
-    push = torch.stack([(offset_x * outward).sum(dim=0) * semi_axes[0], (offset_y * outward).sum(dim=0) * semi_axes[1]], dim=1)
-    return _Residuals(
-        stacked=torch.cat([push, acceleration_residual, velocity_residual]),
-        speed=speed,
-        offset_x=offset_x,
-        offset_y=offset_y,
-        outward=outward,
-    )
+    return offset_x, offset_y, outward
 
 
-def _residual_norms(residuals: _Residuals, semi_axes: torch.Tensor) -> torch.Tensor:
-    """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals."""
+def _residual_norms(
+    residuals: _Residuals, offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor], limits: _Limits
+) -> torch.Tensor:
+    """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals.
+
+    The obstacle norm is over every (obstacle, sample) gap, hence the per-obstacle ``offsets``
+    of :func:`_obstacle_offsets` rather than the push summed over obstacles.
+    """
     n = residuals.speed.shape[0]
-    gap_x = residuals.offset_x * residuals.outward * semi_axes[0]
-    gap_y = residuals.offset_y * residuals.outward * semi_axes[1]
+    offset_x, offset_y, outward = offsets
+    gap_x = offset_x * outward * limits.ellipse_a
+    gap_y = offset_y * outward * limits.ellipse_b
     stacked = residuals.stacked
     norms = torch.stack(
         [
@@ -482,6 +444,135 @@ def _residual_norms(residuals: _Residuals, semi_axes: torch.Tensor) -> torch.Ten
         dim=-1,
     )
     return norms.sqrt()
+
+
+def _start(
+    b_position: torch.Tensor,
+    obstacles: torch.Tensor,
+    position_init: torch.Tensor,
+    samples_operator: torch.Tensor,
+    gather: torch.Tensor,
+    limits: _Limits,
+) -> _State:
+    """Cold start: the smoothest trajectories meeting the boundary conditions, zero multipliers.
+
+    Its residual (heading taken along the velocity) is mapped with ``gather`` = ``gather[0]``,
+    ready for the first position QP. Shapes as in :func:`_iterate`.
+    """
+    num_problems = obstacles.shape[3]
+    n = samples_operator.shape[0] // 3
+    c = position_init @ b_position  # (K, 2B)
+    samples = (samples_operator @ c).view(3 * n, 2, num_problems, -1)
+    psi = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
+    residuals = _closed_form_steps(samples, psi, obstacles, limits)
+    return _State(
+        c=c,
+        scaled_residual=gather @ residuals.stacked.view(3 * n, -1),
+        multipliers=torch.zeros_like(c),
+        multipliers_psi=c.new_zeros(c.shape[0], c.shape[1] // 2),
+    )
+
+
+def _summarise(
+    c: torch.Tensor,
+    step: _Step,
+    obstacles: torch.Tensor,
+    mask: torch.Tensor,
+    origin: torch.Tensor,
+    goal_ahead: torch.Tensor,
+    num_goals: int,
+    heading_basis: torch.Tensor,
+    heading_rate_basis: torch.Tensor,
+    config: OptimizerConfig,
+    limits: _Limits,
+) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, list[torch.Tensor], torch.Tensor]:
+    """Trajectories, checks and status of the last iterate, batch first.
+
+    Args:
+        c: (K, 2 E G') final x, y coefficients, G' >= G goals (padding goals come last).
+        step: the last iterate (heading coefficients, samples, residuals) with G' goals.
+        obstacles: (M, N, 2, E, 1) in semi-axis units; mask: (E, M); origin: (E, 2) [m];
+        goal_ahead: (E, G').
+        num_goals: G, the goals kept (the first G).
+
+    Returns:
+        fields: the nine (E, G, N) :class:`mmpc.Trajectories` fields after ``times``;
+        coefficients (E, G, 3, K); norms (E, G, 3); scalars (min obstacle distance, max heading
+        deviation, max acceleration, max non-holonomic error), each (E, G); status (E, G) int32.
+    """
+    n = config.num_steps
+    k = c.shape[0]
+    num_problems, padded_goals = step.samples.shape[2], step.samples.shape[3]
+    goals = slice(0, num_goals)
+
+    def batch_first(t: torch.Tensor) -> torch.Tensor:  # (N, E, G') -> (E, G, N)
+        return t[..., goals].permute(1, 2, 0).contiguous()
+
+    samples = step.samples[..., goals]
+    position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
+    residuals = _Residuals(step.residuals.stacked[..., goals], step.residuals.speed[..., goals])
+    psi = (heading_basis @ step.c_psi).view(n, num_problems, padded_goals)
+    psidot = (heading_rate_basis @ step.c_psi).view(n, num_problems, padded_goals)
+
+    offsets = _obstacle_offsets(position, obstacles, limits)  # each (M, N, E, G)
+    norms = _residual_norms(residuals, offsets, limits)
+    distance_squared = offsets[0] ** 2 + offsets[1] ** 2
+    present = mask.T[:, None, :, None]
+    inf = torch.full((), float("inf"), dtype=c.dtype, device=c.device)
+    distance_squared = torch.where(present, distance_squared, inf)
+    # An always-absent extra slot keeps the minimum defined (+inf) when M = 0.
+    distance_squared = torch.cat([distance_squared, inf.expand(1, *distance_squared.shape[1:])])
+    min_distance = distance_squared.amin(dim=(0, 1)).sqrt()
+    start_distance = distance_squared[:, 0].amin(dim=0)
+
+    acceleration_norm = (acceleration * acceleration).sum(dim=1).sqrt()  # (N, E, G)
+    velocity_residual = residuals.stacked[2 * n :]
+    nonholonomic_error = (velocity_residual * velocity_residual).sum(dim=1).sqrt()
+    path_speed = (velocity * velocity).sum(dim=1).sqrt()
+    heading_deviation = psi[..., goals].abs().amax(dim=0)
+    max_acceleration = acceleration_norm.amax(dim=0)
+    max_nonholonomic = nonholonomic_error.amax(dim=0)
+
+    max_heading = math.radians(config.max_heading_deg)
+    bits = [
+        (min_distance < 1.0 - config.obstacle_tolerance, Status.OBSTACLE),
+        (max_acceleration > config.a_max + config.acceleration_tolerance, Status.ACCELERATION),
+        (max_nonholonomic > config.nonholonomic_tolerance, Status.NONHOLONOMIC),
+        (heading_deviation > max_heading, Status.HEADING),
+        (
+            (path_speed.amax(dim=0) > config.v_max + config.speed_tolerance)
+            | (path_speed.amin(dim=0) < config.v_min - config.speed_tolerance),
+            Status.SPEED,
+        ),
+        (start_distance < 1.0, Status.START_IN_COLLISION),
+        (~goal_ahead[:, goals], Status.GOAL_BEHIND),
+    ]
+    status = torch.zeros(num_problems, num_goals, dtype=torch.int32, device=c.device)
+    for condition, flag in bits:
+        status = status | condition.to(torch.int32) * int(flag)
+
+    start = origin[:, None, None, :]  # (E, 1, 1, 2)
+    fields = [
+        batch_first(position[:, 0]) + start[..., 0],
+        batch_first(position[:, 1]) + start[..., 1],
+        batch_first(psi),
+        batch_first(residuals.speed),
+        batch_first(velocity[:, 0]),
+        batch_first(velocity[:, 1]),
+        batch_first(acceleration[:, 0]),
+        batch_first(acceleration[:, 1]),
+        batch_first(psidot),
+    ]
+    coefficients = torch.cat(
+        [c.view(k, 2, num_problems, padded_goals), step.c_psi.view(k, 1, num_problems, padded_goals)], dim=1
+    )[..., goals].permute(2, 3, 1, 0)
+    finite = torch.stack([f.isfinite().all(dim=-1) for f in fields]).all(dim=0)
+    finite = finite & coefficients.isfinite().flatten(2).all(dim=-1)
+    status = status | (~finite).to(torch.int32) * int(Status.NUMERICAL)
+    fields, coefficients, norms, scalars = _replace_nonfinite(
+        finite, origin, fields, coefficients, norms, [min_distance, heading_deviation, max_acceleration, max_nonholonomic]
+    )
+    return fields, coefficients, norms, scalars, status
 
 
 def _replace_nonfinite(

@@ -3,6 +3,7 @@
 import torch
 
 import mmpc
+from mmpc.optimizer import _goal_padding
 from mmpc.scenes import synthetic_scenes
 from tests.conftest import small_config
 
@@ -15,8 +16,33 @@ def test_compiled_matches_eager():
     assert compiled.chunk == 10
     scene = synthetic_scenes(8, seed=3)[7]  # 7 obstacles, lane changes; one shape = one compile
     assert scene.problem.obstacles.shape[1] == 7
+    assert scene.problem.goals.shape[:2] == (1, 8)  # solved as 16 goals, 8 of them padding
     for _ in range(2):  # the second call runs the cached graphs
         expected, result = eager(scene.problem), compiled(scene.problem)
+        assert result.trajectories.x.shape == expected.trajectories.x.shape == (1, 8, 100)
         torch.testing.assert_close(result.trajectories.x, expected.trajectories.x, atol=1e-3, rtol=1e-5)
         torch.testing.assert_close(result.trajectories.psi, expected.trajectories.psi, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(result.coefficients, expected.coefficients, atol=1e-3, rtol=1e-4)
+        torch.testing.assert_close(result.min_obstacle_distance, expected.min_obstacle_distance, atol=1e-4, rtol=1e-4)
         assert torch.equal(result.feasible, expected.feasible)
+        assert torch.equal(result.status, expected.status)
+
+
+def test_compiled_history_drops_the_padding_goals():
+    config = small_config(iterations=3)  # one chunk of 3: a small graph
+    eager, compiled = mmpc.BatchOptimizer(config), mmpc.BatchOptimizer(config, compile=True)
+    scene = synthetic_scenes(2, seed=1, num_steps=config.num_steps)[1]
+    problem = scene.problem._replace(goals=scene.problem.goals[:, :5])
+    expected, result = eager(problem, history=True), compiled(problem, history=True)
+    assert result.history.shape == expected.history.shape == (3, 1, 5, 3)
+    torch.testing.assert_close(result.history, expected.history, atol=1e-3, rtol=1e-4)
+    torch.testing.assert_close(result.trajectories.y, expected.trajectories.y, atol=1e-3, rtol=1e-5)
+
+
+def test_goal_padding_fills_whole_vectors_only_where_cheap():
+    assert _goal_padding(1, 11, 4) == 5  # 16 float32 lanes
+    assert _goal_padding(1, 11, 8) == 5  # 8 float64 lanes: 16
+    assert _goal_padding(4, 11, 4) == 1  # 4 x 12 = 48
+    assert _goal_padding(1, 32, 4) == 0
+    assert _goal_padding(5, 11, 4) == 0  # 5 x 16 would add 25 elements a row: more than a vector
+    assert _goal_padding(64, 11, 4) == 0  # 704 = 44 vectors already
