@@ -1,5 +1,5 @@
-"""Behaviour cloning: regress the expert's commands on the kinematics observation
-(``mmpc imitate bc``).
+"""Behaviour cloning: regress the expert's commands on the road-frame features of the states it
+visited (``mmpc imitate bc``).
 
 Loss: mean squared error between the policy's and the expert's standardised commands,
 ``L = mean_s || u_hat(o_s) - (u_s - mu_u) / sigma_u ||^2`` (see :mod:`mmpc.imitation.policy`),
@@ -25,7 +25,9 @@ import torch
 
 from mmpc.config import dataclass_from_dict, read_config_yaml
 from mmpc.imitation.dataset import Transitions
+from mmpc.imitation.features import road_features
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
+from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
 
@@ -105,16 +107,16 @@ def split_by_episode(episodes: np.ndarray, fraction: float, seed: int) -> tuple[
     return ~validation, validation
 
 
-def _evaluate(policy: MLPPolicy, observations: torch.Tensor, commands: torch.Tensor,
-              actions: torch.Tensor) -> tuple[float, tuple[float, float]]:
+def _evaluate(policy: MLPPolicy, inputs: torch.Tensor, actions: torch.Tensor) -> tuple[float, tuple[float, float]]:
     with torch.no_grad():
-        loss = torch.mean((policy.standardized(observations, commands) - policy.standardize_actions(actions)) ** 2)
-        rmse = torch.sqrt(torch.mean((policy(observations, commands) - actions) ** 2, dim=0))
+        loss = torch.mean((policy.standardized(inputs) - policy.standardize_actions(actions)) ** 2)
+        rmse = torch.sqrt(torch.mean((policy(inputs) - actions) ** 2, dim=0))
     return float(loss), (float(rmse[0]), float(rmse[1]))
 
 
 def train_policy(
     data: Transitions,
+    road: Road,
     config: TrainConfig = TrainConfig(),
     *,
     writer=None,
@@ -124,7 +126,8 @@ def train_policy(
     """Fit a new :class:`MLPPolicy` to ``data``.
 
     Args:
-        data: (observation, expert command) pairs with their episode ids.
+        data: (state, expert command) pairs with their episode ids.
+        road: the road the states refer to.
         config: training settings.
         writer: a ``torch.utils.tensorboard.SummaryWriter`` (optional).
         tag: prefix of the scalar names (e.g. ``"round_2/"`` in DAgger).
@@ -134,61 +137,59 @@ def train_policy(
         The policy with the weights of the best validation epoch (the last epoch without a
         validation set) and the :class:`History`.
     """
-    if data.observations.shape[0] != data.actions.shape[0] or data.actions.ndim != 2 or data.actions.shape[1] != 2:
-        raise ValueError(f"`data` must pair (S, R, F) observations with (S, 2) actions; got {data.observations.shape} "
-                         f"and {data.actions.shape}")
-    if data.commands.shape != data.actions.shape or data.episodes.shape != data.actions.shape[:1]:
-        raise ValueError(f"`data.commands` must be (S, 2) and `data.episodes` (S,); got {data.commands.shape}, "
-                         f"{data.episodes.shape} for S = {data.actions.shape[0]}")
-    if not all(np.isfinite(a).all() for a in (data.observations, data.commands, data.actions)):
-        raise ValueError("`data` holds NaN or inf observations, commands or actions")
+    count = data.actions.shape[0]
+    if data.actions.shape != (count, 2) or data.ego.shape != (count, 6) or data.neighbours.ndim != 3 \
+            or data.neighbours.shape[0] != count or data.episodes.shape != (count,):
+        raise ValueError(f"`data` must hold (S, 6) ego states, (S, K, 4) neighbours, (S, 2) actions and (S,) episode ids; "
+                         f"got {data.ego.shape}, {data.neighbours.shape}, {data.actions.shape}, {data.episodes.shape}")
+    if not (np.isfinite(data.ego).all() and np.isfinite(data.actions).all()):
+        raise ValueError("`data` holds NaN or inf ego states or actions")
+    inputs = torch.as_tensor(road_features(data.ego, data.neighbours, road, config.policy.features))
+    actions = torch.as_tensor(data.actions, dtype=torch.float32)
     train_mask, val_mask = split_by_episode(data.episodes, config.validation_fraction, config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
-    observations = torch.as_tensor(data.observations, dtype=torch.float32)
-    commands = torch.as_tensor(data.commands, dtype=torch.float32)
-    actions = torch.as_tensor(data.actions, dtype=torch.float32)
+    policy = MLPPolicy(road, config.policy)
     train, val = torch.as_tensor(train_mask), torch.as_tensor(val_mask)
-    train_obs, train_cmd, train_act = observations[train], commands[train], actions[train]
-    val_obs, val_cmd, val_act = observations[val], commands[val], actions[val]
-    policy = MLPPolicy(tuple(data.observations.shape[1:]), config.policy)
-    policy.fit_normalization(train_obs, train_cmd, train_act)
+    train_in, train_act = inputs[train], actions[train]
+    val_in, val_act = inputs[val], actions[val]
+    policy.fit_normalization(train_in, train_act)
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
     targets = policy.standardize_actions(train_act)
     history = History([], [], [], -1)
     best_state, best_loss = None, math.inf
-    count = train_obs.shape[0]
+    count = train_in.shape[0]
     for epoch in range(config.epochs):
         policy.train()
         order = torch.randperm(count, generator=generator)
         total = 0.0
         for start in range(0, count, config.batch_size):
             index = order[start:start + config.batch_size]
-            loss = torch.mean((policy.standardized(train_obs[index], train_cmd[index]) - targets[index]) ** 2)
+            loss = torch.mean((policy.standardized(train_in[index]) - targets[index]) ** 2)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             total += float(loss.detach()) * index.numel()
         policy.eval()
         train_loss = total / count
-        val_loss, rmse = _evaluate(policy, val_obs, val_cmd, val_act) if val_obs.shape[0] else (math.nan, (math.nan, math.nan))
+        val_loss, rmse = _evaluate(policy, val_in, val_act) if val_in.shape[0] else (math.nan, (math.nan, math.nan))
         history.train_loss.append(train_loss)
         history.val_loss.append(val_loss)
         history.val_rmse.append(rmse)
-        score = val_loss if val_obs.shape[0] else -epoch  # without validation: keep the last epoch
+        score = val_loss if val_in.shape[0] else -epoch  # without validation: keep the last epoch
         if score < best_loss:
             best_loss, best_state = score, copy.deepcopy(policy.state_dict())
             history = history._replace(best_epoch=epoch)
         if writer is not None:
             writer.add_scalar(f"{tag}train/loss", train_loss, epoch)
-            if val_obs.shape[0]:
+            if val_in.shape[0]:
                 writer.add_scalar(f"{tag}val/loss", val_loss, epoch)
                 writer.add_scalar(f"{tag}val/rmse_acceleration", rmse[0], epoch)
                 writer.add_scalar(f"{tag}val/rmse_steering", rmse[1], epoch)
         if on_epoch is not None:
             on_epoch(epoch, train_loss, val_loss)
     policy.load_state_dict(best_state)
-    logger.info("trained on %d samples (%d held out): best epoch %d, val loss %.4g", count, val_obs.shape[0],
+    logger.info("trained on %d samples (%d held out): best epoch %d, val loss %.4g", count, val_in.shape[0],
                 history.best_epoch, history.val_loss[history.best_epoch])
     return policy.eval(), history
 
@@ -216,7 +217,7 @@ def run_bc(
     """
     from torch.utils.tensorboard import SummaryWriter
 
-    from mmpc.imitation.dataset import dataset_transitions, open_dataset
+    from mmpc.imitation.dataset import dataset_road, dataset_transitions, open_dataset
 
     dataset = open_dataset(Path(dataset_dir))
     data = dataset_transitions(dataset)
@@ -225,7 +226,7 @@ def run_bc(
     out.mkdir(parents=True, exist_ok=True)
     with SummaryWriter(str(out / "tb")) as writer:
         writer.add_text("hyperparameters", hyperparameters_text(config))
-        policy, history = train_policy(data, config, writer=writer, on_epoch=on_epoch)
+        policy, history = train_policy(data, dataset_road(dataset), config, writer=writer, on_epoch=on_epoch)
     report = {
         "dataset": str(dataset_dir),
         "dataset_id": dataset.spec.dataset_id,

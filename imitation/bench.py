@@ -6,7 +6,7 @@ expert's :meth:`~mmpc.drivers.MPCDriver.decide` and the policy's
 :meth:`~mmpc.imitation.policy.PolicyDriver.decide` are timed on that state (E = 1, as in a
 single closed loop), after a warm-up. The figures are the drivers' own ``solve_ms`` -- the
 wall time of the whole decision (problem building, optimizer, ranking and command for the
-expert; the forward pass for the policy).
+expert; the neighbour selection, the road-frame features and the forward pass for the policy).
 """
 
 from __future__ import annotations

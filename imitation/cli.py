@@ -98,16 +98,24 @@ def _dagger(args: argparse.Namespace) -> int:
     with tqdm(total=config.iterations + 1, desc="dagger", unit="round") as bar:
         def on_round(entry: dict) -> None:
             bar.update(1)
-            if entry.get("source") == "learner":
-                bar.set_postfix_str(f"learner collisions {entry['collisions']}/{entry['episodes']}, "
+            if entry.get("source") == "mixture":
+                bar.set_postfix_str(f"beta {entry['beta']:.3g}: collisions {entry['collisions']}/{entry['episodes']}, "
                                     f"meta cost {entry['meta_cost_mean']:.2f}, samples {entry['samples']}")
 
-        report = run_dagger(scenario, Path(args.out), config, dataset_dir=Path(args.dataset) if args.dataset else None,
-                            on_round=on_round)
+        try:
+            report = run_dagger(scenario, Path(args.out), config, dataset_dir=Path(args.dataset) if args.dataset else None,
+                                on_round=on_round)
+        except ValueError as error:
+            bar.close()
+            print(f"mmpc imitate dagger: error: {error}", file=sys.stderr)
+            return 2
     for entry in report["rounds"]:
-        learner = (f"learner collisions {entry['collisions']}/{entry['episodes']}, meta cost {entry['meta_cost_mean']:.2f}; "
-                   if entry.get("source") == "learner" else "")
-        print(f"round {entry['round']}: {learner}{entry['samples']} samples, validation loss {entry['val_loss']:.4f}")
+        driven = ""
+        if entry.get("source") == "mixture":
+            driven = f"beta {entry['beta']:.3g} (expert drove {entry['expert_share']:.0%} of the steps): "
+        if "collisions" in entry:
+            driven += f"collisions {entry['collisions']}/{entry['episodes']}, meta cost {entry['meta_cost_mean']:.2f}; "
+        print(f"round {entry['round']}: {driven}{entry['samples']} samples, validation loss {entry['val_loss']:.4f}")
     print(f"wrote {Path(args.out) / 'policy.pt'}, dagger.json, data.npz and TensorBoard events in {Path(args.out) / 'tb'}")
     return 0
 
@@ -196,7 +204,8 @@ def add_subcommands(sub) -> None:
     bc.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     bc.set_defaults(func=_bc)
 
-    dagger = commands.add_parser("dagger", help="DAgger with the MPC labelling the learner's states in batches")
+    dagger = commands.add_parser("dagger", help="DAgger with the MPC labelling the learner's states in batches; "
+                                                "re-run to resume")
     _scenario_arguments(dagger)
     dagger.add_argument("--iterations", type=int, default=None, help="rounds after round 0 (default: the config's)")
     dagger.add_argument("--dataset", default=None, help="round 0 from this `mmpc demos` directory (default: the expert drives)")

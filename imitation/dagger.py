@@ -1,30 +1,48 @@
 """DAgger with the multi-modal MPC as the online expert (``mmpc imitate dagger``).
 
 Round 0 clones the expert's own demonstrations (a Minari dataset from ``mmpc demos``, or
-episodes the expert drives here). Every later round i:
+episodes the expert drives here). Every later round i = 1 ... K:
 
-1. the current policy pi_i drives ``episodes_per_iteration`` new seeded episodes (in lockstep:
-   one policy call per step for all of them), recording the state the expert needs at every
-   visited step (beta_i = 0: the learner alone drives, Ross et al.'s recommended schedule
-   after the first round);
-2. the expert labels every visited state of the round in large batches: ``label_batch``
-   states per :meth:`mmpc.drivers.MPCDriver.decide` call, i.e. one optimizer call over
-   ``label_batch x G`` goal-directed problems (the MPC is memoryless, so a state labelled
-   off-line gets the command the expert would have given on-line);
-3. the labelled states join the aggregate data set D and pi_{i+1} is trained on all of D
-   from scratch (:func:`mmpc.imitation.bc.train_policy`).
+1. the mixture ``pi_i = beta_i pi* + (1 - beta_i) pi^_i`` drives ``episodes_per_iteration`` new
+   seeded episodes (in lockstep: one learner call per step for all of them): at every step of
+   every episode the expert pi* drives with probability ``beta_i = beta * beta_decay^(i - 1)``
+   and the current policy pi^_i otherwise (Ross et al., 2011); the expert is only asked where
+   it drives. With ``noise`` > 0, Gaussian noise ``N(0, diag(noise)^2)`` is added to every
+   executed command (DART, Laskey et al., 2017): the visited states then include the
+   recoveries from command errors the clean expert never makes, and the policy cannot just
+   copy the command being executed;
+2. the expert labels every step the learner drove (every step, with noise), in large batches:
+   ``label_batch`` states per :meth:`mmpc.drivers.MPCDriver.decide` call, i.e. one optimizer
+   call over ``label_batch x G`` goal-directed problems (the MPC is memoryless, so a state
+   labelled off-line gets the command the expert would have given on-line); without noise the
+   steps it drove carry its command already;
+3. the labelled states join the aggregate data set D and pi^_{i+1} is trained on all of D from
+   scratch (:func:`mmpc.imitation.bc.train_policy`).
 
-Writes ``RUN/policy.pt`` (the last round's policy), ``RUN/round_<i>/policy.pt``,
-``RUN/dagger.json`` (per round: samples, the learner's collisions and mean meta cost,
-validation loss), ``RUN/data.npz`` (the aggregate data set) and TensorBoard events under
-``RUN/tb``.
+The expert's command averages its plan over the MPC's ``command_window`` (0.3 s in the shipped
+scenarios), and a plan starts from the acceleration and heading rate being executed, so over
+0.3 s the command follows them closely (measured on cruise states: +1 m/s^2 of executing
+acceleration moves the commanded acceleration by +0.52 m/s^2; over 1 s by +0.04). A policy
+given the executing command then learns to copy it (causal confusion), and one not given it
+sees labels that vary with something it cannot observe. ``label_window`` sets a longer window
+for the expert that drives and labels here, so the labels are (nearly) functions of the
+scene: the policy clones the first ``label_window`` seconds of the expert's plan.
+
+Writes, after every round, ``RUN/round_<i>/policy.pt``, ``RUN/data.npz`` (the aggregate data
+set) and ``RUN/dagger.json`` (the config and, per round: beta, the share of steps the expert
+drove, collisions and mean meta cost of the round's episodes, samples, validation loss), and
+TensorBoard events under ``RUN/tb``; at the end ``RUN/policy.pt`` (the last round's policy).
+Re-running the same command on the same folder resumes after the last finished round, and a
+re-run with more ``iterations`` extends the run (a folder of another configuration is refused).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence
@@ -34,11 +52,12 @@ import torch
 
 from mmpc.config import dataclass_from_dict
 from mmpc.drive import stack_observations
-from mmpc.drivers import Driver, Observation
+from mmpc.drivers import Decision, Driver, Observation
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
-from mmpc.imitation.dataset import Transitions
-from mmpc.imitation.policy import PolicyDriver, save_policy
+from mmpc.imitation.dataset import Transitions, scenario_dict
+from mmpc.imitation.policy import PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
+from mmpc.problem import EGO_V
 from mmpc.scenario import ScenarioConfig
 
 logger = logging.getLogger(__name__)
@@ -51,7 +70,13 @@ class DaggerConfig:
     Attributes:
         iterations: DAgger rounds after round 0 [-].
         initial_episodes: expert-driven episodes of round 0 when no dataset is given [-].
-        episodes_per_iteration: learner-driven episodes per round [-].
+        episodes_per_iteration: episodes driven by the mixture per round [-].
+        beta: probability that the expert drives a step in round 1, in [0, 1] [-].
+        beta_decay: factor on beta from one round to the next, in [0, 1] [-].
+        noise: standard deviations of the Gaussian noise on the executed acceleration [m/s^2]
+            and steering [rad] in rounds >= 1 (0: none).
+        label_window: command window of the expert that drives and labels here [s] (see the
+            module docstring); ``None``: the scenario's ``mpc.command_window``.
         seed_start: first seed of the episodes driven here (round 0 and every round draw
             consecutive, disjoint seeds from it; keep them apart from evaluation seeds).
         lockstep: episodes driven together (one driver call per step) [-].
@@ -60,9 +85,13 @@ class DaggerConfig:
         train: training of each round's policy.
     """
 
-    iterations: int = 4
+    iterations: int = 8
     initial_episodes: int = 16
     episodes_per_iteration: int = 16
+    beta: float = 0.5
+    beta_decay: float = 0.5
+    noise: tuple[float, float] = (0.0, 0.0)
+    label_window: Optional[float] = None
     seed_start: int = 2000
     lockstep: int = 8
     label_batch: int = 256
@@ -75,6 +104,15 @@ class DaggerConfig:
             low = 0 if name in ("iterations", "seed_start") else 1
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"`{name}` must be an int >= {low}; got {value!r}")
+        if isinstance(self.noise, list):
+            object.__setattr__(self, "noise", tuple(self.noise))
+        if len(self.noise) != 2 or not all(isinstance(v, (int, float)) and 0 <= v < math.inf for v in self.noise):
+            raise ValueError(f"`noise` must be two finite stds >= 0 (acceleration [m/s^2], steering [rad]); got {self.noise!r}")
+        for name in ("beta", "beta_decay"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"`{name}` must be in [0, 1]; got {getattr(self, name)!r}")
+        if self.label_window is not None and not (self.label_window > 0 and math.isfinite(self.label_window)):
+            raise ValueError(f"`label_window` must be null or a finite number > 0 s; got {self.label_window}")
         if self.duration is not None and not (self.duration > 0 and math.isfinite(self.duration)):
             raise ValueError(f"`duration` must be null or a finite number > 0 s; got {self.duration}")
 
@@ -84,6 +122,84 @@ class DaggerConfig:
         if "train" in values:
             values["train"] = TrainConfig.from_dict(values["train"] or {}, where=f"{where}: train")
         return dataclass_from_dict(cls, values, where=where)
+
+    def beta_of(self, round_index: int) -> float:
+        """beta_i of round i >= 1 (the expert's share of the driving)."""
+        return self.beta * self.beta_decay ** (round_index - 1)
+
+
+def _rows(observation: Observation, rows: torch.Tensor) -> Observation:
+    """The observation of some of its E environments."""
+    return Observation(
+        observation.ego[rows], observation.vehicles[rows],
+        None if observation.vehicle_mask is None else observation.vehicle_mask[rows],
+        None if observation.kinematics is None else observation.kinematics[rows.numpy()],
+        observation.ids()[rows],
+    )
+
+
+class MixtureDriver(Driver):
+    """``beta pi* + (1 - beta) pi^``: for every environment and step, the expert drives with
+    probability ``beta``, the learner otherwise (always where the ego is reversing, which the MPC
+    does not plan for). The expert decides only for its rows (one batched call); its rows of the
+    decision keep its goal index and feasible count (>= 0), the learner's have -1, which is how a
+    recorded step tells who drove.
+
+    Args:
+        expert: the expert (e.g. :class:`mmpc.drivers.MPCDriver`).
+        learner: the policy being trained.
+        beta: the expert's probability, in [0, 1].
+        rng: the coin flips.
+    """
+
+    def __init__(self, expert: Driver, learner: Driver, beta: float, rng: np.random.Generator) -> None:
+        if not 0.0 <= beta <= 1.0:
+            raise ValueError(f"`beta` must be in [0, 1]; got {beta}")
+        self.expert, self.learner, self.beta, self.rng = expert, learner, beta, rng
+        self.name = f"mixture(beta={beta:g})"
+
+    def reset(self, num_envs: int) -> None:
+        self.expert.reset(num_envs)
+        self.learner.reset(num_envs)
+
+    def decide(self, observation: Observation) -> Decision:
+        start = time.perf_counter()
+        decision = self.learner.decide(observation)
+        chosen = torch.from_numpy(self.rng.random(observation.num_envs) < self.beta)
+        chosen &= observation.ego[:, EGO_V] >= 0  # the MPC plans forward motion only; the learner keeps the rest
+        if bool(chosen.any()):
+            rows = chosen.nonzero().squeeze(1)
+            expert = self.expert.decide(_rows(observation, rows))
+            merged = {}
+            for name in ("acceleration", "steering", "goal_index", "feasible_goals", "fallback", "plan_cost"):
+                values = getattr(decision, name).clone()
+                values[rows] = getattr(expert, name).to(values.dtype)
+                merged[name] = values
+            decision = Decision(solve_ms=0.0, **merged)
+        return decision._replace(solve_ms=(time.perf_counter() - start) * 1e3)
+
+
+class NoisyDriver(Driver):
+    """Another driver's commands plus Gaussian noise (DART): ``u + N(0, diag(std)^2)``.
+
+    Args:
+        driver: the driver whose commands are perturbed.
+        std: standard deviations of the acceleration [m/s^2] and steering [rad] noise.
+        rng: the noise.
+    """
+
+    def __init__(self, driver: Driver, std: tuple[float, float], rng: np.random.Generator) -> None:
+        self.driver, self.std, self.rng = driver, std, rng
+        self.name = f"{driver.name}+noise{tuple(std)}"
+
+    def reset(self, num_envs: int) -> None:
+        self.driver.reset(num_envs)
+
+    def decide(self, observation: Observation) -> Decision:
+        decision = self.driver.decide(observation)
+        noise = torch.from_numpy(self.rng.normal(0.0, 1.0, (observation.num_envs, 2)) * np.asarray(self.std))
+        return decision._replace(acceleration=decision.acceleration + noise[:, 0].to(decision.acceleration.dtype),
+                                 steering=decision.steering + noise[:, 1].to(decision.steering.dtype))
 
 
 def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> np.ndarray:
@@ -119,6 +235,76 @@ def _rollout_stats(rollouts: Sequence[Rollout]) -> dict:
     }
 
 
+def _transitions(rollouts: Sequence[Rollout], actions: Sequence[np.ndarray], first_id: int) -> Transitions:
+    """The steps of ``rollouts`` with the given (T, 2) labels (NaN rows left out), episode ids
+    from ``first_id``."""
+    parts = []
+    for i, (r, labels) in enumerate(zip(rollouts, actions)):
+        keep = ~np.isnan(labels[:, 0])
+        parts.append(Transitions(r.episode.infos["ego"][:-1][keep], r.episode.infos["neighbours"][:-1][keep], labels[keep],
+                                 np.full(int(keep.sum()), first_id + i, dtype=np.int64)))
+    return Transitions.concatenate(parts)
+
+
+def label_rollouts(expert: Driver, rollouts: Sequence[Rollout], batch: int, *, noisy: bool = False) -> tuple[list[np.ndarray], int]:
+    """Expert labels of every step of ``rollouts`` (recorded with ``keep_states``): the executed
+    command where the expert drove (``feasible_goals >= 0``) and no noise was added,
+    :func:`label_states` elsewhere; NaN where the ego was reversing (outside the MPC's domain).
+
+    Returns:
+        One (T, 2) float32 array per rollout, and the number of steps the expert drove.
+    """
+    labels = [r.episode.actions.copy() for r in rollouts]
+    drove = [r.episode.infos["feasible_goals"][:-1] >= 0 for r in rollouts]
+    for label, rollout in zip(labels, rollouts):
+        label[rollout.episode.infos["ego"][:-1, EGO_V] < 0] = np.nan
+    pending = [(i, t) for i, r in enumerate(rollouts) for t in range(r.episode.steps)
+               if (noisy or not drove[i][t]) and not np.isnan(labels[i][t, 0])]
+    computed = label_states(expert, [rollouts[i].states[t] for i, t in pending], batch) if pending else []
+    for (i, t), label in zip(pending, computed):
+        labels[i][t] = label
+    return labels, int(sum(d.sum() for d in drove))
+
+
+def _save_data(path: Path, data: Transitions) -> None:
+    temporary = path.with_name(f".tmp-{path.name}")
+    with open(temporary, "wb") as handle:
+        np.savez_compressed(handle, **data._asdict())
+    temporary.replace(path)
+
+
+def _write_report(out: Path, report: dict) -> None:
+    temporary = out / ".tmp-dagger.json"
+    temporary.write_text(json.dumps(report, indent=2) + "\n")
+    temporary.replace(out / "dagger.json")
+
+
+def _resume(out: Path, identity: dict) -> tuple[list[dict], Optional[Transitions]]:
+    """Rounds and aggregate data of an earlier run of the same configuration in ``out``."""
+    path = out / "dagger.json"
+    if not path.exists():
+        return [], None
+    try:
+        report = json.loads(path.read_text())
+        earlier = {key: report[key] for key in identity}
+        rounds = list(report["rounds"])
+    except (ValueError, KeyError, TypeError) as error:
+        raise ValueError(f"{path} is not a readable DAgger report ({type(error).__name__}: {error}); "
+                         "remove it or choose another --out") from error
+    if earlier != identity:
+        changed = sorted(k for k in identity if earlier[k] != identity[k])
+        raise ValueError(f"{out} holds a DAgger run of another configuration (differs in: {', '.join(changed)}); "
+                         "re-run with the same settings to resume, or choose another --out")
+    if not rounds:
+        return [], None
+    with np.load(out / "data.npz") as stored:
+        data = Transitions(*(stored[name] for name in Transitions._fields))
+    if data.actions.shape[0] != rounds[-1]["samples"]:
+        raise ValueError(f"{out / 'data.npz'} holds {data.actions.shape[0]} samples, dagger.json's last round "
+                         f"{rounds[-1]['samples']}; remove the folder or choose another --out")
+    return rounds, data
+
+
 def run_dagger(
     scenario: ScenarioConfig,
     out: Path,
@@ -127,7 +313,7 @@ def run_dagger(
     dataset_dir: Optional[Path] = None,
     on_round: Optional[Callable[[dict], None]] = None,
 ) -> dict:
-    """DAgger (see the module docstring).
+    """DAgger (see the module docstring); resumes an interrupted run in ``out``.
 
     Args:
         scenario: the scenario (``config.duration`` overrides its length).
@@ -135,7 +321,7 @@ def run_dagger(
         config: settings.
         dataset_dir: an ``mmpc demos`` directory for round 0 (default: the expert drives
             ``config.initial_episodes`` episodes here).
-        on_round: called with each round's entry of ``dagger.json``.
+        on_round: called with each round's entry of ``dagger.json`` (also for resumed rounds).
 
     Returns:
         The ``dagger.json`` content.
@@ -149,48 +335,62 @@ def run_dagger(
         scenario = scenario.replace(duration=config.duration)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    expert = MPCDriver(build_mpc(scenario))
-    next_seed = config.seed_start
-    rounds: list[dict] = []
+    settings = json.loads(json.dumps(asdict(config), default=list))
+    settings.pop("iterations")  # a re-run with more iterations extends the run
+    identity = {"scenario": scenario_dict(scenario), "config": settings,
+                "dataset": None if dataset_dir is None else str(dataset_dir)}
+    rounds, data = _resume(out, identity)
+    for entry in rounds:
+        logger.info("DAgger round %d found in %s", entry["round"], out)
+        if on_round is not None:
+            on_round(entry)
+    expert_scenario = scenario
+    if config.label_window is not None:
+        expert_scenario = scenario.replace(mpc=dataclasses.replace(scenario.mpc, command_window=config.label_window))
+    expert = MPCDriver(build_mpc(expert_scenario))
+    road = scenario.road
+    policy = load_policy(out / f"round_{rounds[-1]['round']}" / "policy.pt") if rounds else None
     with SummaryWriter(str(out / "tb")) as writer, torch.inference_mode(False):
-        writer.add_text("hyperparameters", hyperparameters_text(config))
-        if dataset_dir is not None:
-            from mmpc.imitation.dataset import dataset_transitions, open_dataset
+        if not rounds:
+            writer.add_text("hyperparameters", hyperparameters_text(config))
+        for round_index in range(len(rounds), config.iterations + 1):
+            if round_index == 0 and dataset_dir is not None:
+                from mmpc.imitation.dataset import dataset_road, dataset_transitions, open_dataset
 
-            data = dataset_transitions(open_dataset(Path(dataset_dir)))
-            stats: dict = {"source": str(dataset_dir)}
-        else:
-            seeds = list(range(next_seed, next_seed + config.initial_episodes))
-            next_seed += config.initial_episodes
-            with torch.inference_mode():
-                rollouts = _drive(scenario, seeds, expert, config.lockstep, keep_states=False)
-            data = Transitions(
-                np.concatenate([r.episode.observations[:-1] for r in rollouts]),
-                np.concatenate([r.episode.infos["ego"][:-1, 4:6] for r in rollouts]),
-                np.concatenate([r.episode.actions for r in rollouts]),
-                np.concatenate([np.full(r.episode.steps, i, dtype=np.int64) for i, r in enumerate(rollouts)]),
-            )
-            stats = {"source": "expert", "seeds": seeds, **_rollout_stats(rollouts)}
-        for round_index in range(config.iterations + 1):
-            if round_index > 0:
-                seeds = list(range(next_seed, next_seed + config.episodes_per_iteration))
-                next_seed += config.episodes_per_iteration
+                dataset = open_dataset(Path(dataset_dir))
+                if dataset_road(dataset) != road:
+                    raise ValueError(f"dataset {dataset_dir} was driven on {dataset_road(dataset)}; the scenario has {road}")
+                window = dataset.storage.metadata["mmpc_scenario"]["mpc"]["command_window"]
+                if window != expert_scenario.mpc.command_window:
+                    raise ValueError(f"dataset {dataset_dir} holds commands over a {window} s window; `label_window` is "
+                                     f"{expert_scenario.mpc.command_window} s: drive round 0 here (no --dataset) instead")
+                data = dataset_transitions(dataset)
+                stats: dict = {"source": str(dataset_dir)}
+            elif round_index == 0:
+                seeds = list(range(config.seed_start, config.seed_start + config.initial_episodes))
                 with torch.inference_mode():
-                    rollouts = _drive(scenario, seeds, PolicyDriver(policy), config.lockstep, keep_states=True)
-                    states = [state for r in rollouts for state in r.states]
-                    labels = label_states(expert, states, config.label_batch)
-                first_id = int(data.episodes.max()) + 1
-                data = Transitions(
-                    np.concatenate([data.observations, *[r.episode.observations[:-1] for r in rollouts]]),
-                    np.concatenate([data.commands, *[r.episode.infos["ego"][:-1, 4:6] for r in rollouts]]),
-                    np.concatenate([data.actions, labels]),
-                    np.concatenate([data.episodes, *[np.full(r.episode.steps, first_id + i, dtype=np.int64)
-                                                     for i, r in enumerate(rollouts)]]),
-                )
-                stats = {"source": "learner", "seeds": seeds, **_rollout_stats(rollouts)}
-                writer.add_scalar("dagger/learner_collisions", stats["collisions"], round_index)
-                writer.add_scalar("dagger/learner_meta_cost_mean", stats["meta_cost_mean"], round_index)
-            policy, history = train_policy(data, config.train, writer=writer, tag=f"round_{round_index}/")
+                    rollouts = _drive(scenario, seeds, expert, config.lockstep, keep_states=False)
+                data = _transitions(rollouts, [r.episode.actions for r in rollouts], 0)
+                stats = {"source": "expert", "seeds": seeds, **_rollout_stats(rollouts)}
+            else:
+                first = config.seed_start + config.initial_episodes + (round_index - 1) * config.episodes_per_iteration
+                seeds = list(range(first, first + config.episodes_per_iteration))
+                beta = config.beta_of(round_index)
+                rng = np.random.default_rng([config.seed_start, round_index])
+                driver: Driver = MixtureDriver(expert, PolicyDriver(policy), beta, rng)
+                noisy = any(v > 0 for v in config.noise)
+                if noisy:
+                    driver = NoisyDriver(driver, config.noise, rng)
+                with torch.inference_mode():
+                    rollouts = _drive(scenario, seeds, driver, config.lockstep, keep_states=True)
+                    labels, expert_steps = label_rollouts(expert, rollouts, config.label_batch, noisy=noisy)
+                data = Transitions.concatenate([data, _transitions(rollouts, labels, int(data.episodes.max()) + 1)])
+                stats = {"source": "mixture", "beta": beta, "seeds": seeds, **_rollout_stats(rollouts)}
+                stats["expert_share"] = expert_steps / max(stats["steps"], 1)
+                writer.add_scalar("dagger/collisions", stats["collisions"], round_index)
+                writer.add_scalar("dagger/meta_cost_mean", stats["meta_cost_mean"], round_index)
+                writer.add_scalar("dagger/expert_share", stats["expert_share"], round_index)
+            policy, history = train_policy(data, road, config.train, writer=writer, tag=f"round_{round_index}/")
             entry = {
                 "round": round_index,
                 **stats,
@@ -202,14 +402,11 @@ def run_dagger(
             writer.add_scalar("dagger/samples", entry["samples"], round_index)
             writer.add_scalar("dagger/val_loss", entry["val_loss"], round_index)
             save_policy(out / f"round_{round_index}" / "policy.pt", policy, scenario=scenario.name, info={"round": round_index})
+            _save_data(out / "data.npz", data)
             rounds.append(entry)
+            _write_report(out, {**identity, "iterations": config.iterations, "rounds": rounds})
             logger.info("DAgger round %d: %s", round_index, entry)
             if on_round is not None:
                 on_round(entry)
     save_policy(out / "policy.pt", policy, scenario=scenario.name, info={"round": config.iterations, "samples": int(data.actions.shape[0])})
-    np.savez_compressed(out / "data.npz", observations=data.observations, commands=data.commands, actions=data.actions,
-                        episodes=data.episodes)
-    report = {"scenario": scenario.name, "duration": scenario.duration,
-              "config": json.loads(json.dumps(asdict(config), default=list)), "rounds": rounds}
-    (out / "dagger.json").write_text(json.dumps(report, indent=2) + "\n")
-    return report
+    return {**identity, "iterations": config.iterations, "rounds": rounds}

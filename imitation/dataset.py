@@ -36,12 +36,13 @@ from typing import Iterator, NamedTuple, Optional, Sequence
 import numpy as np
 
 from mmpc.imitation.rollout import INFO_FIELDS, Episode
+from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
 
 logger = logging.getLogger(__name__)
 
 FORMAT = "mmpc-demonstrations"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: infos gained "neighbours"
 MANIFEST = "manifest.json"
 EPISODES = "episodes"
 MINARI_ROOT = "minari"
@@ -313,7 +314,7 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
                 f"Multi-modal MPC (mmpc) driving highway-env scenario '{scenario.name}'. Observations: highway-env's "
                 "Kinematics observation; actions: executed (acceleration [m/s^2], steering [rad]) (highway-env's "
                 "[-1, 1] action scaled by its ranges); infos[t]: the decision at observations[t] (goal index, "
-                "plan and meta cost, solver residuals, road-frame ego state), last row -1/NaN. The env spec "
+                "plan and meta cost, solver residuals, road-frame ego state and nearest 8 vehicles), last row -1/NaN. The env spec "
                 "rebuilds highway-env with the scenario's config; mmpc's traffic controller (slow target speeds, "
                 "respawn window) is in the metadata's mmpc_scenario, applied by mmpc.highway.HighwayEpisode."
             ),
@@ -369,32 +370,41 @@ def open_dataset(root: Path, identifier: Optional[str] = None):
 
 
 class Transitions(NamedTuple):
-    """State-action pairs for supervised learning.
+    """State-action pairs for supervised learning, in the road-frame form the policy reads.
 
     Fields:
-        observations: (S, R, F) float32 kinematics observations at which an action was taken.
-        commands: (S, 2) float32 the command the ego was executing there (a [m/s^2], psidot
-            [rad/s]; the infos' ``ego[:, 4:6]``).
-        actions: (S, 2) float32 (acceleration [m/s^2], steering [rad]).
+        ego: (S, 6) float32 ego states (:data:`mmpc.EGO_FIELDS`) at which an action was taken.
+        neighbours: (S, K, 4) float32 nearest other vehicles there (x, y, vx, vy; NaN rows:
+            empty slots; :func:`mmpc.imitation.features.nearest_neighbours`).
+        actions: (S, 2) float32 the expert's (acceleration [m/s^2], steering [rad]).
         episodes: (S,) int64 index of the episode each pair came from (for held-out splits).
     """
 
-    observations: np.ndarray
-    commands: np.ndarray
+    ego: np.ndarray
+    neighbours: np.ndarray
     actions: np.ndarray
     episodes: np.ndarray
 
+    @classmethod
+    def concatenate(cls, parts: Sequence["Transitions"]) -> "Transitions":
+        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in cls._fields))
+
 
 def dataset_transitions(dataset) -> Transitions:
-    """All (observation, action) pairs of a Minari dataset (the final observation of each
-    episode, which has no action, is left out)."""
-    observations, commands, actions, indices = [], [], [], []
+    """All (state, action) pairs of a Minari dataset (the final state of each episode, which has
+    no action, is left out)."""
+    parts = []
     for episode in dataset.iterate_episodes():
         steps = len(episode.actions)
-        observations.append(np.asarray(episode.observations[:steps], dtype=np.float32))
-        commands.append(np.asarray(episode.infos["ego"][:steps, 4:6], dtype=np.float32))
-        actions.append(np.asarray(episode.actions, dtype=np.float32))
-        indices.append(np.full(steps, episode.id, dtype=np.int64))
-    if not observations:
+        parts.append(Transitions(np.asarray(episode.infos["ego"][:steps], dtype=np.float32),
+                                 np.asarray(episode.infos["neighbours"][:steps], dtype=np.float32),
+                                 np.asarray(episode.actions, dtype=np.float32),
+                                 np.full(steps, episode.id, dtype=np.int64)))
+    if not parts:
         raise DemonstrationsError("the dataset holds no episodes")
-    return Transitions(np.concatenate(observations), np.concatenate(commands), np.concatenate(actions), np.concatenate(indices))
+    return Transitions.concatenate(parts)
+
+
+def dataset_road(dataset) -> Road:
+    """The road of the scenario a dataset was driven in (its ``mmpc_scenario`` metadata)."""
+    return ScenarioConfig.from_dict(dataset.storage.metadata["mmpc_scenario"]).road

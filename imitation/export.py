@@ -1,15 +1,15 @@
 """Export a cloned policy as a stable-baselines3 ``ActorCriticPolicy`` (so PPO can start from it).
 
-The SB3 policy sees the flat vector of :meth:`MLPPolicy.raw_inputs`: highway-env's kinematics
-observation, flattened, followed (for policies with ``ego_command``) by the ego's executing
-acceleration and heading rate -- :class:`EgoCommandObservation` wraps a highway-env
-environment to produce exactly that. It acts in highway-env's ``ContinuousAction`` space
-``[-1, 1]^2``. The cloned policy's input selection and standardisation and its output scaling
-are folded into the first and last linear layers, so the Gaussian's mean equals the cloned
-command (up to float rounding):
+The SB3 policy sees the policy's road-frame feature vector
+(:func:`mmpc.imitation.features.road_features`); :class:`RoadFeatureObservation` wraps a
+highway-env environment to produce exactly that from the simulator's state, as
+:class:`mmpc.imitation.policy.PolicyDriver` computes it. It acts in highway-env's
+``ContinuousAction`` space ``[-1, 1]^2``. The cloned policy's standardisation and its output
+scaling are folded into the first and last linear layers, so the Gaussian's mean equals the
+cloned command (up to float rounding):
 
-- first layer: ``W1 ((S o - mu_o) / sigma_o) + b1 = W1' o + b1'`` with ``W1'[:, keep] =
-  W1 / sigma_o`` (zero columns for dropped inputs) and ``b1' = b1 - W1 (mu_o / sigma_o)``;
+- first layer: ``W1 ((f - mu_f) / sigma_f) + b1 = W1' f + b1'`` with
+  ``W1' = W1 diag(1 / sigma_f)`` and ``b1' = b1 - W1' mu_f``;
 - action layer: the env action is ``(u - c) / r`` with ``c``, ``r`` the centre and half-width of
   highway-env's ranges and ``u = mu_u + sigma_u (W h + b)``, so ``W' = diag(sigma_u / r) W`` and
   ``b' = (mu_u + sigma_u b - c) / r``. SB3 clips actions to ``[-1, 1]``, as the cloned policy
@@ -30,26 +30,34 @@ import numpy as np
 import torch
 from torch import nn
 
+from mmpc.imitation.features import FeatureConfig, nearest_neighbours, road_features
 from mmpc.imitation.policy import ACTIVATIONS, MLPPolicy, fold, load_policy
+from mmpc.road import Road
 
 
-class EgoCommandObservation(gym.ObservationWrapper):
-    """highway-env with the observation an exported policy reads: the kinematics observation
-    flattened, then the ego's executing acceleration [m/s^2] and heading rate [rad/s] (as
-    :func:`mmpc.highway.road_state` reads them), float32 of length R * F + 2."""
+class RoadFeatureObservation(gym.ObservationWrapper):
+    """highway-env with the observation an exported policy reads: the road-frame features of the
+    ego and its nearest vehicles, read from the simulator's true state
+    (:func:`mmpc.highway.road_state`), float32 of length D.
 
-    def __init__(self, env: gym.Env) -> None:
+    Args:
+        env: a highway-env environment on a straight road.
+        road: the road the features refer to (the policy's).
+        config: which features (the policy's ``config.features``).
+    """
+
+    def __init__(self, env: gym.Env, road: Road, config: FeatureConfig) -> None:
         super().__init__(env)
-        size = int(np.prod(env.observation_space.shape)) + 2
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(size,), dtype=np.float32)
+        self.road, self.config = road, config
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(config.size,), dtype=np.float32)
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
-        from mmpc.highway import vehicle_motion
+        from mmpc.highway import RoadFrame, road_state
 
-        ego = self.env.unwrapped.vehicle
-        _, turn_rate = vehicle_motion(ego)
-        command = [float(ego.action["acceleration"]), turn_rate]
-        return np.concatenate([np.asarray(observation, dtype=np.float32).ravel(), np.asarray(command, dtype=np.float32)])
+        state = road_state(self.env.unwrapped, RoadFrame.of(self.env.unwrapped))
+        ego = state.ego.numpy()
+        neighbours = nearest_neighbours(ego, state.vehicles.numpy())  # all stored ones, as in training
+        return road_features(ego, neighbours, self.road, self.config)[0]
 
 
 def _require_sb3():
@@ -73,7 +81,7 @@ def copy_actor(policy: MLPPolicy, target) -> None:
     (an ``ActorCriticPolicy`` built with :func:`policy_kwargs`)."""
     source_linears = [m for m in policy.body if isinstance(m, nn.Linear)]
     target_linears = [m for m in target.mlp_extractor.policy_net if isinstance(m, nn.Linear)]
-    flat = policy.raw_size
+    flat = policy.input_size
     if len(source_linears) != len(target_linears) or target_linears[0].in_features != flat:
         raise ValueError(f"SB3 policy does not match: {len(target_linears)} hidden layers with {target_linears[0].in_features} "
                          f"inputs; expected {len(source_linears)} with {flat} (build it with policy_kwargs(policy))")
@@ -88,12 +96,12 @@ def copy_actor(policy: MLPPolicy, target) -> None:
 
 
 def to_sb3(policy: MLPPolicy, log_std: float = math.log(0.1)):
-    """A new SB3 ``ActorCriticPolicy`` acting like ``policy`` (observation: the flat vector of
-    :meth:`MLPPolicy.raw_inputs`, action Box [-1, 1]^2)."""
+    """A new SB3 ``ActorCriticPolicy`` acting like ``policy`` (observation: the (D,) road features,
+    action Box [-1, 1]^2)."""
     from gymnasium import spaces
 
     ActorCriticPolicy = _require_sb3()
-    observation_space = spaces.Box(-np.inf, np.inf, shape=(policy.raw_size,), dtype=np.float32)
+    observation_space = spaces.Box(-np.inf, np.inf, shape=(policy.input_size,), dtype=np.float32)
     action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
     target = ActorCriticPolicy(observation_space, action_space, lambda _: 3e-4, **policy_kwargs(policy, log_std))
     copy_actor(policy, target)
@@ -120,17 +128,17 @@ def ppo_from_policy(checkpoint: Path, env: gym.Env, log_std: float = math.log(0.
 
     Args:
         checkpoint: the cloned policy.
-        env: a highway-env environment with the scenario's kinematics observation and
-            ``ContinuousAction`` (e.g. ``gym.make(scenario.env_id, config=env_config(scenario))``);
-            wrapped in :class:`EgoCommandObservation` here when the policy reads the ego command.
+        env: a highway-env environment with ``ContinuousAction`` (e.g. ``gym.make(scenario.env_id,
+            config=env_config(scenario))``); wrapped in :class:`RoadFeatureObservation` here
+            unless it already produces the policy's features.
         log_std: initial log standard deviation of the Gaussian.
         ppo_kwargs: passed to ``PPO``.
     """
     from stable_baselines3 import PPO
 
     policy = load_policy(Path(checkpoint))
-    if policy.config.ego_command and env.observation_space.shape == policy.observation_shape:
-        env = EgoCommandObservation(env)
+    if env.observation_space.shape != (policy.input_size,):
+        env = RoadFeatureObservation(env, policy.road, policy.config.features)
     model = PPO("MlpPolicy", env, policy_kwargs=policy_kwargs(policy, log_std), **ppo_kwargs)
     copy_actor(policy, model.policy)
     return model

@@ -1,22 +1,17 @@
-"""The cloned policy: an MLP from highway-env's kinematics observation to the (acceleration,
-steering) command, its checkpoint file, and the driver that runs it (``bc:RUN/policy.pt``).
+"""The cloned policy: an MLP from road-frame features to the (acceleration, steering) command,
+its checkpoint file, and the driver that runs it (``bc:RUN/policy.pt``).
 
-Inputs. The (R, F) kinematics observation is flattened; the ego's absolute x (row 0, feature
-``x``) is dropped by default: on an endless straight road it only encodes the distance driven
-(and it saturates at 200 m), so keeping it invites the policy to key on elapsed time. By
-default the command the ego is executing -- its acceleration a [m/s^2] and heading rate psidot
-[rad/s], ``Observation.ego[:, 4:6]``, part of the vehicle's state in highway-env but not of the
-kinematics observation -- is appended: the expert plans from it (its plans start at the current
-acceleration), and it alone explains 91 % / 98 % of the variance of the expert's next
-acceleration / steering in the cruise demonstrations, against a held-out loss of 0.69 (31 %
-explained) for the kinematics observation alone. The D inputs are standardised with the
-training set's mean and standard deviation, ``z = (o - mu_o) / sigma_o``.
+Inputs. :func:`mmpc.imitation.features.road_features` of the ego state and its K nearest
+neighbours: the ego's lateral offsets from its lane centre and the road edges, heading and
+speed (optionally the command it is executing), and each neighbour's presence, relative position
+and relative velocity. The D inputs are standardised with the training set's mean and standard
+deviation, ``z = (f - mu_f) / sigma_f``.
 
 Outputs. The network predicts standardised commands ``u_hat``; the command is
 ``u = clip(mu_u + sigma_u * u_hat, low, high)`` with highway-env's acceleration and steering
 ranges as bounds. Training minimises the mean squared error in standardised units, so
-acceleration (m/s^2) and steering (rad) weigh alike. Every statistic is a buffer, so the
-module alone maps observations to commands.
+acceleration (m/s^2) and steering (rad) weigh alike. Every statistic is a buffer, and the road
+the features refer to is part of the checkpoint, so a checkpoint alone maps states to commands.
 """
 
 from __future__ import annotations
@@ -34,30 +29,34 @@ from torch import nn
 from mmpc.config import dataclass_from_dict
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE
-from mmpc.problem import EGO_A, EGO_PSIDOT
+from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, nearest_neighbours, road_dict, road_features, road_of
+from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "mmpc-policy"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: road-frame features (version 1 read highway-env's Kinematics observation)
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    """Architecture of :class:`MLPPolicy`.
+    """Architecture and inputs of :class:`MLPPolicy`.
 
     Attributes:
         hidden: widths of the hidden layers [-].
         activation: ``tanh`` or ``relu``.
-        drop_ego_x: leave out the ego's absolute x position (row 0, column 1 of the observation).
-        ego_command: append the ego's executing (a [m/s^2], psidot [rad/s]) to the inputs.
+        neighbours: nearest other vehicles read (:class:`mmpc.imitation.features.FeatureConfig`) [-].
+        ego_command: also read the ego's executing (a [m/s^2], psidot [rad/s]).
+        lane_slots: also read the nearest neighbour ahead and behind in the ego's and the
+            adjacent lanes.
     """
 
     hidden: tuple[int, ...] = (256, 256)
     activation: str = "tanh"
-    drop_ego_x: bool = True
-    ego_command: bool = True
+    neighbours: int = STORED_NEIGHBOURS
+    ego_command: bool = False
+    lane_slots: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.hidden, list):
@@ -66,6 +65,11 @@ class PolicyConfig:
             raise ValueError(f"`hidden` must be a non-empty list of positive ints; got {self.hidden!r}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"`activation` must be one of {sorted(ACTIVATIONS)}; got {self.activation!r}")
+        self.features  # validates the feature settings
+
+    @property
+    def features(self) -> FeatureConfig:
+        return FeatureConfig(self.neighbours, self.ego_command, self.lane_slots)
 
     @classmethod
     def from_dict(cls, values: dict) -> "PolicyConfig":
@@ -73,36 +77,30 @@ class PolicyConfig:
 
 
 class MLPPolicy(nn.Module):
-    """Kinematics observation (and the ego's executing command) -> (acceleration [m/s^2],
-    steering [rad]).
+    """Road-frame features -> (acceleration [m/s^2], steering [rad]).
 
     Args:
-        observation_shape: (R, F) of the kinematics observation.
-        config: the architecture.
+        road: the road the features refer to (lane centres, edges).
+        config: the architecture and inputs.
 
     Shapes:
-        forward: kinematics (B, R, F), ego_command (B, 2) (a [m/s^2], psidot [rad/s]; required
-        when ``config.ego_command``) -> (B, 2).
+        forward: features (B, D) (:meth:`features`) -> (B, 2).
 
     Example:
-        >>> policy = MLPPolicy((5, 5), PolicyConfig(hidden=(32,)))
-        >>> policy(torch.zeros(3, 5, 5), torch.zeros(3, 2)).shape
-        torch.Size([3, 2])
+        >>> policy = MLPPolicy(Road(), PolicyConfig(hidden=(32,), neighbours=2))
+        >>> ego = np.array([[0.0, 8.0, 0.0, 14.0, 0.0, 0.0]])
+        >>> neighbours = np.array([[[30.0, 8.0, 10.0, 0.0], [np.nan] * 4]])
+        >>> policy(torch.as_tensor(policy.features(ego, neighbours))).shape
+        torch.Size([1, 2])
     """
 
-    def __init__(self, observation_shape: tuple[int, int], config: PolicyConfig = PolicyConfig()) -> None:
+    def __init__(self, road: Road, config: PolicyConfig = PolicyConfig()) -> None:
         super().__init__()
-        rows, features = (int(v) for v in observation_shape)
-        if rows < 1 or features < 2:
-            raise ValueError(f"`observation_shape` must be (rows >= 1, features >= 2); got {observation_shape}")
-        self.observation_shape = (rows, features)
+        self.road = road
         self.config = config
-        raw = rows * features + (2 if config.ego_command else 0)  # the flat vector :meth:`raw_inputs` builds
-        keep = [i for i in range(raw) if not (config.drop_ego_x and i == 1)]
-        self.register_buffer("keep", torch.tensor(keep, dtype=torch.long))
-        width = len(keep)
-        self.register_buffer("obs_mean", torch.zeros(width))
-        self.register_buffer("obs_std", torch.ones(width))
+        width = config.features.size
+        self.register_buffer("in_mean", torch.zeros(width))
+        self.register_buffer("in_std", torch.ones(width))
         self.register_buffer("act_mean", torch.zeros(2))
         self.register_buffer("act_std", torch.ones(2))
         self.register_buffer("act_low", torch.tensor([ACCELERATION_RANGE[0], STEERING_RANGE[0]], dtype=torch.float32))
@@ -116,51 +114,37 @@ class MLPPolicy(nn.Module):
 
     @property
     def input_size(self) -> int:
-        return int(self.keep.numel())
+        """D, the number of features."""
+        return self.config.features.size
 
-    def fit_normalization(self, observations: np.ndarray | torch.Tensor, commands: Optional[np.ndarray | torch.Tensor],
-                          actions: np.ndarray | torch.Tensor) -> None:
-        """Set the input and output statistics from training data ((S, R, F), (S, 2) or None, (S, 2))."""
-        inputs = self.select(torch.as_tensor(observations, dtype=torch.float32),
-                             None if commands is None else torch.as_tensor(commands, dtype=torch.float32))
+    def features(self, ego: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
+        """(B, 6) ego states and (B, K', 4) nearest neighbours -> (B, D) float32 features."""
+        return road_features(ego, neighbours, self.road, self.config.features)
+
+    def fit_normalization(self, inputs: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> None:
+        """Set the input and output statistics from training data ((S, D), (S, 2))."""
+        inputs = torch.as_tensor(inputs, dtype=torch.float32)
         actions = torch.as_tensor(actions, dtype=torch.float32)
-        self.obs_mean.copy_(inputs.mean(dim=0))
-        self.obs_std.copy_(_spread(inputs))
+        self.in_mean.copy_(inputs.mean(dim=0))
+        self.in_std.copy_(_spread(inputs))
         self.act_mean.copy_(actions.mean(dim=0))
         self.act_std.copy_(_spread(actions))
 
-    @property
-    def raw_size(self) -> int:
-        """Length of the flat vector of :meth:`raw_inputs`: R * F (+ 2 with the ego command)."""
-        return self.observation_shape[0] * self.observation_shape[1] + (2 if self.config.ego_command else 0)
+    def _check(self, inputs: torch.Tensor) -> None:
+        if inputs.ndim != 2 or inputs.shape[1] != self.input_size:
+            raise ValueError(f"`inputs` must have shape (B, {self.input_size}) (road features); got {tuple(inputs.shape)}")
 
-    def raw_inputs(self, observations: torch.Tensor, ego_command: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """(B, R, F) and (B, 2) -> (B, R * F [+ 2]): the flattened observation, then the command."""
-        if observations.ndim != 3 or tuple(observations.shape[1:]) != self.observation_shape:
-            raise ValueError(f"observations must have shape (B, {self.observation_shape[0]}, {self.observation_shape[1]}); "
-                             f"got {tuple(observations.shape)}")
-        flat = observations.reshape(observations.shape[0], -1)
-        if not self.config.ego_command:
-            return flat
-        if ego_command is None or ego_command.shape != (observations.shape[0], 2):
-            raise ValueError(f"this policy reads the ego's executing command: `ego_command` must have shape "
-                             f"({observations.shape[0]}, 2); got {None if ego_command is None else tuple(ego_command.shape)}")
-        return torch.cat([flat, ego_command.to(flat.dtype)], dim=1)
-
-    def select(self, observations: torch.Tensor, ego_command: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """(B, R, F) [and (B, 2)] -> (B, D) inputs (flattened, ego x dropped)."""
-        return self.raw_inputs(observations, ego_command).index_select(1, self.keep)
-
-    def standardized(self, observations: torch.Tensor, ego_command: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """(B, R, F) [and (B, 2)] -> (B, 2) standardised command (what the loss compares)."""
-        return self.head(self.body((self.select(observations, ego_command) - self.obs_mean) / self.obs_std))
+    def standardized(self, inputs: torch.Tensor) -> torch.Tensor:
+        """(B, D) features -> (B, 2) standardised command (what the loss compares)."""
+        self._check(inputs)
+        return self.head(self.body((inputs - self.in_mean) / self.in_std))
 
     def standardize_actions(self, actions: torch.Tensor) -> torch.Tensor:
         """(B, 2) commands -> standardised units."""
         return (actions - self.act_mean) / self.act_std
 
-    def forward(self, observations: torch.Tensor, ego_command: Optional[torch.Tensor] = None) -> torch.Tensor:
-        command = self.act_mean + self.act_std * self.standardized(observations, ego_command)
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        command = self.act_mean + self.act_std * self.standardized(inputs)
         return torch.maximum(torch.minimum(command, self.act_high), self.act_low)
 
 
@@ -173,27 +157,26 @@ def _spread(values: torch.Tensor) -> torch.Tensor:
 
 
 def fold(policy: MLPPolicy) -> nn.Sequential:
-    """The policy as one plain network from :meth:`MLPPolicy.raw_inputs` (B, R * F [+ 2]) to the
-    command (B, 2) before clipping, with the input selection and standardisation folded into the
-    first layer and the output scaling into the last (computed in float64):
+    """The policy as one plain network from features (B, D) to the command (B, 2) before
+    clipping, with the standardisation folded into the first layer and the output scaling into
+    the last (computed in float64):
 
-    ``W1 ((S o - mu_o) / sigma_o) + b1 = W1' o + b1'`` with ``W1'[:, keep] = W1 / sigma_o`` (zero
-    columns for dropped inputs), ``b1' = b1 - W1 (mu_o / sigma_o)``; ``mu_u + sigma_u (W h + b) =
-    W' h + b'`` with ``W' = diag(sigma_u) W``, ``b' = mu_u + sigma_u b``.
+    ``W1 ((f - mu_f) / sigma_f) + b1 = W1' f + b1'`` with ``W1' = W1 diag(1 / sigma_f)``,
+    ``b1' = b1 - W1' mu_f``; ``mu_u + sigma_u (W h + b) = W' h + b'`` with
+    ``W' = diag(sigma_u) W``, ``b' = mu_u + sigma_u b``.
 
-    It has fewer operations than :meth:`MLPPolicy.forward` (the driver's per-step cost) and is
-    what :mod:`mmpc.imitation.export` writes into stable-baselines3.
+    It is what :class:`PolicyDriver` runs (in numpy) and what :mod:`mmpc.imitation.export`
+    writes into stable-baselines3.
     """
     layers: list[nn.Module] = []
     linears = [m for m in policy.body if isinstance(m, nn.Linear)]
     with torch.no_grad():
         for index, source in enumerate(linears):
-            layer = nn.Linear(policy.raw_size if index == 0 else source.in_features, source.out_features)
+            layer = nn.Linear(source.in_features, source.out_features)
             if index == 0:
-                weight = source.weight.double() / policy.obs_std.double()
-                layer.weight.zero_()
-                layer.weight[:, policy.keep] = weight.float()
-                layer.bias.copy_(source.bias.double() - weight @ policy.obs_mean.double())
+                weight = source.weight.double() / policy.in_std.double()
+                layer.weight.copy_(weight)
+                layer.bias.copy_(source.bias.double() - weight @ policy.in_mean.double())
             else:
                 layer.load_state_dict(source.state_dict())
             layers += [layer, ACTIVATIONS[policy.config.activation]()]
@@ -204,7 +187,7 @@ def fold(policy: MLPPolicy) -> nn.Sequential:
 
 
 def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None, info: Optional[dict] = None) -> Path:
-    """Write a checkpoint (architecture, weights and statistics, plus JSON-able ``info``)."""
+    """Write a checkpoint (architecture, road, weights and statistics, plus JSON-able ``info``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     config = asdict(policy.config)
@@ -214,7 +197,7 @@ def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
         "config": config,
-        "observation_shape": list(policy.observation_shape),
+        "road": road_dict(policy.road),
         "state_dict": policy.state_dict(),
         "scenario": scenario,
         "info": info or {},
@@ -235,20 +218,25 @@ def load_checkpoint(path: Path) -> dict:
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not an mmpc policy checkpoint (format {CHECKPOINT_FORMAT!r} expected)")
     if checkpoint.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: checkpoint version {checkpoint.get('version')!r}; this mmpc reads {CHECKPOINT_VERSION}")
+        raise ValueError(f"{path}: checkpoint version {checkpoint.get('version')!r}; this mmpc reads {CHECKPOINT_VERSION} "
+                         "(retrain the policy)")
     return checkpoint
 
 
 def load_policy(path: Path) -> MLPPolicy:
     """The :class:`MLPPolicy` of a checkpoint, in eval mode."""
     checkpoint = load_checkpoint(path)
-    policy = MLPPolicy(tuple(checkpoint["observation_shape"]), PolicyConfig.from_dict(checkpoint["config"]))
+    policy = MLPPolicy(road_of(checkpoint["road"]), PolicyConfig.from_dict(checkpoint["config"]))
     policy.load_state_dict(checkpoint["state_dict"])
     return policy.eval()
 
 
 class PolicyDriver(Driver):
-    """Drives with a cloned policy: one forward pass for the E environments of a step.
+    """Drives with a cloned policy: features and one forward pass for the E environments of a step.
+
+    The forward pass is :func:`fold`'s network evaluated with numpy on its weights (float32): at
+    E = 1 the per-step cost is dominated by call overhead, which numpy keeps to a few
+    microseconds per layer.
 
     Args:
         policy: the policy.
@@ -257,19 +245,28 @@ class PolicyDriver(Driver):
 
     def __init__(self, policy: MLPPolicy, name: str = "bc") -> None:
         self.policy = policy.eval()
-        self.network = fold(self.policy)  # the same map in fewer operations
+        linears = [m for m in fold(self.policy) if isinstance(m, nn.Linear)]
+        self.layers = [(m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy()) for m in linears]
+        self.activation = {"tanh": np.tanh, "relu": lambda x: np.maximum(x, 0.0)}[policy.config.activation]
+        self.low, self.high = policy.act_low.numpy(), policy.act_high.numpy()
         self.name = name
 
+    def commands(self, features: np.ndarray) -> np.ndarray:
+        """(B, D) features -> (B, 2) clipped commands (the folded network in numpy)."""
+        hidden = features
+        for weight, bias in self.layers[:-1]:
+            hidden = self.activation(hidden @ weight + bias)
+        weight, bias = self.layers[-1]
+        return np.clip(hidden @ weight + bias, self.low, self.high)
+
     def decide(self, observation: Observation) -> Decision:
-        if observation.kinematics is None:
-            raise ValueError("a policy driver needs `observation.kinematics` (highway-env's Kinematics observation); got None")
         start = time.perf_counter()
-        with torch.inference_mode():
-            kinematics = torch.as_tensor(observation.kinematics, dtype=torch.float32)
-            raw = self.policy.raw_inputs(kinematics, observation.ego[:, EGO_A:EGO_PSIDOT + 1].float())
-            command = torch.clamp(self.network(raw), self.policy.act_low, self.policy.act_high)
+        mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
+        ego = observation.ego.numpy()
+        neighbours = nearest_neighbours(ego, observation.vehicles.numpy(), mask)  # all stored ones, as in training
+        command = self.commands(self.policy.features(ego, neighbours))
         elapsed_ms = (time.perf_counter() - start) * 1e3
-        return Decision.command_only(command[:, 0].clone(), command[:, 1].clone(), elapsed_ms)
+        return Decision.command_only(torch.from_numpy(command[:, 0].copy()), torch.from_numpy(command[:, 1].copy()), elapsed_ms)
 
 
 def make_policy_driver(scenario, argument: Optional[str]) -> Driver:
@@ -279,4 +276,7 @@ def make_policy_driver(scenario, argument: Optional[str]) -> Driver:
     checkpoint = load_checkpoint(Path(argument))
     if checkpoint.get("scenario") not in (None, scenario.name):
         logger.warning("policy %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)
-    return PolicyDriver(load_policy(Path(argument)), name=f"bc:{argument}")
+    policy = load_policy(Path(argument))
+    if policy.road != scenario.road:
+        raise ValueError(f"policy {argument} was trained on {policy.road}; scenario {scenario.name!r} has {scenario.road}")
+    return PolicyDriver(policy, name=f"bc:{argument}")

@@ -1,6 +1,7 @@
 """Lockstep rollouts that record what an imitation learner needs: highway-env's kinematics
-observation, the executed (acceleration, steering) command, the reward, the episode's end, and
-the deciding driver's diagnostics.
+observation, the executed (acceleration, steering) command, the reward, the episode's end, the
+deciding driver's diagnostics, and the road-frame state the cloned policy reads (the ego and
+its nearest neighbours, :mod:`mmpc.imitation.features`).
 
 One driver call per control step serves every episode still running (for the MPC expert: one
 optimizer call over all their goal batches), as in :func:`mmpc.drive.run_lockstep`; here each
@@ -10,7 +11,7 @@ the others end) as an :class:`Episode` of numpy arrays.
 Alignment (Minari's): ``observations`` has T + 1 rows (the state after the last command
 included), ``actions``, ``rewards``, ``terminations`` and ``truncations`` T rows; the info
 arrays have T + 1 rows, row t describing the decision taken at ``observations[t]``; the last
-row (no decision) holds -1 / NaN / False, its ``ego`` the final state.
+row (no decision) holds -1 / NaN / False, its ``ego`` and ``neighbours`` the final state.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import torch
 from mmpc.drive import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE, HighwayEpisode
+from mmpc.imitation.features import STORED_NEIGHBOURS, nearest_neighbours
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import ScenarioConfig
 
@@ -39,6 +41,8 @@ INFO_FIELDS: dict[str, tuple[type, tuple[int, ...], float]] = {
     "residual_acceleration": (np.float64, (), math.nan),
     "solve_ms": (np.float64, (), math.nan),     # wall time of the decision (all lockstep rows) [ms]
     "ego": (np.float32, (6,), math.nan),        # road-frame ego state x, y, psi, v, a, psidot
+    # the nearest other vehicles' road-frame x, y, vx, vy (nearest first, NaN rows: none)
+    "neighbours": (np.float32, (STORED_NEIGHBOURS, 4), math.nan),
 }
 
 
@@ -83,6 +87,12 @@ def executed_command(acceleration: float, steering: float) -> tuple[float, float
             min(max(steering, STEERING_RANGE[0]), STEERING_RANGE[1]))
 
 
+def observation_neighbours(observation: Observation) -> np.ndarray:
+    """(E, :data:`STORED_NEIGHBOURS`, 4) nearest other vehicles of each row (:func:`nearest_neighbours`)."""
+    mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
+    return nearest_neighbours(observation.ego.numpy(), observation.vehicles.numpy(), mask)
+
+
 def decision_infos(decision: Decision, observation: Observation, scenario: ScenarioConfig) -> dict[str, np.ndarray]:
     """The :data:`INFO_FIELDS` of each of the E rows of a decision, as (E, ...) arrays."""
     count = observation.num_envs
@@ -95,6 +105,7 @@ def decision_infos(decision: Decision, observation: Observation, scenario: Scena
                                for e in observation.ego], dtype=np.float64),
         "solve_ms": np.full(count, decision.solve_ms, dtype=np.float64),
         "ego": observation.ego.float().numpy(),
+        "neighbours": observation_neighbours(observation),
     }
     for name in ("residual_obstacle", "residual_nonholonomic", "residual_acceleration"):
         if decision.plan is None:
@@ -127,6 +138,7 @@ class _Recorder:
                 column[t] = row[name]
             infos[name] = column
         infos["ego"][steps] = final.ego[0].float().numpy()
+        infos["neighbours"][steps] = observation_neighbours(final)[0]
         infos["meta_cost"][steps] = episode.scenario.objective.stage_cost(
             float(final.ego[0, EGO_V]), float(final.ego[0, EGO_Y]), episode.scenario.road)
         terminations = np.zeros(steps, dtype=np.bool_)

@@ -1,8 +1,10 @@
-"""mmpc.imitation: expert demonstrations as a Minari dataset (resumable), behaviour cloning,
-the policy driver, batched expert labelling (DAgger) and the stable-baselines3 export."""
+"""mmpc.imitation: expert demonstrations as a Minari dataset (resumable), road-frame features,
+behaviour cloning, the policy driver, DAgger (beta-mixture, batched expert labelling, resume) and
+the stable-baselines3 export."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -17,9 +19,9 @@ import pytest
 import torch
 
 from mmpc.drive import run_episode, write_outputs
-from mmpc.drivers import MPCDriver, make_driver
+from mmpc.drivers import MPCDriver, Observation, make_driver
 from mmpc.imitation.bc import TrainConfig, run_bc, train_policy
-from mmpc.imitation.dagger import DaggerConfig, label_states, run_dagger
+from mmpc.imitation.dagger import DaggerConfig, MixtureDriver, NoisyDriver, label_rollouts, label_states, run_dagger
 from mmpc.imitation.dataset import (
     DemonstrationsError,
     Transitions,
@@ -28,8 +30,10 @@ from mmpc.imitation.dataset import (
     open_dataset,
 )
 from mmpc.imitation.demos import chunks, generate_demonstrations
-from mmpc.imitation.policy import PolicyConfig, PolicyDriver, load_policy, save_policy
+from mmpc.imitation.features import FeatureConfig, nearest_neighbours, road_features
+from mmpc.imitation.policy import MLPPolicy, PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import rollout_lockstep
+from mmpc.road import Road
 from mmpc.scenario import build_mpc, load_scenario
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -90,6 +94,12 @@ def test_minari_loads_the_demonstrations_and_iterates_their_episodes(demos_dir, 
         assert np.isfinite(episode.infos["residual_nonholonomic"][:-1]).all()
         # the ego's speed in the observation (feature vx, normalised by 80 m/s) is the road-frame v
         np.testing.assert_allclose(episode.observations[:, 0, 3] * 80.0, episode.infos["ego"][:, 3], atol=0.05)
+        # the 8 nearest other vehicles, nearest first (the ego's neighbours, what the policy reads)
+        neighbours = episode.infos["neighbours"]
+        assert neighbours.shape == (21, 8, 4) and np.isfinite(neighbours).all()  # 18 vehicles: every slot filled
+        scaled = ((neighbours[..., 0] - episode.infos["ego"][:, None, 0]) / 8) ** 2 + \
+                 ((neighbours[..., 1] - episode.infos["ego"][:, None, 1]) / 3) ** 2
+        assert (np.diff(scaled, axis=1) >= 0).all()
     # the env spec rebuilds highway-env with the scenario's configuration
     env = dataset.recover_environment()
     assert env.unwrapped.config["lanes_count"] == 6 and env.unwrapped.config["policy_frequency"] == 10.0
@@ -183,9 +193,10 @@ def test_behaviour_cloning_writes_a_checkpoint_tensorboard_and_a_held_out_loss(b
     assert [e.value for e in events.Scalars("val/loss")] == pytest.approx(report["val_loss_per_epoch"])
     # the checkpoint reproduces the trained statistics and bounds
     policy = load_policy(bc_run / "policy.pt")
+    assert policy.road == Road(num_lanes=6) and policy.config == PolicyConfig(hidden=(32, 32))
     data = dataset_transitions(open_dataset(demos_dir))
     with torch.no_grad():
-        command = policy(torch.as_tensor(data.observations), torch.as_tensor(data.commands))
+        command = policy(torch.as_tensor(policy.features(data.ego, data.neighbours)))
     assert command.shape == (60, 2)
     assert float(command[:, 0].abs().max()) <= 5.0 and float(command[:, 1].abs().max()) <= math.pi / 4
 
@@ -209,92 +220,198 @@ def test_cloned_policy_drives_as_bc_driver_and_writes_metrics(bc_run, tmp_path):
         make_driver(f"bc:{tmp_path / 'junk.pt'}", scenario)
 
 
+def test_nearest_neighbours_and_road_features_on_a_hand_made_scene():
+    road = Road(num_lanes=3)  # lane centres 0, 4, 8; edges -2 and 10
+    ego = np.array([[100.0, 4.5, 0.1, 10.0, 0.5, -0.2]])
+    vehicles = np.array([[[130.0, 4.0, 8.0, 0.0],    # r^2 = (30/8)^2 + (0.5/3)^2 = 14.09
+                          [90.0, 0.0, 12.0, 0.5],    # r^2 = (10/8)^2 + (4.5/3)^2 = 3.81: nearest
+                          [60.0, 8.0, 9.0, 0.0],     # masked out
+                          [110.0, 8.0, 9.0, 0.0]]])  # r^2 = 1.5625 + 1.36 = 2.92: nearest of all
+    mask = np.array([[True, True, False, True]])
+    near = nearest_neighbours(ego, vehicles, mask, count=4)
+    np.testing.assert_array_equal(near[0, :3], vehicles[0, [3, 1, 0]])
+    assert np.isnan(near[0, 3]).all()  # fewer real vehicles than slots
+    features = road_features(ego, near, road, FeatureConfig(neighbours=4, ego_command=True))
+    config = FeatureConfig(neighbours=4, ego_command=True)
+    assert features.shape == (1, config.size) == (1, 27) and len(config.names()) == 27
+    np.testing.assert_allclose(features[0, :7], [0.5, 6.5, 5.5, 0.1, 10.0, 0.5, -0.2], rtol=1e-6)
+    vx, vy = 10.0 * math.cos(0.1), 10.0 * math.sin(0.1)
+    np.testing.assert_allclose(features[0, 7:12], [1.0, 10.0, 3.5, 9.0 - vx, -vy], rtol=1e-5)
+    np.testing.assert_allclose(features[0, 12:17], [1.0, -10.0, -4.5, 12.0 - vx, 0.5 - vy], rtol=1e-5)
+    np.testing.assert_array_equal(features[0, 22:], 0.0)  # empty slot: presence 0 and zeros
+    # without the command and with fewer neighbours: a prefix of the same layout
+    short = road_features(ego, near, road, FeatureConfig(neighbours=1))
+    np.testing.assert_array_equal(short[0], np.concatenate([features[0, :5], features[0, 7:12]]))
+    with pytest.raises(ValueError, match=r"`neighbours` must have shape \(1, >= 4, 4\)"):
+        road_features(ego, near[:, :2], road, config)
+    with pytest.raises(ValueError, match="not finite"):
+        road_features(ego * np.nan, near, road, config)
+    with pytest.raises(ValueError, match=r"`neighbours` must be an int in \[0, 8\]"):
+        FeatureConfig(neighbours=9)
+    assert nearest_neighbours(ego, np.zeros((1, 0, 4)), None, 2).shape == (1, 2, 4)
+    # lane slots: ego lane 1 (y = 4.5); ahead in lane 2 the vehicle at x = 110, behind in lane 0 the one at 90,
+    # ahead in lane 1 the one at 130; the other three slots are empty
+    slotted = FeatureConfig(neighbours=0, lane_slots=True)
+    lanes = road_features(ego, near, road, slotted)[0, 5:].reshape(6, 5)  # (left ahead, left behind, own ..., right ...)
+    assert slotted.size == 35 and len(slotted.names()) == 35 and slotted.names()[5] == "lane-1_ahead_present"
+    np.testing.assert_array_equal(lanes[[0, 3, 5], 0], 0.0)
+    np.testing.assert_allclose(lanes[1], [1.0, -10.0, -4.5, 12.0 - vx, (12.0 - vx) / 5.0], rtol=1e-5)  # faster car behind
+    np.testing.assert_allclose(lanes[2], [1.0, 30.0, -0.5, 8.0 - vx, (vx - 8.0) / 25.0], rtol=1e-5)
+    np.testing.assert_allclose(lanes[4], [1.0, 10.0, 3.5, 9.0 - vx, (vx - 9.0) / 5.0], rtol=1e-5)
+
+
+def _synthetic_states(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    ego = np.column_stack([rng.uniform(0, 500, count), rng.uniform(0, 20, count), rng.normal(0, 0.05, count),
+                           rng.uniform(8, 16, count), rng.normal(0, 0.5, count), rng.normal(0, 0.05, count)])
+    neighbours = ego[:, None, :4] + rng.normal(0, 1, (count, 8, 4)) * np.array([30.0, 4.0, 3.0, 0.3])
+    neighbours[rng.random((count, 8)) < 0.2] = np.nan
+    return ego.astype(np.float32), neighbours.astype(np.float32)
+
+
 def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
-    rng = np.random.default_rng(0)
-    observations = rng.normal(size=(2000, 5, 5)).astype(np.float32)
-    commands = rng.normal(size=(2000, 2)).astype(np.float32)
-    actions = np.stack([np.tanh(observations[:, 1, 1]) * 2 + 0.5 * commands[:, 0],
-                        0.1 * observations[:, 2, 2] + 0.05 * commands[:, 1]], axis=1).astype(np.float32)
-    data = Transitions(observations, commands, actions, np.repeat(np.arange(20), 100))
-    policy, history = train_policy(data, TrainConfig(epochs=30, batch_size=64, policy=PolicyConfig(hidden=(64, 64))))
+    road = Road()
+    ego, neighbours = _synthetic_states(2000)
+    config = PolicyConfig(hidden=(64, 64), neighbours=2)
+    features = road_features(ego, neighbours, road, config.features)
+    # acceleration from the first neighbour's gap, steering from the lane offset and heading
+    actions = np.stack([np.tanh(features[:, 6] / 20.0) * 2, -0.05 * features[:, 0] - 0.5 * features[:, 3]], axis=1)
+    data = Transitions(ego, neighbours, actions.astype(np.float32), np.repeat(np.arange(20), 100))
+    policy, history = train_policy(data, road, TrainConfig(epochs=30, batch_size=64, policy=config))
     assert history.val_loss[history.best_epoch] < 0.05  # standardised: 1.0 is the mean predictor
     rmse_acc, rmse_steer = history.val_rmse[history.best_epoch]
     assert rmse_acc < 0.3 and rmse_steer < 0.02
     save_policy(tmp_path / "p.pt", policy, scenario="synthetic")
     again = load_policy(tmp_path / "p.pt")
-    probe, probe_commands = torch.as_tensor(observations[:5]), torch.as_tensor(commands[:5])
-    torch.testing.assert_close(again(probe, probe_commands), policy(probe, probe_commands))
-    # the driver runs the folded network (statistics inside the layers): the same commands
-    from mmpc.drivers import Observation
-
-    ego = torch.zeros(5, 6)
-    ego[:, 4:6] = probe_commands
-    decision = PolicyDriver(policy).decide(Observation(ego, torch.zeros(5, 0, 4), None, observations[:5]))
+    probe = torch.as_tensor(features[:5])
+    torch.testing.assert_close(again(probe), policy(probe))
+    # the driver picks the neighbours itself and runs the folded network: the same commands
+    vehicles = torch.as_tensor(np.nan_to_num(neighbours[:5], nan=1e4))  # "absent" vehicles far away ...
+    mask = torch.as_tensor(np.isfinite(neighbours[:5]).all(axis=2))  # ... and masked out
+    decision = PolicyDriver(policy).decide(Observation(torch.as_tensor(ego[:5]), vehicles, mask))
+    near = nearest_neighbours(ego[:5], neighbours[:5])  # NaN rows are no vehicles either
     with torch.no_grad():
-        expected = policy(probe, probe_commands)
+        expected = policy(torch.as_tensor(policy.features(ego[:5], near)))
     torch.testing.assert_close(torch.stack([decision.acceleration, decision.steering], dim=1), expected, atol=1e-5, rtol=1e-5)
-    with pytest.raises(ValueError, match=r"shape \(B, 5, 5\)"):
-        policy(torch.zeros(2, 4, 5), torch.zeros(2, 2))
-    with pytest.raises(ValueError, match=r"`ego_command` must have shape \(2, 2\); got None"):
-        policy(torch.zeros(2, 5, 5))
+    with pytest.raises(ValueError, match=r"shape \(B, 15\)"):
+        policy(torch.zeros(2, 14))
+    bad = data._replace(actions=actions * np.nan)
     with pytest.raises(ValueError, match="NaN"):
-        train_policy(Transitions(observations * np.nan, commands, actions, data.episodes), TrainConfig(epochs=1))
+        train_policy(bad, road, TrainConfig(epochs=1))
     with pytest.raises(ValueError, match="`hidden`"):
         PolicyConfig(hidden=())
     with pytest.raises(ValueError, match="unknown key"):
         TrainConfig.from_dict({"epoch": 3})
+    with pytest.raises(ValueError, match="was trained on Road"):
+        make_driver(f"bc:{tmp_path / 'p.pt'}", short_cruise().replace(lanes=4))
+
+
+def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
+    scenario = short_cruise(1.0)
+    expert = MPCDriver(build_mpc(scenario))
+    policy = MLPPolicy(scenario.road, PolicyConfig(hidden=(8,)))
+    learner = PolicyDriver(policy)
+    with torch.inference_mode():
+        rollouts = rollout_lockstep(scenario, [5, 6], MixtureDriver(expert, learner, 0.5, np.random.default_rng(0)),
+                                    keep_states=True)
+        labels, expert_steps = label_rollouts(expert, rollouts, batch=8)
+        relabelled = [label_states(expert, r.states, batch=8) for r in rollouts]
+        states = [state for r in rollouts for state in r.states]
+        learner_only = MixtureDriver(expert, learner, 0.0, np.random.default_rng(0)).decide(states[0])
+        expert_only = MixtureDriver(expert, learner, 1.0, np.random.default_rng(0)).decide(states[0])
+    drove = [r.episode.infos["feasible_goals"][:-1] >= 0 for r in rollouts]
+    assert expert_steps == sum(int(d.sum()) for d in drove) and 0 < expert_steps < 20  # about half of 20 steps
+    for rollout, label, again, expert_drove in zip(rollouts, labels, relabelled, drove):
+        np.testing.assert_array_equal(label[expert_drove], rollout.episode.actions[expert_drove])
+        np.testing.assert_allclose(label, again, atol=2e-3)  # every label is the expert's command at that state
+        assert not np.allclose(rollout.episode.actions[~expert_drove], again[~expert_drove], atol=2e-3)
+    assert int(learner_only.goal_index[0]) == -1 and int(expert_only.goal_index[0]) >= 0
+    with torch.inference_mode():
+        np.testing.assert_allclose(float(expert_only.acceleration[0]), float(expert.decide(states[0]).acceleration[0]))
+        # DART: the expert drives with noise on its commands; every step is relabelled with its clean command
+        noisy = rollout_lockstep(scenario, [7], NoisyDriver(expert, (0.5, 0.01), np.random.default_rng(1)), keep_states=True)
+        clean, _ = label_rollouts(expert, noisy, batch=8, noisy=True)
+        np.testing.assert_allclose(clean[0], label_states(expert, noisy[0].states, batch=8), atol=2e-3)
+        # a reversing ego (outside the MPC's domain): the learner drives it even at beta = 1, and it gets no label
+        reversing = states[0]._replace(ego=states[0].ego.clone())
+        reversing.ego[0, 3] = -0.5
+        assert int(MixtureDriver(expert, learner, 1.0, np.random.default_rng(0)).decide(reversing).goal_index[0]) == -1
+        backwards = noisy[0]._replace(episode=noisy[0].episode._replace(infos=dict(noisy[0].episode.infos)))
+        backwards.episode.infos["ego"] = backwards.episode.infos["ego"].copy()
+        backwards.episode.infos["ego"][3, 3] = -0.5
+        dropped, _ = label_rollouts(expert, [backwards], batch=8, noisy=True)
+        assert np.isnan(dropped[0][3]).all() and np.isfinite(np.delete(dropped[0], 3, axis=0)).all()
+    error = noisy[0].episode.actions - clean[0]
+    assert 0.2 < error[:, 0].std() < 0.9 and 0.004 < error[:, 1].std() < 0.02  # the executed commands carry the noise
+    with pytest.raises(ValueError, match="`beta` must be in"):
+        DaggerConfig(beta=1.5)
+    with pytest.raises(ValueError, match="`noise` must be two finite stds"):
+        DaggerConfig(noise=(0.5, -0.1))
 
 
 def test_sb3_export_acts_like_the_cloned_policy(bc_run, demos_dir, tmp_path):
     import gymnasium as gym
     from stable_baselines3.common.policies import ActorCriticPolicy
 
-    from mmpc.highway import command_to_action, env_config
-    from mmpc.imitation.export import EgoCommandObservation, export_sb3, ppo_from_policy
+    from mmpc.highway import RoadFrame, command_to_action, env_config, road_state
+    from mmpc.imitation.export import RoadFeatureObservation, export_sb3, ppo_from_policy
 
     path = export_sb3(bc_run / "policy.pt", tmp_path / "sb3_policy.zip")
     sb3 = ActorCriticPolicy.load(str(path))
     policy = load_policy(bc_run / "policy.pt")
     data = dataset_transitions(open_dataset(demos_dir))
-    flat = np.concatenate([data.observations.reshape(len(data.actions), -1), data.commands], axis=1)
-    actions, _ = sb3.predict(flat, deterministic=True)
+    features = policy.features(data.ego, data.neighbours)
+    actions, _ = sb3.predict(features, deterministic=True)
     with torch.no_grad():
-        commands = policy(torch.as_tensor(data.observations), torch.as_tensor(data.commands))
+        commands = policy(torch.as_tensor(features))
     expected = np.stack([command_to_action(*c) for c in commands.tolist()])
     np.testing.assert_allclose(actions, expected, atol=1e-5)
 
-    # PPO on the wrapped highway-env starts from the same actor; the wrapper reads what the driver reads
+    # PPO on the wrapped highway-env starts from the same actor; the wrapper computes what the driver computes
     scenario = short_cruise()
     env = gym.make(scenario.env_id, config=env_config(scenario))
     model = ppo_from_policy(bc_run / "policy.pt", env, n_steps=8, batch_size=8)
-    ppo_actions, _ = model.predict(flat[:10], deterministic=True)
+    assert model.observation_space.shape == (policy.input_size,)
+    ppo_actions, _ = model.predict(features[:10], deterministic=True)
     np.testing.assert_allclose(ppo_actions, expected[:10], atol=1e-5)
-    wrapped = EgoCommandObservation(gym.make(scenario.env_id, config=env_config(scenario)))
+    wrapped = RoadFeatureObservation(gym.make(scenario.env_id, config=env_config(scenario)), policy.road,
+                                     policy.config.features)
     observation, _ = wrapped.reset(seed=0)
     for _ in range(3):
         observation, *_ = wrapped.step(np.array([0.4, 0.1], dtype=np.float32))
-    from mmpc.highway import RoadFrame, road_state
-
     state = road_state(wrapped.unwrapped, RoadFrame.of(wrapped.unwrapped))
-    np.testing.assert_allclose(observation[-2:], state.ego[0, 4:6].numpy(), rtol=1e-5)
-    np.testing.assert_allclose(observation[:-2], wrapped.unwrapped.observation_type.observe().ravel(), rtol=1e-6)
+    driver_view = policy.features(state.ego.numpy(), nearest_neighbours(state.ego.numpy(), state.vehicles.numpy()))
+    assert observation.shape == (policy.input_size,)
+    np.testing.assert_allclose(observation, driver_view[0], rtol=1e-6)
     env.close()
     wrapped.close()
 
 
-@pytest.mark.slow
-def test_dagger_round_trip_labels_the_learners_states(tmp_path):
-    scenario = short_cruise(3.0)
-    config = DaggerConfig(iterations=1, initial_episodes=2, episodes_per_iteration=2, lockstep=2, label_batch=16,
-                          train=TrainConfig(epochs=5, batch_size=32, policy=PolicyConfig(hidden=(32,))))
+def test_dagger_aggregates_labelled_rounds_and_resumes(tmp_path):
+    scenario = short_cruise(0.5)  # 5 steps per episode
+    config = DaggerConfig(iterations=1, initial_episodes=2, episodes_per_iteration=2, beta=0.5, noise=(0.3, 0.005),
+                          lockstep=2, label_batch=4,
+                          train=TrainConfig(epochs=2, batch_size=4, policy=PolicyConfig(hidden=(8,))))
     report = run_dagger(scenario, tmp_path, config)
     first, second = report["rounds"]
-    assert first["source"] == "expert" and second["source"] == "learner"
-    assert second["samples"] == first["samples"] + second["steps"]
+    assert first["source"] == "expert" and first["steps"] == 10 and second["source"] == "mixture"
+    assert second["beta"] == 0.5 and 0.0 <= second["expert_share"] <= 1.0
+    assert second["samples"] == first["samples"] + second["steps"] == 20
     data = np.load(tmp_path / "data.npz")
-    assert data["actions"].shape == (second["samples"], 2)
+    assert data["actions"].shape == (20, 2) and data["neighbours"].shape == (20, 8, 4)
     assert len(np.unique(data["episodes"])) == 4
     assert (tmp_path / "policy.pt").is_file() and (tmp_path / "round_1" / "policy.pt").is_file()
+    assert json.loads((tmp_path / "dagger.json").read_text())["rounds"] == report["rounds"]
+
+    # a re-run with more iterations keeps rounds 0-1 (their files untouched) and adds round 2
+    stamp = (tmp_path / "round_1" / "policy.pt").stat().st_mtime_ns
+    seen = []
+    extended = run_dagger(scenario, tmp_path, dataclasses.replace(config, iterations=2), on_round=seen.append)
+    assert [e["round"] for e in seen] == [0, 1, 2] and extended["rounds"][:2] == report["rounds"]
+    assert extended["rounds"][2]["samples"] == 30 and extended["rounds"][2]["beta"] == 0.25
+    assert (tmp_path / "round_1" / "policy.pt").stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError, match="differs in: config"):
+        run_dagger(scenario, tmp_path, dataclasses.replace(config, beta=0.1))
 
 
 def test_cli_evaluates_expert_and_policy_side_by_side_and_benchmarks_them(bc_run, tmp_path, capsys):
