@@ -99,19 +99,9 @@ def memory_bandwidth(device: torch.device, megabytes: int = 256) -> float:
 
 
 def time_solver(solve: Callable[[], object], device: torch.device, repeats: int, warmup: int, budget: float) -> list[float]:
-    """Wall times [ms] of ``solve()`` after ``warmup`` calls."""
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    for _ in range(warmup):
-        solve()
-    sync()
-    samples: list[float] = []
-    start = time.perf_counter()
-    while len(samples) < repeats and (len(samples) < 3 or time.perf_counter() - start < budget):
-        t0 = time.perf_counter()
-        solve()
-        sync()
-        samples.append((time.perf_counter() - t0) * 1e3)
-    return samples
+    """Wall times [ms] of ``solve()`` after ``warmup`` calls (:func:`time_interleaved` of one solve)."""
+    wall, _ = time_interleaved({"solve": solve}, device, repeats, warmup, budget)["solve"]
+    return wall
 
 
 def time_interleaved(
