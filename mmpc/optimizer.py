@@ -17,6 +17,9 @@ One iteration, for every (problem, goal) element at once:
    reused by the next position QP.
 
 There is no Python branching on tensor values and no host synchronisation inside the loop.
+Compiled for the CPU, the iterations take sin, cos and atan2 from :mod:`mmpc.trig` (short
+polynomials the compiler fuses into the loops, float32-exact for headings below 1e4 rad) and
+contract multiply-adds; eager and on the GPU they use the torch functions.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from typing import NamedTuple, Optional
 import torch
 from torch import nn
 
+from mmpc import trig
 from mmpc.basis import bernstein_basis
 from mmpc.config import OptimizerConfig
 from mmpc.operators import build_operators
@@ -133,7 +137,10 @@ class BatchOptimizer(nn.Module):
         self.register_buffer("semi_axes", semi_axes, persistent=False)
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
-        self._limits = _Limits(cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b)
+        on_cpu = torch.device(device or "cpu").type == "cpu"
+        self._limits = _Limits(
+            cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=compile and on_cpu
+        )
         self.compiled = compile
         self._start, self._summarise, self._iterate = _start, _summarise, _iterate
         self.chunk = self.config.iterations
@@ -142,14 +149,15 @@ class BatchOptimizer(nn.Module):
             # operators are arguments), so compile time stays bounded while the per-call
             # overhead is paid once per chunk rather than once per iteration.
             self.chunk = min(_COMPILED_CHUNK, self.config.iterations)
-            if torch.device(device or "cpu").type == "cuda":
+            if not on_cpu:
                 # "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
                 self._iterate = torch.compile(_iterate, fullgraph=True, mode="reduce-overhead")
             else:
                 # A C++ wrapper calls the kernels, without Python between them; the cold start
                 # and the outputs are compiled too (at small batch their eager op-by-op
-                # dispatch would cost as much as the iterations).
-                options = {"cpp_wrapper": True}
+                # dispatch would cost as much as the iterations). Multiply-adds contract to
+                # fused multiply-adds (one rounding instead of two).
+                options = {"cpp_wrapper": True, "cpp.enable_floating_point_contract_flag": "fast"}
                 self._start = torch.compile(_start, fullgraph=True, options=options)
                 self._summarise = torch.compile(_summarise, fullgraph=True, options=options)
                 self._iterate = torch.compile(_iterate, fullgraph=True, options=options)
@@ -293,6 +301,12 @@ class _Limits(NamedTuple):
     heading: Optional[float]  # rad, the band the heading targets are clipped to; None: unclipped
     ellipse_a: float  # m, obstacle ellipse semi-axis along x
     ellipse_b: float  # m, along y
+    polynomial_trig: bool = False  # sin, cos, atan2 from mmpc.trig (compiled CPU path) or torch
+
+
+def _atan2(y: torch.Tensor, x: torch.Tensor, limits: _Limits) -> torch.Tensor:
+    """Elementwise angle of (x, y) [rad], from the implementation ``limits`` selects."""
+    return trig.atan2(y, x) if limits.polynomial_trig else torch.atan2(y, x)
 
 
 class _State(NamedTuple):
@@ -342,7 +356,7 @@ def _iterate(
         stacked = torch.cat([c, scaled_residual, multipliers, b_position])
         c = _position_qp(position[u], stacked, num_problems)
         samples = (samples_operator @ c).view(3 * n, 2, num_problems, num_goals)
-        psi_target = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0]).view(n, -1)  # (N, B)
+        psi_target = _atan2(samples[2 * n :, 1], samples[2 * n :, 0], limits).view(n, -1)  # (N, B)
         if limits.heading is not None:
             psi_target = psi_target.clamp(-limits.heading, limits.heading)
         heading_rhs = torch.cat([psi_target, multipliers_psi, b_heading])
@@ -382,7 +396,8 @@ def _closed_form_steps(
     """
     n = psi.shape[0]
     position, acceleration, velocity = samples[:n], samples[n : 2 * n], samples[2 * n :]
-    heading = torch.stack([torch.cos(psi), torch.sin(psi)], dim=1)  # (N, 2, E, G)
+    sin, cos = trig.sincos(psi) if limits.polynomial_trig else (torch.sin(psi), torch.cos(psi))
+    heading = torch.stack([cos, sin], dim=1)  # (N, 2, E, G)
     speed = (velocity * heading).sum(dim=1).clamp(limits.v_min, limits.v_max)
     velocity_residual = torch.addcmul(velocity, speed.unsqueeze(1), heading, value=-1.0)
 
@@ -415,8 +430,9 @@ def _obstacle_offsets(
         the sums over M fuse into one pass over the positions.
     """
     # x and y as separate contiguous planes: far fewer memory passes than an axis dimension.
-    offset_x = position[:, 0] / limits.ellipse_a - obstacles[:, :, 0]
-    offset_y = position[:, 1] / limits.ellipse_b - obstacles[:, :, 1]
+    # Products with the reciprocals: a vector division costs several multiplications.
+    offset_x = position[:, 0] * (1.0 / limits.ellipse_a) - obstacles[:, :, 0]
+    offset_y = position[:, 1] * (1.0 / limits.ellipse_b) - obstacles[:, :, 1]
     distance_squared = offset_x * offset_x + offset_y * offset_y
     outward = distance_squared.clamp_min(_EPS_SQUARED).rsqrt().sub(1.0).clamp_min(0.0)
     return offset_x, offset_y, outward
@@ -463,7 +479,7 @@ def _start(
     n = samples_operator.shape[0] // 3
     c = position_init @ b_position  # (K, 2B)
     samples = (samples_operator @ c).view(3 * n, 2, num_problems, -1)
-    psi = torch.atan2(samples[2 * n :, 1], samples[2 * n :, 0])
+    psi = _atan2(samples[2 * n :, 1], samples[2 * n :, 0], limits)
     residuals = _closed_form_steps(samples, psi, obstacles, limits)
     return _State(
         c=c,
