@@ -55,9 +55,26 @@ def read_config_yaml(name_or_path: str | Path, directory: Path, what: str, listi
         return path, yaml.safe_load(handle) or {}
 
 
-def _require(condition: bool, message: str) -> None:
+def require(condition: bool, message: str) -> None:
+    """Raise ``ValueError(message)`` unless ``condition``: the check every config validator uses."""
     if not condition:
         raise ValueError(message)
+
+
+def is_finite_number(value: Any) -> bool:
+    """A real int or float (not a bool) that is neither NaN nor infinite."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def require_positive(where: str, **values: Any) -> None:
+    """Check that every keyword value is a finite number > 0.
+
+    The message names the field and the value that came: ``"{where}: `name` must be a finite
+    number > 0; got value"`` (without the ``where`` prefix when it is empty).
+    """
+    prefix = f"{where}: " if where else ""
+    for name, value in values.items():
+        require(is_finite_number(value) and value > 0, f"{prefix}`{name}` must be a finite number > 0; got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -119,42 +136,42 @@ class OptimizerConfig:
     def __post_init__(self) -> None:
         for name in ("num_steps", "order", "iterations", "max_obstacles"):
             value = getattr(self, name)
-            _require(
+            require(
                 isinstance(value, int) and not isinstance(value, bool),
                 f"`{name}` must be an int; got {value!r}",
             )
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if isinstance(value, float):
-                _require(math.isfinite(value), f"`{field.name}` must be finite; got {value}")
-        _require(self.horizon > 0, f"`horizon` must be > 0 s; got {self.horizon}")
-        _require(self.num_steps >= 2, f"`num_steps` must be >= 2; got {self.num_steps}")
-        _require(3 <= self.order <= 30, f"`order` must be in [3, 30]; got {self.order}")
-        _require(self.iterations >= 1, f"`iterations` must be >= 1; got {self.iterations}")
-        _require(self.rho_init > 0, f"`rho_init` must be > 0; got {self.rho_init}")
-        _require(self.rho_growth >= 1, f"`rho_growth` must be >= 1; got {self.rho_growth}")
-        _require(
+                require(math.isfinite(value), f"`{field.name}` must be finite; got {value}")
+        require(self.horizon > 0, f"`horizon` must be > 0 s; got {self.horizon}")
+        require(self.num_steps >= 2, f"`num_steps` must be >= 2; got {self.num_steps}")
+        require(3 <= self.order <= 30, f"`order` must be in [3, 30]; got {self.order}")
+        require(self.iterations >= 1, f"`iterations` must be >= 1; got {self.iterations}")
+        require(self.rho_init > 0, f"`rho_init` must be > 0; got {self.rho_init}")
+        require(self.rho_growth >= 1, f"`rho_growth` must be >= 1; got {self.rho_growth}")
+        require(
             self.rho_init * self.rho_growth ** (self.iterations - 1) < 1e8,
             "`rho_init * rho_growth**(iterations - 1)` must stay below 1e8 (conditioning); "
             f"got {self.rho_init * self.rho_growth ** (self.iterations - 1):.3g}",
         )
-        _require(self.weight_xy > 0, f"`weight_xy` must be > 0; got {self.weight_xy}")
-        _require(self.weight_psi > 0, f"`weight_psi` must be > 0; got {self.weight_psi}")
-        _require(self.ellipse_a > 0, f"`ellipse_a` must be > 0 m; got {self.ellipse_a}")
-        _require(self.ellipse_b > 0, f"`ellipse_b` must be > 0 m; got {self.ellipse_b}")
-        _require(self.a_max > 0, f"`a_max` must be > 0 m/s^2; got {self.a_max}")
-        _require(self.v_min >= 0, f"`v_min` must be >= 0 m/s; got {self.v_min}")
-        _require(
+        require(self.weight_xy > 0, f"`weight_xy` must be > 0; got {self.weight_xy}")
+        require(self.weight_psi > 0, f"`weight_psi` must be > 0; got {self.weight_psi}")
+        require(self.ellipse_a > 0, f"`ellipse_a` must be > 0 m; got {self.ellipse_a}")
+        require(self.ellipse_b > 0, f"`ellipse_b` must be > 0 m; got {self.ellipse_b}")
+        require(self.a_max > 0, f"`a_max` must be > 0 m/s^2; got {self.a_max}")
+        require(self.v_min >= 0, f"`v_min` must be >= 0 m/s; got {self.v_min}")
+        require(
             self.v_max > self.v_min,
             f"`v_max` must exceed `v_min`; got v_min={self.v_min}, v_max={self.v_max}",
         )
-        _require(self.max_obstacles >= 0, f"`max_obstacles` must be >= 0; got {self.max_obstacles}")
-        _require(
+        require(self.max_obstacles >= 0, f"`max_obstacles` must be >= 0; got {self.max_obstacles}")
+        require(
             0 < self.max_heading_deg < 90,
             f"`max_heading_deg` must be in (0, 90); got {self.max_heading_deg}",
         )
         if self.heading_target_deg is not None:
-            _require(
+            require(
                 isinstance(self.heading_target_deg, (int, float))
                 and not isinstance(self.heading_target_deg, bool)
                 and 0 < self.heading_target_deg <= self.max_heading_deg,
@@ -167,7 +184,7 @@ class OptimizerConfig:
             "nonholonomic_tolerance",
             "speed_tolerance",
         ):
-            _require(getattr(self, name) >= 0, f"`{name}` must be >= 0; got {getattr(self, name)}")
+            require(getattr(self, name) >= 0, f"`{name}` must be >= 0; got {getattr(self, name)}")
 
     @property
     def dt(self) -> float:

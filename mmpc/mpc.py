@@ -15,7 +15,7 @@ from typing import Callable, NamedTuple, Optional
 
 import torch
 
-from mmpc.config import dataclass_from_dict
+from mmpc.config import dataclass_from_dict, require_positive
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
@@ -70,10 +70,8 @@ class MPCConfig:
             raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
         if not (isinstance(self.road_margin, (int, float)) and math.isfinite(self.road_margin) and self.road_margin >= 0):
             raise ValueError(f"`road_margin` must be a finite number >= 0 m; got {self.road_margin!r}")
-        for name in ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_steering"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be a finite number > 0; got {value!r}")
+        names = ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_steering")
+        require_positive("", **{name: getattr(self, name) for name in names})
 
     @classmethod
     def from_dict(cls, values) -> "MPCConfig":

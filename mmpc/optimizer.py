@@ -131,10 +131,6 @@ class BatchOptimizer(nn.Module):
         for name, value in operators._asdict().items():
             self.register_buffer(name, value.to(dtype=dtype, device=device), persistent=False)
         self.register_buffer("times", basis.times.to(dtype=dtype, device=device), persistent=False)
-        semi_axes = torch.tensor(
-            [self.config.ellipse_a, self.config.ellipse_b], dtype=dtype, device=device
-        ).view(2, 1, 1)
-        self.register_buffer("semi_axes", semi_axes, persistent=False)
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
@@ -259,7 +255,8 @@ class BatchOptimizer(nn.Module):
         relative = obstacles - origin[:, None, None, :]  # (E, M, N, 2)
         parked = torch.full_like(relative, _PARKED_DISTANCE)
         relative = torch.where(mask[:, :, None, None], relative, parked)
-        scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / self.semi_axes  # (M, N, 2, E, 1)
+        semi_axes = relative.new_tensor([cfg.ellipse_a, cfg.ellipse_b]).view(2, 1, 1)
+        scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / semi_axes  # (M, N, 2, E, 1)
 
         counts = mask.sum(dim=1)
         count_values = counts.unique()

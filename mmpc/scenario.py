@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
 
-from mmpc.config import OptimizerConfig, dataclass_from_dict, read_config_yaml
+from mmpc.config import OptimizerConfig, dataclass_from_dict, read_config_yaml, require, require_positive
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig
@@ -46,23 +46,10 @@ HIGHWAY_HEADING_TARGET_DEG = 7.2
 SCENARIO_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
 
-def _require(condition: bool, message: str) -> None:
-    if not condition:
-        raise ValueError(message)
-
-
-def _positive(where: str, **values: float) -> None:
-    for name, value in values.items():
-        _require(
-            isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0,
-            f"{where}: `{name}` must be a finite number > 0; got {value!r}",
-        )
-
-
 def _speeds(where: str, name: str, values: tuple[float, ...]) -> None:
-    _require(isinstance(values, tuple), f"{where}: `{name}` must be a list of speeds [m/s]; got {values!r}")
+    require(isinstance(values, tuple), f"{where}: `{name}` must be a list of speeds [m/s]; got {values!r}")
     for value in values:
-        _positive(where, **{name: value})
+        require_positive(where, **{name: value})
 
 
 # ----------------------------------------------------------------------------------- objectives
@@ -70,7 +57,7 @@ def _speeds(where: str, name: str, values: tuple[float, ...]) -> None:
 
 def _near_lane_goals(where: str, speeds: tuple[float, ...], lanes: Optional[int]) -> None:
     _speeds(where, "near_lane_speeds", speeds)
-    _require(lanes is None or (isinstance(lanes, int) and lanes >= 0),
+    require(lanes is None or (isinstance(lanes, int) and lanes >= 0),
              f"{where}: `near_lanes` must be null (every lane) or an int >= 0; got {lanes!r}")
 
 
@@ -94,7 +81,7 @@ class CruiseObjective:
     near_lanes: Optional[int] = 1
 
     def __post_init__(self) -> None:
-        _positive("objective cruise", v_cruise=self.v_cruise)
+        require_positive("objective cruise", v_cruise=self.v_cruise)
         _near_lane_goals("objective cruise", self.near_lane_speeds, self.near_lanes)
 
     @property
@@ -152,7 +139,7 @@ class HighSpeedObjective:
     near_lanes: Optional[int] = 1
 
     def __post_init__(self) -> None:
-        _positive("objective high_speed", v_max=self.v_max, w_speed=self.w_speed, w_lane=self.w_lane)
+        require_positive("objective high_speed", v_max=self.v_max, w_speed=self.w_speed, w_lane=self.w_lane)
         _near_lane_goals("objective high_speed", self.near_lane_speeds, self.near_lanes)
         self._layout()  # validates the layout fields
 
@@ -218,16 +205,16 @@ class IDMTraffic:
 
     def __post_init__(self) -> None:
         where = "traffic idm"
-        _require(isinstance(self.vehicles_count, int) and self.vehicles_count >= 0,
+        require(isinstance(self.vehicles_count, int) and self.vehicles_count >= 0,
                  f"{where}: `vehicles_count` must be an int >= 0; got {self.vehicles_count!r}")
-        _positive(where, vehicles_density=self.vehicles_density, initial_clearance=self.initial_clearance)
-        _require(isinstance(self.lane_changes, bool), f"{where}: `lane_changes` must be true or false; got {self.lane_changes!r}")
+        require_positive(where, vehicles_density=self.vehicles_density, initial_clearance=self.initial_clearance)
+        require(isinstance(self.lane_changes, bool), f"{where}: `lane_changes` must be true or false; got {self.lane_changes!r}")
         if self.target_speeds is not None:
-            _require(len(self.target_speeds) == 2 and 0 < self.target_speeds[0] <= self.target_speeds[1],
+            require(len(self.target_speeds) == 2 and 0 < self.target_speeds[0] <= self.target_speeds[1],
                      f"{where}: `target_speeds` must be [low, high] with 0 < low <= high m/s; got {self.target_speeds!r}")
         if self.window is not None:
-            _require(len(self.window) == 2, f"{where}: `window` must be [behind, ahead] in m; got {self.window!r}")
-            _positive(where, window_behind=self.window[0], window_ahead=self.window[1])
+            require(len(self.window) == 2, f"{where}: `window` must be [behind, ahead] in m; got {self.window!r}")
+            require_positive(where, window_behind=self.window[0], window_ahead=self.window[1])
 
 
 @dataclass(frozen=True)
@@ -250,9 +237,9 @@ class ScriptedVehicle:
     constant_speed: bool = False
 
     def __post_init__(self) -> None:
-        _require(isinstance(self.lane, int) and self.lane >= 0, f"scripted vehicle: `lane` must be an int >= 0; got {self.lane!r}")
-        _require(isinstance(self.x, (int, float)) and math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
-        _require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
+        require(isinstance(self.lane, int) and self.lane >= 0, f"scripted vehicle: `lane` must be an int >= 0; got {self.lane!r}")
+        require(isinstance(self.x, (int, float)) and math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
+        require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
 
 
 @dataclass(frozen=True)
@@ -294,10 +281,10 @@ class NGSIMTraffic:
     initial_clearance: float = 15.0
 
     def __post_init__(self) -> None:
-        _require(isinstance(self.path, str) and self.path != "", "traffic ngsim: `path` must name the NGSIM CSV file")
-        _require(self.start_time >= 0, f"traffic ngsim: `start_time` must be >= 0 s; got {self.start_time!r}")
-        _positive("traffic ngsim", lane_width_ft=self.lane_width_ft, initial_clearance=self.initial_clearance)
-        _require(math.isfinite(self.ego_position), f"traffic ngsim: `ego_position` must be finite; got {self.ego_position!r}")
+        require(isinstance(self.path, str) and self.path != "", "traffic ngsim: `path` must name the NGSIM CSV file")
+        require(self.start_time >= 0, f"traffic ngsim: `start_time` must be >= 0 s; got {self.start_time!r}")
+        require_positive("traffic ngsim", lane_width_ft=self.lane_width_ft, initial_clearance=self.initial_clearance)
+        require(math.isfinite(self.ego_position), f"traffic ngsim: `ego_position` must be finite; got {self.ego_position!r}")
 
 
 Traffic = Union[IDMTraffic, ScriptedTraffic, NGSIMTraffic]
@@ -320,8 +307,8 @@ class EgoConfig:
     lane: Optional[int] = None
 
     def __post_init__(self) -> None:
-        _require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"ego: `speed` must be >= 0 m/s; got {self.speed!r}")
-        _require(self.lane is None or (isinstance(self.lane, int) and self.lane >= 0),
+        require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"ego: `speed` must be >= 0 m/s; got {self.speed!r}")
+        require(self.lane is None or (isinstance(self.lane, int) and self.lane >= 0),
                  f"ego: `lane` must be null or an int >= 0; got {self.lane!r}")
 
 
@@ -366,23 +353,23 @@ class ScenarioConfig:
 
     def __post_init__(self) -> None:
         where = f"scenario {self.name!r}"
-        _require(isinstance(self.objective, tuple(OBJECTIVES.values())), f"{where}: `objective` must be one of {sorted(OBJECTIVES)}")
-        _require(isinstance(self.traffic, tuple(TRAFFIC.values())), f"{where}: `traffic` must be one of {sorted(TRAFFIC)}")
-        _require(isinstance(self.lanes, int) and self.lanes >= 1, f"{where}: `lanes` must be an int >= 1; got {self.lanes!r}")
-        _positive(where, duration=self.duration, frequency=self.frequency)
-        _require(isinstance(self.seeds, tuple) and len(self.seeds) > 0 and all(isinstance(s, int) and s >= 0 for s in self.seeds),
+        require(isinstance(self.objective, tuple(OBJECTIVES.values())), f"{where}: `objective` must be one of {sorted(OBJECTIVES)}")
+        require(isinstance(self.traffic, tuple(TRAFFIC.values())), f"{where}: `traffic` must be one of {sorted(TRAFFIC)}")
+        require(isinstance(self.lanes, int) and self.lanes >= 1, f"{where}: `lanes` must be an int >= 1; got {self.lanes!r}")
+        require_positive(where, duration=self.duration, frequency=self.frequency)
+        require(isinstance(self.seeds, tuple) and len(self.seeds) > 0 and all(isinstance(s, int) and s >= 0 for s in self.seeds),
                  f"{where}: `seeds` must be a non-empty list of ints >= 0; got {self.seeds!r}")
-        _require(self.ego.lane is None or self.ego.lane < self.lanes,
+        require(self.ego.lane is None or self.ego.lane < self.lanes,
                  f"{where}: `ego.lane` must be < lanes={self.lanes}; got {self.ego.lane}")
         if isinstance(self.traffic, ScriptedTraffic):
             for vehicle in self.traffic.vehicles:
-                _require(vehicle.lane < self.lanes, f"{where}: scripted vehicle lane {vehicle.lane} must be < lanes={self.lanes}")
-        _require(
+                require(vehicle.lane < self.lanes, f"{where}: scripted vehicle lane {vehicle.lane} must be < lanes={self.lanes}")
+        require(
             self.optimizer.v_max >= self.objective.top_speed,
             f"{where}: `optimizer.v_max` ({self.optimizer.v_max} m/s) must be >= the objective's speed "
             f"({self.objective.top_speed} m/s)",
         )
-        _require(
+        require(
             self.mpc.num_obstacles <= self.optimizer.max_obstacles,
             f"{where}: `mpc.num_obstacles` ({self.mpc.num_obstacles}) must be <= `optimizer.max_obstacles` "
             f"({self.optimizer.max_obstacles})",

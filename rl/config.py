@@ -15,28 +15,18 @@ This module imports neither highway-env nor stable-baselines3.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 
-from mmpc.config import dataclass_from_dict, read_config_yaml
+from mmpc.config import dataclass_from_dict, is_finite_number, read_config_yaml, require, require_positive
 from mmpc.scenario import CruiseObjective, EgoConfig, IDMTraffic, ScenarioConfig, load_scenario
 
 #: Algorithms ``mmpc train-rl`` knows, with the action space each trains on by default.
 ALGORITHMS: dict[str, str] = {"dqn": "discrete", "ppo": "discrete", "sac": "continuous"}
 #: Action spaces each algorithm supports (stable-baselines3: DQN discrete only, SAC Box only).
 SUPPORTED_ACTIONS: dict[str, tuple[str, ...]] = {"dqn": ("discrete",), "ppo": ("discrete", "continuous"), "sac": ("continuous",)}
-
-
-def _require(condition: bool, message: str) -> None:
-    if not condition:
-        raise ValueError(message)
-
-
-def _number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def rl_scenario() -> ScenarioConfig:
@@ -88,12 +78,12 @@ class RewardConfig:
 
     def __post_init__(self) -> None:
         for name in ("collision_reward", "right_lane_reward", "high_speed_reward"):
-            _require(_number(getattr(self, name)), f"reward: `{name}` must be a finite number; got {getattr(self, name)!r}")
+            require(is_finite_number(getattr(self, name)), f"reward: `{name}` must be a finite number; got {getattr(self, name)!r}")
         low_high = self.reward_speed_range
-        _require(isinstance(low_high, tuple) and len(low_high) == 2 and all(map(_number, low_high)) and low_high[0] < low_high[1],
+        require(isinstance(low_high, tuple) and len(low_high) == 2 and all(map(is_finite_number, low_high)) and low_high[0] < low_high[1],
                  f"reward: `reward_speed_range` must be [low, high] m/s with low < high; got {low_high!r}")
-        _require(isinstance(self.normalize, bool), f"reward: `normalize` must be true or false; got {self.normalize!r}")
-        _require(not self.normalize or self.collision_reward < self.high_speed_reward + self.right_lane_reward,
+        require(isinstance(self.normalize, bool), f"reward: `normalize` must be true or false; got {self.normalize!r}")
+        require(not self.normalize or self.collision_reward < self.high_speed_reward + self.right_lane_reward,
                  "reward: with `normalize`, `collision_reward` must be below high_speed_reward + right_lane_reward")
 
     def highway_env_config(self) -> dict:
@@ -152,25 +142,23 @@ class SafeEnvConfig:
 
     def __post_init__(self) -> None:
         where = "env"
-        _require(isinstance(self.decision_frames, int) and self.decision_frames >= 1,
+        require(isinstance(self.decision_frames, int) and self.decision_frames >= 1,
                  f"{where}: `decision_frames` must be an int >= 1; got {self.decision_frames!r}")
-        _require(isinstance(self.lane_offsets, tuple) and len(self.lane_offsets) > 0
+        require(isinstance(self.lane_offsets, tuple) and len(self.lane_offsets) > 0
                  and all(isinstance(o, int) and not isinstance(o, bool) for o in self.lane_offsets),
                  f"{where}: `lane_offsets` must be a non-empty list of ints; got {self.lane_offsets!r}")
-        _require(isinstance(self.speeds, tuple) and len(self.speeds) > 0 and all(_number(s) and s > 0 for s in self.speeds),
+        require(isinstance(self.speeds, tuple) and len(self.speeds) > 0 and all(is_finite_number(s) and s > 0 for s in self.speeds),
                  f"{where}: `speeds` must be a non-empty list of speeds > 0 m/s; got {self.speeds!r}")
-        _require(_number(self.lateral_range) and self.lateral_range >= 0,
+        require(is_finite_number(self.lateral_range) and self.lateral_range >= 0,
                  f"{where}: `lateral_range` must be a number >= 0 lanes; got {self.lateral_range!r}")
         low_high = self.speed_range
-        _require(isinstance(low_high, tuple) and len(low_high) == 2 and all(map(_number, low_high)) and 0 < low_high[0] <= low_high[1],
+        require(isinstance(low_high, tuple) and len(low_high) == 2 and all(map(is_finite_number, low_high)) and 0 < low_high[0] <= low_high[1],
                  f"{where}: `speed_range` must be [low, high] with 0 < low <= high m/s; got {low_high!r}")
-        _require(isinstance(self.solver_features, bool), f"{where}: `solver_features` must be true or false; got {self.solver_features!r}")
-        for name in ("feature_cost_scale", "intervention_speed_scale"):
-            _require(_number(getattr(self, name)) and getattr(self, name) > 0,
-                     f"{where}: `{name}` must be a finite number > 0; got {getattr(self, name)!r}")
-        _require(_number(self.intervention_penalty) and self.intervention_penalty >= 0,
+        require(isinstance(self.solver_features, bool), f"{where}: `solver_features` must be true or false; got {self.solver_features!r}")
+        require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
+        require(is_finite_number(self.intervention_penalty) and self.intervention_penalty >= 0,
                  f"{where}: `intervention_penalty` must be a finite number >= 0; got {self.intervention_penalty!r}")
-        _require(isinstance(self.kinematics_vehicles, int) and self.kinematics_vehicles >= 1,
+        require(isinstance(self.kinematics_vehicles, int) and self.kinematics_vehicles >= 1,
                  f"{where}: `kinematics_vehicles` must be an int >= 1; got {self.kinematics_vehicles!r}")
 
     @property
@@ -211,9 +199,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         for name in ("n_envs", "log_every", "checkpoint_every", "eval_episodes", "eval_envs", "torch_threads"):
             value = getattr(self, name)
-            _require(isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+            require(isinstance(value, int) and not isinstance(value, bool) and value >= 1,
                      f"train: `{name}` must be an int >= 1; got {value!r}")
-        _require(isinstance(self.eval_seed, int) and self.eval_seed >= 0, f"train: `eval_seed` must be an int >= 0; got {self.eval_seed!r}")
+        require(isinstance(self.eval_seed, int) and self.eval_seed >= 0, f"train: `eval_seed` must be an int >= 0; got {self.eval_seed!r}")
 
 
 @dataclass(frozen=True)
@@ -239,14 +227,14 @@ class RLConfig:
     action: Optional[str] = None
 
     def __post_init__(self) -> None:
-        _require(isinstance(self.scenario, ScenarioConfig), f"rl config: `scenario` must be a ScenarioConfig; got {type(self.scenario).__name__}")
+        require(isinstance(self.scenario, ScenarioConfig), f"rl config: `scenario` must be a ScenarioConfig; got {type(self.scenario).__name__}")
         unknown = sorted(set(self.algorithms) - set(ALGORITHMS))
-        _require(not unknown, f"rl config: unknown algorithm(s) {unknown} in `algorithms`; expected some of {sorted(ALGORITHMS)}")
+        require(not unknown, f"rl config: unknown algorithm(s) {unknown} in `algorithms`; expected some of {sorted(ALGORITHMS)}")
         for name, kwargs in self.algorithms.items():
-            _require(isinstance(kwargs, Mapping), f"rl config: `algorithms.{name}` must be a mapping of keyword arguments; got {kwargs!r}")
-        _require(self.action in (None, "discrete", "continuous"),
+            require(isinstance(kwargs, Mapping), f"rl config: `algorithms.{name}` must be a mapping of keyword arguments; got {kwargs!r}")
+        require(self.action in (None, "discrete", "continuous"),
                  f"rl config: `action` must be null, discrete or continuous; got {self.action!r}")
-        _require(
+        require(
             self.scenario.optimizer.v_max >= self.env.top_speed,
             f"rl config: the scenario's `optimizer.v_max` ({self.scenario.optimizer.v_max} m/s) must be >= the "
             f"fastest goal an action can ask for ({self.env.top_speed} m/s)",
@@ -254,9 +242,9 @@ class RLConfig:
 
     def action_for(self, algo: str) -> str:
         """The action space ``algo`` trains on; raises ``ValueError`` if it cannot."""
-        _require(algo in ALGORITHMS, f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
+        require(algo in ALGORITHMS, f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
         action = self.action or ALGORITHMS[algo]
-        _require(action in SUPPORTED_ACTIONS[algo],
+        require(action in SUPPORTED_ACTIONS[algo],
                  f"algorithm {algo!r} cannot train on {action} actions; it supports {list(SUPPORTED_ACTIONS[algo])}")
         return action
 

@@ -41,7 +41,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import numpy as np
 import torch
 
-from mmpc.config import OptimizerConfig, dataclass_from_dict
+from mmpc.config import OptimizerConfig, dataclass_from_dict, require_positive
 from mmpc.result import Trajectories
 from mmpc.road import Road
 
@@ -92,10 +92,7 @@ class NLPConfig:
             raise ValueError(f"`intervals` must be an int >= 2; got {self.intervals!r}")
         if not isinstance(self.max_iter, int) or isinstance(self.max_iter, bool) or self.max_iter < 1:
             raise ValueError(f"`max_iter` must be an int >= 1; got {self.max_iter!r}")
-        for name in ("tol", "feasibility_tolerance", "max_cpu_time"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be a finite number > 0; got {value!r}")
+        require_positive("", tol=self.tol, feasibility_tolerance=self.feasibility_tolerance, max_cpu_time=self.max_cpu_time)
         if not (isinstance(self.jerk_weight, (int, float)) and math.isfinite(self.jerk_weight) and self.jerk_weight >= 0):
             raise ValueError(f"`jerk_weight` must be a finite number >= 0; got {self.jerk_weight!r}")
 
