@@ -29,3 +29,30 @@ def test_module_to_moves_every_buffer():
     assert all(buffer.is_cuda for buffer in opt.buffers())
     with pytest.raises(ValueError, match="is on cpu but the optimizer is on cuda"):
         opt(synthetic_scenes(1)[0].problem)
+
+
+def test_compiled_cuda_graph_matches_cpu_and_keeps_earlier_results():
+    """The CUDA-graph path (iteration chunks replayed as graphs): CPU answers within float32
+    tolerance, and a later solve does not overwrite the tensors of an earlier result."""
+    cpu = mmpc.BatchOptimizer()
+    gpu = mmpc.BatchOptimizer(device="cuda", compile=True)
+    scenes = synthetic_scenes(4)
+    expected = [cpu(scene.problem) for scene in scenes]
+    results = [gpu(mmpc.ProblemBatch(*(t.cuda() for t in scene.problem[:3]))) for scene in scenes]
+    for result, reference in zip(results, expected):  # read after every solve has run
+        assert torch.equal(result.feasible.cpu(), reference.feasible)
+        torch.testing.assert_close(result.trajectories.x.cpu(), reference.trajectories.x, atol=2e-2, rtol=1e-4)
+        torch.testing.assert_close(result.trajectories.v.cpu(), reference.trajectories.v, atol=2e-2, rtol=1e-3)
+
+
+def test_compiled_cuda_graph_history_records_every_iteration():
+    """Records of earlier chunks survive the replays of later ones and end at the final residuals."""
+    gpu = mmpc.BatchOptimizer(device="cuda", compile=True)
+    scene = synthetic_scenes(1)[0]
+    result = gpu(mmpc.ProblemBatch(*(t.cuda() for t in scene.problem[:3])), history=True)
+    history = result.history
+    assert history.shape == (gpu.config.iterations, *result.feasible.shape, 3)
+    torch.testing.assert_close(history[-1, ..., 0], result.residual_obstacle)
+    torch.testing.assert_close(history[-1, ..., 2], result.residual_nonholonomic)
+    expected = mmpc.BatchOptimizer()(scene.problem, history=True).history
+    torch.testing.assert_close(history[0].cpu(), expected[0], atol=1e-3, rtol=1e-3)  # first chunk kept
