@@ -17,9 +17,10 @@ One iteration, for every (problem, goal) element at once:
    reused by the next position QP.
 
 There is no Python branching on tensor values and no host synchronisation inside the loop.
-Compiled for the CPU, the iterations take sin, cos and atan2 from :mod:`mmpc.trig` (short
-polynomials the compiler fuses into the loops, float32-exact for headings below 1e4 rad) and
-contract multiply-adds; eager and on the GPU they use the torch functions.
+Compiled for the CPU in float32, the iterations take sin, cos and atan2 from :mod:`mmpc.trig`
+(short polynomials the compiler fuses into the loops, float32-exact for headings below 1e4 rad);
+compiled for the CPU they contract multiply-adds; eager, in float64 and on the GPU they use the
+torch functions.
 """
 
 from __future__ import annotations
@@ -134,8 +135,10 @@ class BatchOptimizer(nn.Module):
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
+        # mmpc.trig is exact to float32 rounding, not to float64's.
+        polynomial_trig = compile and on_cpu and dtype == torch.float32
         self._limits = _Limits(
-            cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=compile and on_cpu
+            cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=polynomial_trig
         )
         self.compiled = compile
         self._start, self._summarise, self._iterate = _start, _summarise, _iterate
@@ -298,7 +301,7 @@ class _Limits(NamedTuple):
     heading: Optional[float]  # rad, the band the heading targets are clipped to; None: unclipped
     ellipse_a: float  # m, obstacle ellipse semi-axis along x
     ellipse_b: float  # m, along y
-    polynomial_trig: bool = False  # sin, cos, atan2 from mmpc.trig (compiled CPU path) or torch
+    polynomial_trig: bool = False  # sin, cos, atan2 from mmpc.trig (compiled CPU float32) or torch
 
 
 def _atan2(y: torch.Tensor, x: torch.Tensor, limits: _Limits) -> torch.Tensor:
