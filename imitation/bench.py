@@ -1,12 +1,18 @@
 """Inference cost per control step: the cloned policy vs the MPC expert on the same states
 (``mmpc imitate bench``).
 
-The expert drives one episode to collect states; then, state by state and side by side, the
-expert's :meth:`~mmpc.drivers.MPCDriver.decide` and the policy's
-:meth:`~mmpc.imitation.policy.PolicyDriver.decide` are timed on that state (E = 1, as in a
-single closed loop), after a warm-up. The figures are the drivers' own ``solve_ms`` -- the
-wall time of the whole decision (problem building, optimizer, ranking and command for the
-expert; the neighbour selection, the road-frame features and the forward pass for the policy).
+The expert drives one episode to collect states; then both drivers decide those states (E = 1,
+as in a single closed loop), after a warm-up, in two orders measured in the same run:
+
+- ``consecutive``: each driver decides ``block`` consecutive states in a row, then the other
+  driver the same states (which driver starts alternates from block to block). Each driver runs
+  as in its own closed loop, one decision after the other.
+- ``interleaved``: state by state, the expert then the policy. Every policy call then follows a
+  ~20 ms expert solve that has flushed the CPU caches, so this is the policy's cold-cache cost.
+
+The figures are the drivers' own ``solve_ms`` -- the wall time of the whole decision (problem
+building, optimizer, ranking and command for the expert; the neighbour selection, the
+road-frame features and the forward pass for the policy).
 """
 
 from __future__ import annotations
@@ -18,45 +24,68 @@ from pathlib import Path
 
 import torch
 
-from mmpc.drivers import MPCDriver
+from mmpc.drivers import Driver, MPCDriver, Observation
 from mmpc.imitation.policy import PolicyDriver, load_policy
 from mmpc.imitation.rollout import rollout_lockstep
 from mmpc.scenario import ScenarioConfig, build_mpc
 
+#: The orders in which the drivers are timed (see the module docstring).
+MODES = ("consecutive", "interleaved")
 
-def benchmark_inference(scenario: ScenarioConfig, checkpoint: Path, *, seed: int = 0, steps: int = 200, warmup: int = 10) -> dict:
+
+def _time_blocks(drivers: dict[str, Driver], states: list[Observation], block: int) -> dict[str, list[float]]:
+    """``solve_ms`` of every driver on every state, ``block`` states per driver in a row."""
+    times: dict[str, list[float]] = {name: [] for name in drivers}
+    names = list(drivers)
+    for index, start in enumerate(range(0, len(states), block)):
+        for name in names if index % 2 == 0 else names[::-1]:
+            times[name] += [drivers[name].decide(state).solve_ms for state in states[start:start + block]]
+    return times
+
+
+def _row(values: list[float]) -> dict:
+    ordered = sorted(values)
+    return {"mean_ms": statistics.fmean(values), "median_ms": statistics.median(values),
+            "p95_ms": ordered[min(len(ordered) - 1, int(0.95 * len(ordered)))], "steps": len(values)}
+
+
+def benchmark_inference(scenario: ScenarioConfig, checkpoint: Path, *, seed: int = 0, steps: int = 200, warmup: int = 10,
+                        block: int = 50) -> dict:
     """Time both drivers on the first ``steps`` states of an expert episode.
 
+    Args:
+        scenario: the scenario (its MPC is the expert).
+        checkpoint: the policy.
+        seed: the episode whose states are timed.
+        steps: states timed per driver and mode (fewer if the episode ends earlier).
+        warmup: states decided by both drivers before timing.
+        block: consecutive states per driver in the ``consecutive`` mode.
+
     Returns:
-        A JSON-able report: per driver mean / median / p95 ms per step, the ratio of the means
-        and medians, the machine and torch threads.
+        A JSON-able report: per mode (:data:`MODES`) and driver mean / median / p95 ms per step,
+        the ratios of the means and medians per mode, the machine and torch threads. The
+        top-level ``rows``, ``speedup_mean`` and ``speedup_median`` are the ``consecutive`` mode's.
     """
-    if steps < 1 or warmup < 0:
-        raise ValueError(f"`steps` must be >= 1 and `warmup` >= 0; got {steps}, {warmup}")
-    expert = MPCDriver(build_mpc(scenario))
-    policy = PolicyDriver(load_policy(checkpoint))
+    if steps < 1 or warmup < 0 or block < 1:
+        raise ValueError(f"`steps` and `block` must be >= 1 and `warmup` >= 0; got {steps}, {block}, {warmup}")
+    drivers: dict[str, Driver] = {"expert": MPCDriver(build_mpc(scenario)), "policy": PolicyDriver(load_policy(checkpoint))}
     scenario = scenario.replace(duration=min(scenario.duration, steps / scenario.frequency))
+    modes = {}
     with torch.inference_mode():
-        states = rollout_lockstep(scenario, [seed], expert, keep_states=True)[0].states
-        for state in states[:warmup]:
-            expert.decide(state)
-            policy.decide(state)
-        times: dict[str, list[float]] = {"expert": [], "policy": []}
-        for state in states:
-            times["expert"].append(expert.decide(state).solve_ms)
-            times["policy"].append(policy.decide(state).solve_ms)
-    rows = {}
-    for name, values in times.items():
-        ordered = sorted(values)
-        rows[name] = {"mean_ms": statistics.fmean(values), "median_ms": statistics.median(values),
-                      "p95_ms": ordered[min(len(ordered) - 1, int(0.95 * len(ordered)))], "steps": len(values)}
+        states = rollout_lockstep(scenario, [seed], drivers["expert"], keep_states=True)[0].states
+        _time_blocks(drivers, states[:warmup], 1)
+        for mode, size in (("consecutive", block), ("interleaved", 1)):
+            rows = {name: _row(values) for name, values in _time_blocks(drivers, states, size).items()}
+            modes[mode] = {"block": size, "rows": rows,
+                           "speedup_mean": rows["expert"]["mean_ms"] / rows["policy"]["mean_ms"],
+                           "speedup_median": rows["expert"]["median_ms"] / rows["policy"]["median_ms"]}
     return {
         "scenario": scenario.name,
         "seed": seed,
         "policy": str(checkpoint),
-        "rows": rows,
-        "speedup_mean": rows["expert"]["mean_ms"] / rows["policy"]["mean_ms"],
-        "speedup_median": rows["expert"]["median_ms"] / rows["policy"]["median_ms"],
+        "hidden": list(drivers["policy"].policy.config.hidden),
+        **{key: modes["consecutive"][key] for key in ("rows", "speedup_mean", "speedup_median")},
+        "modes": modes,
         "torch_threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "machine": f"{platform.machine()} {platform.processor() or platform.platform()}",
@@ -65,9 +94,14 @@ def benchmark_inference(scenario: ScenarioConfig, checkpoint: Path, *, seed: int
 
 
 def format_report(report: dict) -> str:
-    lines = [f"{'driver':<8} {'mean ms':>9} {'median ms':>10} {'p95 ms':>9} {'steps':>6}"]
-    for name, row in report["rows"].items():
-        lines.append(f"{name:<8} {row['mean_ms']:9.3f} {row['median_ms']:10.3f} {row['p95_ms']:9.3f} {row['steps']:6d}")
-    lines.append(f"policy is {report['speedup_mean']:.0f}x cheaper per step (means), {report['speedup_median']:.0f}x (medians); "
+    lines = [f"{'order':<12} {'driver':<8} {'mean ms':>9} {'median ms':>10} {'p95 ms':>9} {'steps':>6} {'ratio (means)':>14}"]
+    for mode in MODES:
+        entry = report["modes"][mode]
+        for name, row in entry["rows"].items():
+            ratio = f"{entry['speedup_mean']:.0f}x" if name == "policy" else ""
+            lines.append(f"{mode:<12} {name:<8} {row['mean_ms']:9.3f} {row['median_ms']:10.3f} {row['p95_ms']:9.3f} "
+                         f"{row['steps']:6d} {ratio:>14}")
+    lines.append(f"policy is {report['speedup_mean']:.0f}x cheaper per step (means; consecutive decisions, as in a closed "
+                 f"loop), {report['modes']['interleaved']['speedup_mean']:.0f}x right after each expert solve; "
                  f"{report['torch_threads']} torch thread(s)")
     return "\n".join(lines)

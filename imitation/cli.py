@@ -115,8 +115,13 @@ def _dagger(args: argparse.Namespace) -> int:
             driven = f"beta {entry['beta']:.3g} (expert drove {entry['expert_share']:.0%} of the steps): "
         if "collisions" in entry:
             driven += f"collisions {entry['collisions']}/{entry['episodes']}, meta cost {entry['meta_cost_mean']:.2f}; "
-        print(f"round {entry['round']}: {driven}{entry['samples']} samples, validation loss {entry['val_loss']:.4f}")
-    print(f"wrote {Path(args.out) / 'policy.pt'}, dagger.json, data.npz and TensorBoard events in {Path(args.out) / 'tb'}")
+        check = ""
+        if "check_collisions" in entry:
+            check = (f"; policy alone: collisions {entry['check_collisions']}/{config.check_episodes}, "
+                     f"meta cost {entry['check_meta_cost_mean']:.2f}")
+        print(f"round {entry['round']}: {driven}{entry['samples']} samples, validation loss {entry['val_loss']:.4f}{check}")
+    print(f"wrote {Path(args.out) / 'policy.pt'} (round {report['best_round']}), dagger.json, data.npz and TensorBoard "
+          f"events in {Path(args.out) / 'tb'}")
     return 0
 
 
@@ -159,7 +164,7 @@ def _bench(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(args.threads)
     scenario = _scenario(args)
-    report = benchmark_inference(scenario, Path(args.policy), seed=args.seed, steps=args.steps)
+    report = benchmark_inference(scenario, Path(args.policy), seed=args.seed, steps=args.steps, block=args.block)
     print(format_report(report))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -234,5 +239,7 @@ def add_subcommands(sub) -> None:
     bench.add_argument("--policy", required=True, help="RUN/policy.pt")
     bench.add_argument("--seed", type=int, default=0, help="episode whose states are timed (default 0)")
     bench.add_argument("--steps", type=int, default=200, help="states timed (default 200)")
+    bench.add_argument("--block", type=int, default=50,
+                       help="consecutive states per driver in the 'consecutive' order (default 50)")
     bench.add_argument("--out", default="benchmarks/bench_imitation_inference.json", help="JSON output")
     bench.set_defaults(func=_bench)

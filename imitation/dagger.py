@@ -17,7 +17,12 @@ episodes the expert drives here). Every later round i = 1 ... K:
    labelled off-line gets the command the expert would have given on-line); without noise the
    steps it drove carry its command already;
 3. the labelled states join the aggregate data set D and pi^_{i+1} is trained on all of D from
-   scratch (:func:`mmpc.imitation.bc.train_policy`).
+   scratch (:func:`mmpc.imitation.bc.train_policy`);
+4. the new policy drives ``check_episodes`` seeded episodes alone (seeds from
+   ``check_seed_start``, the same every round, apart from the training and evaluation seeds):
+   its collisions and mean meta cost there are the round's check. The policy returned is the
+   round's with the fewest check collisions (ties: the later round, trained on more data), as
+   Ross et al. (2011) return the best policy on validation rather than the last.
 
 The expert's command averages its plan over the MPC's ``command_window`` (0.3 s in the shipped
 scenarios), and a plan starts from the acceleration and heading rate being executed, so over
@@ -30,8 +35,9 @@ scene: the policy clones the first ``label_window`` seconds of the expert's plan
 
 Writes, after every round, ``RUN/round_<i>/policy.pt``, ``RUN/data.npz`` (the aggregate data
 set) and ``RUN/dagger.json`` (the config and, per round: beta, the share of steps the expert
-drove, collisions and mean meta cost of the round's episodes, samples, validation loss), and
-TensorBoard events under ``RUN/tb``; at the end ``RUN/policy.pt`` (the last round's policy).
+drove, collisions and mean meta cost of the round's episodes, samples, validation loss, the
+check), and TensorBoard events under ``RUN/tb``; at the end ``RUN/policy.pt`` (the best round's
+policy, named in ``dagger.json``'s ``best_round``).
 Re-running the same command on the same folder resumes after the last finished round, and a
 re-run with more ``iterations`` extends the run (a folder of another configuration is refused).
 """
@@ -82,6 +88,9 @@ class DaggerConfig:
         lockstep: episodes driven together (one driver call per step) [-].
         label_batch: visited states per expert call when labelling [-].
         duration: episode length [s]; ``None``: the scenario's.
+        check_episodes: episodes the policy of every round drives alone (0: no check; the last
+            round's policy is returned) [-].
+        check_seed_start: first seed of those episodes.
         train: training of each round's policy.
     """
 
@@ -96,12 +105,15 @@ class DaggerConfig:
     lockstep: int = 8
     label_batch: int = 256
     duration: Optional[float] = None
+    check_episodes: int = 0
+    check_seed_start: int = 3000
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "initial_episodes", "episodes_per_iteration", "seed_start", "lockstep", "label_batch"):
+        for name in ("iterations", "initial_episodes", "episodes_per_iteration", "seed_start", "lockstep", "label_batch",
+                     "check_episodes", "check_seed_start"):
             value = getattr(self, name)
-            low = 0 if name in ("iterations", "seed_start") else 1
+            low = 0 if name in ("iterations", "seed_start", "check_episodes", "check_seed_start") else 1
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"`{name}` must be an int >= {low}; got {value!r}")
         if isinstance(self.noise, list):
@@ -233,6 +245,15 @@ def _rollout_stats(rollouts: Sequence[Rollout]) -> dict:
         "meta_cost_mean": float(np.mean([np.mean(e.infos["meta_cost"][:-1]) for e in episodes])),
         "steps": int(sum(e.steps for e in episodes)),
     }
+
+
+def best_round(rounds: Sequence[dict]) -> int:
+    """The round whose policy had the fewest check collisions (ties: the later round); the last
+    round when the rounds carry no check."""
+    checked = [entry for entry in rounds if "check_collisions" in entry]
+    if not checked:
+        return rounds[-1]["round"]
+    return min(checked, key=lambda entry: (entry["check_collisions"], -entry["round"]))["round"]
 
 
 def _transitions(rollouts: Sequence[Rollout], actions: Sequence[np.ndarray], first_id: int) -> Transitions:
@@ -399,14 +420,24 @@ def run_dagger(
                 "val_rmse_acceleration": history.val_rmse[history.best_epoch][0],
                 "val_rmse_steering": history.val_rmse[history.best_epoch][1],
             }
+            if config.check_episodes:
+                seeds = list(range(config.check_seed_start, config.check_seed_start + config.check_episodes))
+                with torch.inference_mode():
+                    check = _rollout_stats(_drive(scenario, seeds, PolicyDriver(policy), config.lockstep, keep_states=False))
+                entry.update(check_collisions=check["collisions"], check_meta_cost_mean=check["meta_cost_mean"],
+                             check_steps=check["steps"])
+                writer.add_scalar("dagger/check_collisions", check["collisions"], round_index)
             writer.add_scalar("dagger/samples", entry["samples"], round_index)
             writer.add_scalar("dagger/val_loss", entry["val_loss"], round_index)
             save_policy(out / f"round_{round_index}" / "policy.pt", policy, scenario=scenario.name, info={"round": round_index})
             _save_data(out / "data.npz", data)
             rounds.append(entry)
-            _write_report(out, {**identity, "iterations": config.iterations, "rounds": rounds})
+            _write_report(out, {**identity, "iterations": config.iterations, "best_round": best_round(rounds), "rounds": rounds})
             logger.info("DAgger round %d: %s", round_index, entry)
             if on_round is not None:
                 on_round(entry)
-    save_policy(out / "policy.pt", policy, scenario=scenario.name, info={"round": config.iterations, "samples": int(data.actions.shape[0])})
-    return {**identity, "iterations": config.iterations, "rounds": rounds}
+    best = best_round(rounds)
+    chosen = next(entry for entry in rounds if entry["round"] == best)
+    save_policy(out / "policy.pt", load_policy(out / f"round_{best}" / "policy.pt"), scenario=scenario.name,
+                info={"round": best, "samples": chosen["samples"]})
+    return {**identity, "iterations": config.iterations, "best_round": best, "rounds": rounds}

@@ -21,7 +21,15 @@ import torch
 from mmpc.drive import run_episode, write_outputs
 from mmpc.drivers import MPCDriver, Observation, make_driver
 from mmpc.imitation.bc import TrainConfig, run_bc, train_policy
-from mmpc.imitation.dagger import DaggerConfig, MixtureDriver, NoisyDriver, label_rollouts, label_states, run_dagger
+from mmpc.imitation.dagger import (
+    DaggerConfig,
+    MixtureDriver,
+    NoisyDriver,
+    best_round,
+    label_rollouts,
+    label_states,
+    run_dagger,
+)
 from mmpc.imitation.dataset import (
     DemonstrationsError,
     Transitions,
@@ -137,9 +145,14 @@ def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refus
     assert chunks([1000, 1001, 1002, 1005], 4) == [[1000, 1001, 1002], [1005]]
 
 
+INTERRUPTED_EPISODES = 8
+
+
 def _demos_command(out: Path) -> list[str]:
-    return [sys.executable, "-m", "mmpc.cli", "demos", "--scenario", "cruise", "--duration", "1", "--episodes", "6",
-            "--lockstep", "2", "--out", str(out)]
+    # one episode per lockstep chunk: after the first episode is staged, seven chunks (several
+    # seconds of solving) remain to be interrupted, even when the test process is slow to wake up
+    return [sys.executable, "-m", "mmpc.cli", "demos", "--scenario", "cruise", "--duration", "1", "--episodes",
+            str(INTERRUPTED_EPISODES), "--lockstep", "1", "--out", str(out)]
 
 
 def test_interrupted_generation_resumes_to_exactly_the_uninterrupted_episodes(tmp_path):
@@ -150,13 +163,13 @@ def test_interrupted_generation_resumes_to_exactly_the_uninterrupted_episodes(tm
     deadline = time.time() + 120
     while time.time() < deadline and not list((interrupted / "episodes").glob("seed_*.npz")):
         assert process.poll() is None, process.communicate()
-        time.sleep(0.05)
+        time.sleep(0.01)
     process.send_signal(signal.SIGINT)
     _, stderr = process.communicate(timeout=60)
     assert process.returncode == 130, stderr
     assert "re-run the same command to resume" in stderr
     kept = sorted(p.name for p in (interrupted / "episodes").glob("seed_*.npz"))
-    assert 1 <= len(kept) < 6, kept
+    assert 1 <= len(kept) < INTERRUPTED_EPISODES, kept
     assert not (interrupted / "minari").exists()
     assert not list((interrupted / "episodes").glob(".tmp-*"))
 
@@ -165,10 +178,10 @@ def test_interrupted_generation_resumes_to_exactly_the_uninterrupted_episodes(tm
     assert resumed.returncode == 0, resumed.stderr
     assert f"{len(kept)} from an earlier run" in resumed.stdout
     fresh = tmp_path / "fresh"  # the same command, uninterrupted (in this process: one thread, as the CLI)
-    generate_demonstrations(short_cruise(1.0), range(1000, 1006), fresh, lockstep=2)
+    generate_demonstrations(short_cruise(1.0), range(1000, 1000 + INTERRUPTED_EPISODES), fresh, lockstep=1)
 
     a, b = open_dataset(interrupted), open_dataset(fresh)
-    assert a.total_episodes == b.total_episodes == 6
+    assert a.total_episodes == b.total_episodes == INTERRUPTED_EPISODES
     for x, y in zip(a.iterate_episodes(), b.iterate_episodes()):
         assert x.id == y.id
         for name in ("observations", "actions", "rewards", "terminations", "truncations"):
@@ -176,7 +189,7 @@ def test_interrupted_generation_resumes_to_exactly_the_uninterrupted_episodes(tm
         for name in x.infos:
             if name != "solve_ms":  # a wall time
                 np.testing.assert_array_equal(x.infos[name], y.infos[name], err_msg=name)
-    assert a.storage.metadata["mmpc_seeds"] == list(range(1000, 1006))
+    assert a.storage.metadata["mmpc_seeds"] == list(range(1000, 1000 + INTERRUPTED_EPISODES))
 
 
 def test_behaviour_cloning_writes_a_checkpoint_tensorboard_and_a_held_out_loss(bc_run, demos_dir):
@@ -390,13 +403,19 @@ def test_sb3_export_acts_like_the_cloned_policy(bc_run, demos_dir, tmp_path):
 def test_dagger_aggregates_labelled_rounds_and_resumes(tmp_path):
     scenario = short_cruise(0.5)  # 5 steps per episode
     config = DaggerConfig(iterations=1, initial_episodes=2, episodes_per_iteration=2, beta=0.5, noise=(0.3, 0.005),
-                          lockstep=2, label_batch=4,
+                          lockstep=2, label_batch=4, check_episodes=2,
                           train=TrainConfig(epochs=2, batch_size=4, policy=PolicyConfig(hidden=(8,))))
     report = run_dagger(scenario, tmp_path, config)
     first, second = report["rounds"]
     assert first["source"] == "expert" and first["steps"] == 10 and second["source"] == "mixture"
     assert second["beta"] == 0.5 and 0.0 <= second["expert_share"] <= 1.0
     assert second["samples"] == first["samples"] + second["steps"] == 20
+    # every round's policy drove the 2 check episodes alone; policy.pt is the best round's
+    assert all(e["check_steps"] == 10 and 0 <= e["check_collisions"] <= 2 for e in report["rounds"])
+    assert report["best_round"] == best_round(report["rounds"])
+    best = load_policy(tmp_path / f"round_{report['best_round']}" / "policy.pt").state_dict()
+    for name, value in load_policy(tmp_path / "policy.pt").state_dict().items():
+        torch.testing.assert_close(value, best[name])
     data = np.load(tmp_path / "data.npz")
     assert data["actions"].shape == (20, 2) and data["neighbours"].shape == (20, 8, 4)
     assert len(np.unique(data["episodes"])) == 4
@@ -412,6 +431,16 @@ def test_dagger_aggregates_labelled_rounds_and_resumes(tmp_path):
     assert (tmp_path / "round_1" / "policy.pt").stat().st_mtime_ns == stamp
     with pytest.raises(ValueError, match="differs in: config"):
         run_dagger(scenario, tmp_path, dataclasses.replace(config, beta=0.1))
+
+
+def test_best_round_has_the_fewest_check_collisions_and_the_most_data_among_ties():
+    rounds = [{"round": 0, "check_collisions": 3}, {"round": 1, "check_collisions": 1},
+              {"round": 2, "check_collisions": 4}, {"round": 3, "check_collisions": 1}]
+    assert best_round(rounds) == 3
+    assert best_round(rounds[:3]) == 1
+    assert best_round([{"round": 0}, {"round": 1}]) == 1  # no check: the last round
+    with pytest.raises(ValueError, match="`check_episodes`"):
+        DaggerConfig(check_episodes=-1)
 
 
 def test_cli_evaluates_expert_and_policy_side_by_side_and_benchmarks_them(bc_run, tmp_path, capsys):
@@ -433,5 +462,9 @@ def test_cli_evaluates_expert_and_policy_side_by_side_and_benchmarks_them(bc_run
     bench = tmp_path / "bench.json"
     assert main(["imitate", "bench", "--policy", str(policy), "--steps", "5", "--out", str(bench)]) == 0
     report = json.loads(bench.read_text())
-    assert report["rows"]["expert"]["steps"] == report["rows"]["policy"]["steps"] == 5
-    assert report["speedup_mean"] == pytest.approx(report["rows"]["expert"]["mean_ms"] / report["rows"]["policy"]["mean_ms"])
+    assert report["rows"] == report["modes"]["consecutive"]["rows"]
+    for mode, block in (("consecutive", 50), ("interleaved", 1)):
+        entry = report["modes"][mode]
+        assert entry["block"] == block
+        assert entry["rows"]["expert"]["steps"] == entry["rows"]["policy"]["steps"] == 5
+        assert entry["speedup_mean"] == pytest.approx(entry["rows"]["expert"]["mean_ms"] / entry["rows"]["policy"]["mean_ms"])
