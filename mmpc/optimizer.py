@@ -49,6 +49,9 @@ _EPS_SQUARED = 1.0e-12
 _COMPILED_CHUNK = 10
 #: Widest SIMD register the compiled CPU kernels use (AVX-512) [bytes].
 _SIMD_BYTES = 64
+#: Elements per call of the compiled CPU path: a tile's (3N, 2, tile) samples and residuals
+#: (~0.6 MB in float32) stay in a core's L2 cache between the products and the fused steps.
+_CPU_TILE_SIZE = 256
 
 
 class _Residuals(NamedTuple):
@@ -100,6 +103,12 @@ class BatchOptimizer(nn.Module):
             vectors (the copies are dropped from the result). On CUDA each chunk is replayed
             as a CUDA graph. Eager (the default) is the reference and supports autograd
             everywhere.
+        tile_size: solve a batch of more than this many (problem, goal) elements as tiles of
+            at most this many, one call each: whole problems per tile when a problem's goals
+            fit, else each problem's goals split evenly. The last tile is padded with copies
+            (dropped from the result) so that every tile has one shape, compiled once.
+            ``None``: 256 on the compiled CPU path, where it keeps a tile's working set in
+            the L2 cache (~8 % faster at B = 1024), and no tiling elsewhere.
 
     Shapes:
         see :class:`mmpc.ProblemBatch` (inputs) and :class:`mmpc.SolveResult` (outputs).
@@ -122,10 +131,13 @@ class BatchOptimizer(nn.Module):
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
         compile: bool = False,
+        tile_size: Optional[int] = None,
     ) -> None:
         super().__init__()
         if not dtype.is_floating_point:
             raise TypeError(f"`dtype` must be a floating dtype; got {dtype}")
+        if tile_size is not None and (not isinstance(tile_size, int) or isinstance(tile_size, bool) or tile_size < 1):
+            raise ValueError(f"`tile_size` must be None or an int >= 1 (elements per call); got {tile_size!r}")
         self.config = config if config is not None else OptimizerConfig()
         basis = bernstein_basis(self.config.order, self.config.num_steps, self.config.horizon)
         operators = build_operators(basis, self.config)
@@ -141,6 +153,9 @@ class BatchOptimizer(nn.Module):
             cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=polynomial_trig
         )
         self.compiled = compile
+        if tile_size is None and compile and on_cpu:
+            tile_size = _CPU_TILE_SIZE
+        self.tile_size = tile_size
         self._start, self._summarise, self._iterate = _start, _summarise, _iterate
         self.chunk = self.config.iterations
         if compile:
@@ -185,7 +200,33 @@ class BatchOptimizer(nn.Module):
             ValueError: a wrong shape or device, an empty batch, too many obstacle slots,
                 NaN/inf in the ego state, the goals or a present obstacle, a negative speed.
         """
-        prepared = self._prepare(problem)
+        ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
+        num_problems, num_goals = goals.shape[:2]
+        tiling = _tiling(num_problems, num_goals, self.tile_size)
+        if tiling is None:
+            return self._solve(ego, goals, obstacles, mask, history)
+        tile_problems, tile_goals = tiling
+        # Pad both axes to whole tiles with copies of the last problem / goal.
+        rows = torch.arange(_ceil_div(num_problems, tile_problems) * tile_problems, device=self.device)
+        columns = torch.arange(_ceil_div(num_goals, tile_goals) * tile_goals, device=self.device)
+        rows, columns = rows.clamp_max(num_problems - 1), columns.clamp_max(num_goals - 1)
+        ego, obstacles, mask = (t.index_select(0, rows) for t in (ego, obstacles, mask))
+        goals = goals.index_select(0, rows).index_select(1, columns)
+        bands = []
+        for first in range(0, len(rows), tile_problems):
+            problems = slice(first, first + tile_problems)
+            tiles = [
+                self._solve(ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], history)
+                for g in range(0, len(columns), tile_goals)
+            ]
+            bands.append(SolveResult.concatenate(tiles, dim=1))
+        return SolveResult.concatenate(bands, dim=0).head(num_problems, num_goals)
+
+    def _solve(
+        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor, history: bool
+    ) -> SolveResult:
+        """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`)."""
+        prepared = self._prepare(ego, goals, obstacles, mask)
         state = self._start(
             prepared.b_position, prepared.obstacles, self.position_init, self.samples, self.gather[0], self._limits
         )
@@ -227,8 +268,9 @@ class BatchOptimizer(nn.Module):
 
     # ----------------------------------------------------------------------------- inputs
 
-    def _prepare(self, problem: ProblemBatch) -> _Prepared:
-        ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
+    def _prepare(
+        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor
+    ) -> _Prepared:
         cfg = self.config
         padding = 0
         if self.compiled and self.device.type == "cpu":
@@ -276,6 +318,24 @@ class BatchOptimizer(nn.Module):
             num_goals=num_goals,
             padding=padding,
         )
+
+
+def _tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Optional[tuple[int, int]]:
+    """(problems, goals) per tile for an E x G batch, or None when it fits one tile.
+
+    Whole problems per tile when a problem's goals fit in one, else one problem per tile with
+    its goals split evenly; tiles are balanced so that padding the last one adds little.
+    """
+    if tile_size is None or num_problems * num_goals <= tile_size:
+        return None
+    if num_goals <= tile_size:
+        tiles = _ceil_div(num_problems, tile_size // num_goals)
+        return _ceil_div(num_problems, tiles), num_goals
+    return 1, _ceil_div(num_goals, _ceil_div(num_goals, tile_size))
+
+
+def _ceil_div(numerator: int, denominator: int) -> int:
+    return -(-numerator // denominator)
 
 
 def _goal_padding(num_problems: int, num_goals: int, element_size: int) -> int:

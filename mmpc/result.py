@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from typing import NamedTuple, Optional
+from typing import Iterable, NamedTuple, Optional, Sequence
 
 import torch
 
@@ -96,3 +96,38 @@ class SolveResult(NamedTuple):
     status: torch.Tensor
     feasible: torch.Tensor
     history: Optional[torch.Tensor] = None
+
+    @staticmethod
+    def concatenate(parts: Sequence["SolveResult"], dim: int) -> "SolveResult":
+        """Join results of sub-batches along the problem (``dim=0``) or goal (``dim=1``) axis."""
+        if dim not in (0, 1) or not parts:
+            raise ValueError(f"need at least one part and dim 0 or 1; got {len(parts)} parts, dim={dim}")
+
+        def join(tensors: Iterable[torch.Tensor], offset: int = 0) -> torch.Tensor:
+            return torch.cat(list(tensors), dim=dim + offset)
+
+        first = parts[0]
+        trajectories = Trajectories(
+            first.trajectories.times,
+            *(join(part.trajectories[i] for part in parts) for i in range(1, len(Trajectories._fields))),
+        )
+        per_element = {
+            name: join(getattr(part, name) for part in parts)
+            for name in SolveResult._fields
+            if name not in ("trajectories", "history")
+        }
+        history = None if first.history is None else join((part.history for part in parts), offset=1)
+        return SolveResult(trajectories=trajectories, **per_element, history=history)
+
+    def head(self, num_problems: int, num_goals: int) -> "SolveResult":
+        """The first ``num_problems`` problems and, of each, the first ``num_goals`` goals."""
+        trajectories = Trajectories(
+            self.trajectories.times, *(field[:num_problems, :num_goals] for field in self.trajectories[1:])
+        )
+        per_element = {
+            name: getattr(self, name)[:num_problems, :num_goals]
+            for name in SolveResult._fields
+            if name not in ("trajectories", "history")
+        }
+        history = None if self.history is None else self.history[:, :num_problems, :num_goals]
+        return SolveResult(trajectories=trajectories, **per_element, history=history)
