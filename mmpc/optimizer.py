@@ -159,7 +159,7 @@ class BatchOptimizer(nn.Module):
         if tile_size is None and compile and on_cpu:
             tile_size = _CPU_TILE_SIZE
         self.tile_size = tile_size
-        self._start, self._summarise, self._iterate = _start, _summarise, _iterate
+        self._layout, self._start, self._summarise, self._iterate = _layout, _start, _summarise, _iterate
         self.chunk = self.config.iterations
         if compile:
             # Chunks of unrolled iterations: one compiled graph serves every chunk (the
@@ -170,11 +170,12 @@ class BatchOptimizer(nn.Module):
                 # "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
                 self._iterate = torch.compile(_iterate, fullgraph=True, mode="reduce-overhead")
             else:
-                # A C++ wrapper calls the kernels, without Python between them; the cold start
+                # A C++ wrapper calls the kernels, without Python between them; the layout, the cold start
                 # and the outputs are compiled too (at small batch their eager op-by-op
                 # dispatch would cost as much as the iterations). Multiply-adds contract to
                 # fused multiply-adds (one rounding instead of two).
                 options = {"cpp_wrapper": True, "cpp.enable_floating_point_contract_flag": "fast"}
+                self._layout = torch.compile(_layout, fullgraph=True, options=options)
                 self._start = torch.compile(_start, fullgraph=True, options=options)
                 self._summarise = torch.compile(_summarise, fullgraph=True, options=options)
                 self._iterate = torch.compile(_iterate, fullgraph=True, options=options)
@@ -279,48 +280,63 @@ class BatchOptimizer(nn.Module):
         if self.compiled and self.device.type == "cpu":
             padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
             goals = torch.cat([goals, goals[:, -1:].expand(-1, padding, -1)], dim=1)
-        num_goals = goals.shape[1]
-        origin = ego[:, EGO_X : EGO_Y + 1]  # (E, 2)
-        psi0, v0 = ego[:, EGO_PSI], ego[:, EGO_V]
-        a0, psidot0 = ego[:, EGO_A], ego[:, EGO_PSIDOT]
-        cos0, sin0 = torch.cos(psi0), torch.sin(psi0)
-        relative_goals = goals - origin[:, None, :]  # (E, G, 2)
-
-        start_velocity = torch.stack([v0 * cos0, v0 * sin0])  # (2, E)
-        rows = [torch.zeros_like(start_velocity), start_velocity]
-        if cfg.start_acceleration:
-            rows.append(
-                torch.stack([a0 * cos0 - v0 * psidot0 * sin0, a0 * sin0 + v0 * psidot0 * cos0])
-            )
-        start = torch.stack(rows)[..., None].expand(-1, -1, -1, num_goals)  # (n_start, 2, E, G)
-        end = relative_goals.permute(2, 0, 1).unsqueeze(0)  # (1, 2, E, G)
-        b_position = torch.cat([start, end]).reshape(len(rows) + 1, -1)
-
-        zeros = torch.zeros_like(psi0)
-        b_heading = torch.stack([psi0, psidot0, zeros, zeros])[..., None].expand(-1, -1, num_goals)
-        b_heading = b_heading.reshape(4, -1)
-
-        relative = obstacles - origin[:, None, None, :]  # (E, M, N, 2)
-        parked = torch.full_like(relative, _PARKED_DISTANCE)
-        relative = torch.where(mask[:, :, None, None], relative, parked)
-        semi_axes = relative.new_tensor([cfg.ellipse_a, cfg.ellipse_b]).view(2, 1, 1)
-        scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / semi_axes  # (M, N, 2, E, 1)
-
-        counts = mask.sum(dim=1)
+        origin, b_position, b_heading, obstacles, goal_ahead, counts = self._layout(
+            ego, goals, obstacles, mask, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b)
+        )
         count_values = counts.unique()
         uniform = int(count_values[0]) if count_values.numel() == 1 else None
         return _Prepared(
             origin=origin,
             b_position=b_position,
             b_heading=b_heading,
-            obstacles=scaled.contiguous(),
+            obstacles=obstacles,
             mask=mask,
             counts=counts,
             uniform_count=uniform,
-            goal_ahead=relative_goals[..., 0] > 0,
-            num_goals=num_goals,
+            goal_ahead=goal_ahead,
+            num_goals=goals.shape[1],
             padding=padding,
         )
+
+
+def _layout(
+    ego: torch.Tensor,
+    goals: torch.Tensor,
+    obstacles: torch.Tensor,
+    mask: torch.Tensor,
+    start_acceleration: bool,
+    semi_axes: tuple[float, float],
+) -> tuple[torch.Tensor, ...]:
+    """Inputs in the ego-relative frame and the solver layout (see :class:`_Prepared`).
+
+    Returns:
+        origin (E, 2) [m]; b_position (n_eq, 2 E G); b_heading (4, E G); obstacles
+        (M, N, 2, E, 1) in semi-axis units, absent slots parked; goal_ahead (E, G) bool;
+        counts (E,) int64 present obstacles per problem.
+    """
+    num_goals = goals.shape[1]
+    origin = ego[:, EGO_X : EGO_Y + 1]  # (E, 2)
+    psi0, v0 = ego[:, EGO_PSI], ego[:, EGO_V]
+    a0, psidot0 = ego[:, EGO_A], ego[:, EGO_PSIDOT]
+    cos0, sin0 = torch.cos(psi0), torch.sin(psi0)
+    relative_goals = goals - origin[:, None, :]  # (E, G, 2)
+
+    start_velocity = torch.stack([v0 * cos0, v0 * sin0])  # (2, E)
+    rows = [torch.zeros_like(start_velocity), start_velocity]
+    if start_acceleration:
+        rows.append(torch.stack([a0 * cos0 - v0 * psidot0 * sin0, a0 * sin0 + v0 * psidot0 * cos0]))
+    start = torch.stack(rows)[..., None].expand(-1, -1, -1, num_goals)  # (n_start, 2, E, G)
+    end = relative_goals.permute(2, 0, 1).unsqueeze(0)  # (1, 2, E, G)
+    b_position = torch.cat([start, end]).reshape(len(rows) + 1, -1)
+
+    zeros = torch.zeros_like(psi0)
+    b_heading = torch.stack([psi0, psidot0, zeros, zeros])[..., None].expand(-1, -1, num_goals)
+    b_heading = b_heading.reshape(4, -1)
+
+    relative = obstacles - origin[:, None, None, :]  # (E, M, N, 2)
+    relative = torch.where(mask[:, :, None, None], relative, _PARKED_DISTANCE)
+    scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / relative.new_tensor(semi_axes).view(2, 1, 1)  # (M, N, 2, E, 1)
+    return origin, b_position, b_heading, scaled.contiguous(), relative_goals[..., 0] > 0, mask.sum(dim=1)
 
 
 def _tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Optional[tuple[int, int]]:
