@@ -95,7 +95,7 @@ class BatchOptimizer(nn.Module):
             Build with ``dtype=torch.float64`` rather than ``.to(torch.float64)`` later, which
             would keep the float32-rounded matrices.
         device: where the buffers live; inputs must already be there.
-        compile: run the iterations through ``torch.compile`` (fused elementwise kernels, one
+        compile: True to run the iterations through ``torch.compile`` (fused elementwise kernels, one
             call per chunk of iterations). The first solve of every new batch shape compiles
             (tens of seconds on a CPU); later solves are several times faster than eager. On
             the CPU the cold start and the outputs are compiled too, C++ wrappers call the
@@ -105,7 +105,8 @@ class BatchOptimizer(nn.Module):
             everywhere. Like any ``torch.compile`` function, a second batch shape recompiles
             with dynamic dims (torch's default), which serve every later shape without
             compiling again but run slower (~5-15 % at B = 1024 on the CPU): a process that
-            solves one shape gets the fastest, shape-specialised kernels.
+            solves one shape gets the fastest, shape-specialised kernels. ``"auto"``: compiled
+            on the CPU in float32 when a C++ compiler is found (inductor needs one), else eager.
         tile_size: solve a batch of more than this many (problem, goal) elements as tiles of
             at most this many, one call each: whole problems per tile when a problem's goals
             fit, else each problem's goals split evenly. The last tile is padded with copies
@@ -133,7 +134,7 @@ class BatchOptimizer(nn.Module):
         *,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
-        compile: bool = False,
+        compile: bool | str = False,
         tile_size: Optional[int] = None,
     ) -> None:
         super().__init__()
@@ -150,6 +151,10 @@ class BatchOptimizer(nn.Module):
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
+        if compile == "auto":
+            compile = on_cpu and dtype == torch.float32 and _cpp_compiler_found()
+        if not isinstance(compile, bool):
+            raise ValueError(f"`compile` must be True, False or 'auto'; got {compile!r}")
         # mmpc.trig is exact to float32 rounding, not to float64's.
         polynomial_trig = compile and on_cpu and dtype == torch.float32
         self._limits = _Limits(
@@ -337,6 +342,18 @@ def _layout(
     relative = torch.where(mask[:, :, None, None], relative, _PARKED_DISTANCE)
     scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / relative.new_tensor(semi_axes).view(2, 1, 1)  # (M, N, 2, E, 1)
     return origin, b_position, b_heading, scaled.contiguous(), relative_goals[..., 0] > 0, mask.sum(dim=1)
+
+
+def _cpp_compiler_found() -> bool:
+    """Whether inductor finds the C++ compiler its CPU kernels need."""
+    from torch._inductor.cpp_builder import get_cpp_compiler
+
+    try:
+        get_cpp_compiler()
+    except (RuntimeError, OSError) as error:
+        logger.info("BatchOptimizer(compile='auto'): no C++ compiler (%s); eager", error)
+        return False
+    return True
 
 
 def _tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Optional[tuple[int, int]]:

@@ -406,10 +406,12 @@ class ScenarioConfig:
 
 
 def build_mpc(scenario: ScenarioConfig) -> MPC:
-    """The scenario's MPC (float32, CPU): its optimizer, goals on the lane centres and meta cost."""
+    """The scenario's MPC (float32, CPU): its optimizer (compiled per ``scenario.mpc.compile``),
+    goals on the lane centres and meta cost."""
     road = scenario.road
     goals = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
-    return MPC(BatchOptimizer(scenario.optimizer), goals, scenario.objective.meta_cost(), road, scenario.mpc)
+    optimizer = BatchOptimizer(scenario.optimizer, compile=scenario.mpc.compile)
+    return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc)
 
 
 def _as_tuple(value: Any) -> Any:

@@ -112,7 +112,7 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
 
 
 @pytest.mark.parametrize("kwargs, name", [({"command_window": 0.0}, "command_window"), ({"road_margin": -1.0}, "road_margin"),
-                                          ({"num_obstacles": -1}, "num_obstacles")])
+                                          ({"num_obstacles": -1}, "num_obstacles"), ({"compile": "yes"}, "compile")])
 def test_mpc_config_is_validated(kwargs, name):
     with pytest.raises(ValueError, match=name):
         mmpc.MPCConfig(**kwargs)
@@ -126,3 +126,36 @@ def test_undrivable_candidates_give_a_lane_keeping_brake(cruise_mpc):
     assert (plan.result.status[0] & mmpc.mpc.UNDRIVABLE).all()
     assert float(plan.acceleration[0]) == -mpc.config.brake_deceleration
     assert float(plan.heading_rate[0]) < 0.0  # back towards the centre of lane 2 (y = 8)
+
+
+def test_auto_compile_is_the_cpu_float32_path_with_a_compiler(monkeypatch):
+    import mmpc.optimizer
+
+    assert mmpc.BatchOptimizer(compile="auto").compiled
+    assert not mmpc.BatchOptimizer(compile="auto", dtype=torch.float64).compiled  # mmpc.trig is float32-exact
+    monkeypatch.setattr(mmpc.optimizer, "_cpp_compiler_found", lambda: False)
+    assert not mmpc.BatchOptimizer(compile="auto").compiled
+    with pytest.raises(ValueError, match="compile"):
+        mmpc.BatchOptimizer(compile="fast")
+
+
+def test_a_compiled_optimizer_compiles_each_layout_outside_the_timed_solve(cruise_mpc):
+    calls = []
+
+    class Counting(mmpc.BatchOptimizer):
+        def forward(self, problem, **kwargs):
+            calls.append(tuple(problem.goals.shape[:2]))
+            return super().forward(problem, **kwargs)
+
+    optimizer = Counting()
+    optimizer.compiled = True  # the warm-up rule only reads the flag; eager keeps the test fast
+    mpc = mmpc.MPC(optimizer, cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road)
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
+    car = torch.tensor([[[40.0, 8.0, 10.0, 0.0]]])
+    mpc.plan(ego, car)
+    mpc.plan(ego, car)
+    assert len(calls) == 3  # the new layout once untimed, then one call per step
+    two = torch.cat([ego, ego])
+    mpc.plan(two, torch.cat([car, torch.zeros(1, 1, 4)]), torch.tensor([[True], [False]]))  # E = 2, mixed counts
+    mpc.plan(two, torch.cat([car, car]))  # E = 2, uniform counts
+    assert len(calls) == 7
