@@ -99,6 +99,8 @@ class Plan(NamedTuple):
         heading_rate: (E,) the planned heading rate behind ``steering`` [rad/s].
         solve_ms: wall time of the optimizer call [ms]; a compiled optimizer compiles a new
             batch layout in an untimed call first.
+        compile_ms: wall time of that first call [ms] (0 when the layout was compiled before
+            or the optimizer is eager); callers that time a whole step subtract it.
     """
 
     problem: ProblemBatch
@@ -110,6 +112,7 @@ class Plan(NamedTuple):
     steering: torch.Tensor
     heading_rate: torch.Tensor
     solve_ms: float
+    compile_ms: float = 0.0
 
 
 def nearest_obstacles(
@@ -192,18 +195,25 @@ class MPC:
             )
         self._compiled_layouts: set[tuple[int, int, int, bool]] = set()
 
-    def _compile_for(self, problem: ProblemBatch) -> None:
+    def _compile_for(self, problem: ProblemBatch) -> float:
         """With a compiled optimizer, solve a batch of a new layout once untimed: that call
-        compiles (seconds), which ``Plan.solve_ms`` would otherwise report as a solve."""
+        compiles (seconds), which ``Plan.solve_ms`` would otherwise report as a solve.
+
+        Returns:
+            The wall time of that call [ms], 0 when there was none.
+        """
         if not self.optimizer.compiled:
-            return
+            return 0.0
         num_problems, num_slots = problem.obstacles.shape[:2]
         counts = problem.obstacle_mask.sum(dim=1) if problem.obstacle_mask is not None else None
         uniform = counts is None or bool((counts == counts[0]).all())  # one graph each way
         layout = (num_problems, problem.goals.shape[1], num_slots, uniform)
-        if layout not in self._compiled_layouts:
-            self.optimizer(problem)
-            self._compiled_layouts.add(layout)
+        if layout in self._compiled_layouts:
+            return 0.0
+        start = time.perf_counter()
+        self.optimizer(problem)
+        self._compiled_layouts.add(layout)
+        return (time.perf_counter() - start) * 1e3
 
     def build_problem(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
@@ -260,7 +270,7 @@ class MPC:
         Returns:
             A :class:`Plan`, as :meth:`plan`.
         """
-        self._compile_for(problem)
+        compile_ms = self._compile_for(problem)
         start = time.perf_counter()
         result = self.optimizer(problem)
         if result.status.is_cuda:
@@ -277,7 +287,9 @@ class MPC:
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0
         acceleration, steering, heading_rate = self.command(problem.ego, trajectory, selection.feasible | drivable)
-        return Plan(problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms)
+        return Plan(
+            problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms, compile_ms
+        )
 
     def command(
         self, ego: torch.Tensor, trajectory: Trajectories, usable: torch.Tensor

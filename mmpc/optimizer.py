@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from typing import NamedTuple, Optional
 
 import torch
@@ -47,6 +48,8 @@ _PARKED_DISTANCE = 1.0e5
 _EPS_SQUARED = 1.0e-12
 #: Iterations per compiled graph in the ``compile=True`` path.
 _COMPILED_CHUNK = 10
+#: Environment variable that overrides ``compile="auto"``: 0 eager, 1 compiled.
+COMPILE_ENV = "MMPC_COMPILE"
 #: Widest SIMD register the compiled CPU kernels use (AVX-512) [bytes].
 _SIMD_BYTES = 64
 #: Elements per call of the compiled CPU path: a tile's (3N, 2, tile) samples and residuals
@@ -106,7 +109,8 @@ class BatchOptimizer(nn.Module):
             with dynamic dims (torch's default), which serve every later shape without
             compiling again but run slower (~5-15 % at B = 1024 on the CPU): a process that
             solves one shape gets the fastest, shape-specialised kernels. ``"auto"``: compiled
-            on the CPU in float32 when a C++ compiler is found (inductor needs one), else eager.
+            on the CPU in float32 when a C++ compiler is found (inductor needs one), else eager;
+            the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
         tile_size: solve a batch of more than this many (problem, goal) elements as tiles of
             at most this many, one call each: whole problems per tile when a problem's goals
             fit, else each problem's goals split evenly. The last tile is padded with copies
@@ -152,7 +156,7 @@ class BatchOptimizer(nn.Module):
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
         if compile == "auto":
-            compile = on_cpu and dtype == torch.float32 and _cpp_compiler_found()
+            compile = _auto_compile(on_cpu and dtype == torch.float32)
         if not isinstance(compile, bool):
             raise ValueError(f"`compile` must be True, False or 'auto'; got {compile!r}")
         # mmpc.trig is exact to float32 rounding, not to float64's.
@@ -342,6 +346,17 @@ def _layout(
     relative = torch.where(mask[:, :, None, None], relative, _PARKED_DISTANCE)
     scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / relative.new_tensor(semi_axes).view(2, 1, 1)  # (M, N, 2, E, 1)
     return origin, b_position, b_heading, scaled.contiguous(), relative_goals[..., 0] > 0, mask.sum(dim=1)
+
+
+def _auto_compile(fast_path: bool) -> bool:
+    """``compile="auto"``: the compiled path where it is the fast one (CPU, float32) and a C++
+    compiler is found, unless the environment variable ``MMPC_COMPILE`` says 0 or 1."""
+    setting = os.environ.get(COMPILE_ENV, "").strip()
+    if setting not in ("", "0", "1"):
+        raise ValueError(f"environment variable {COMPILE_ENV} must be 0, 1 or unset; got {setting!r}")
+    if setting:
+        return setting == "1"
+    return fast_path and _cpp_compiler_found()
 
 
 def _cpp_compiler_found() -> bool:

@@ -1,8 +1,16 @@
+import os
+
 import pytest
 import torch
 
 import mmpc
+from mmpc.optimizer import COMPILE_ENV
 from mmpc.scenes import synthetic_scenes
+
+# The scenario MPC compiles its optimizer by default (compile="auto"); a cold compile takes a
+# minute per batch layout, so the tests, subprocesses included, run the eager reference. The
+# compiled path has its own tests (test_compiled.py, test_mpc.py, test_tiling.py).
+os.environ[COMPILE_ENV] = "0"
 
 
 @pytest.fixture(scope="session")

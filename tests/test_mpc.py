@@ -131,6 +131,11 @@ def test_undrivable_candidates_give_a_lane_keeping_brake(cruise_mpc):
 def test_auto_compile_is_the_cpu_float32_path_with_a_compiler(monkeypatch):
     import mmpc.optimizer
 
+    assert not mmpc.BatchOptimizer(compile="auto").compiled  # conftest: MMPC_COMPILE=0
+    monkeypatch.setenv(mmpc.optimizer.COMPILE_ENV, "maybe")
+    with pytest.raises(ValueError, match="MMPC_COMPILE"):
+        mmpc.BatchOptimizer(compile="auto")
+    monkeypatch.delenv(mmpc.optimizer.COMPILE_ENV)
     assert mmpc.BatchOptimizer(compile="auto").compiled
     assert not mmpc.BatchOptimizer(compile="auto", dtype=torch.float64).compiled  # mmpc.trig is float32-exact
     monkeypatch.setattr(mmpc.optimizer, "_cpp_compiler_found", lambda: False)
