@@ -116,7 +116,7 @@ class BatchOptimizer(nn.Module):
             fit, else each problem's goals split evenly. The last tile is padded with copies
             (dropped from the result) so that every tile has one shape, compiled once.
             ``None``: 256 on the compiled CPU path, where it keeps a tile's working set in
-            the L2 cache (~8 % faster at B = 1024), and no tiling elsewhere.
+            the L2 cache (~7 % faster at B = 1024), and no tiling elsewhere.
 
     Shapes:
         see :class:`mmpc.ProblemBatch` (inputs) and :class:`mmpc.SolveResult` (outputs).
