@@ -191,7 +191,7 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
 
     Compiled code is dropped first (``torch.compiler.reset()``), so that every row compiles for
     its own shape, as a process that solves one batch shape does: otherwise the second shape
-    a compiled function sees makes its dims dynamic, and those kernels are ~5 % slower.
+    a compiled function sees makes its dims dynamic, and those kernels are 5-15 % slower.
     """
     torch.compiler.reset()
     first = next(iter(optimizers.values()))
