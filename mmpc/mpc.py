@@ -15,7 +15,7 @@ from typing import Callable, NamedTuple, Optional
 
 import torch
 
-from mmpc.config import dataclass_from_dict, require_positive
+from mmpc.config import dataclass_from_dict, require, require_positive
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
@@ -71,8 +71,8 @@ class MPCConfig:
     compile: bool | str = "auto"
 
     def __post_init__(self) -> None:
-        if self.compile not in (True, False, "auto"):
-            raise ValueError(f"`compile` must be true, false or 'auto'; got {self.compile!r}")
+        require(self.compile == "auto" or isinstance(self.compile, bool),
+                f"`compile` must be true, false or 'auto'; got {self.compile!r}")
         if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
             raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
         if not (isinstance(self.road_margin, (int, float)) and math.isfinite(self.road_margin) and self.road_margin >= 0):
@@ -97,10 +97,10 @@ class Plan(NamedTuple):
         acceleration: (E,) longitudinal acceleration command [m/s^2].
         steering: (E,) steering angle command [rad].
         heading_rate: (E,) the planned heading rate behind ``steering`` [rad/s].
-        solve_ms: wall time of the optimizer call [ms]; a compiled optimizer compiles a new
-            batch layout in an untimed call first.
-        compile_ms: wall time of that first call [ms] (0 when the layout was compiled before
-            or the optimizer is eager); callers that time a whole step subtract it.
+        solve_ms: wall time of the optimizer call [ms], less ``compile_ms``.
+        compile_ms: what the call spent compiling new layouts [ms]
+            (:attr:`mmpc.BatchOptimizer.last_compile_ms`; 0 when eager or nothing was new);
+            callers that time a whole step subtract it.
     """
 
     problem: ProblemBatch
@@ -193,27 +193,6 @@ class MPC:
                 f"MPCConfig.num_obstacles={self.config.num_obstacles} exceeds the optimizer's "
                 f"max_obstacles={optimizer.config.max_obstacles}"
             )
-        self._compiled_layouts: set[tuple[int, int, int, bool]] = set()
-
-    def _compile_for(self, problem: ProblemBatch) -> float:
-        """With a compiled optimizer, solve a batch of a new layout once untimed: that call
-        compiles (seconds), which ``Plan.solve_ms`` would otherwise report as a solve.
-
-        Returns:
-            The wall time of that call [ms], 0 when there was none.
-        """
-        if not self.optimizer.compiled:
-            return 0.0
-        num_problems, num_slots = problem.obstacles.shape[:2]
-        counts = problem.obstacle_mask.sum(dim=1) if problem.obstacle_mask is not None else None
-        uniform = counts is None or bool((counts == counts[0]).all())  # one graph each way
-        layout = (num_problems, problem.goals.shape[1], num_slots, uniform)
-        if layout in self._compiled_layouts:
-            return 0.0
-        start = time.perf_counter()
-        self.optimizer(problem)
-        self._compiled_layouts.add(layout)
-        return (time.perf_counter() - start) * 1e3
 
     def build_problem(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
@@ -270,12 +249,12 @@ class MPC:
         Returns:
             A :class:`Plan`, as :meth:`plan`.
         """
-        compile_ms = self._compile_for(problem)
         start = time.perf_counter()
         result = self.optimizer(problem)
         if result.status.is_cuda:
             torch.cuda.synchronize(result.status.device)
-        solve_ms = (time.perf_counter() - start) * 1e3
+        compile_ms = self.optimizer.last_compile_ms
+        solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
         result, road_excess = self._keep_on_road(result, problem.ego)
         cost = self.meta_cost(result.trajectories, self.road)
         violation = self._violation(result, road_excess)

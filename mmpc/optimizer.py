@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import time
 from typing import NamedTuple, Optional
 
 import torch
@@ -111,12 +112,19 @@ class BatchOptimizer(nn.Module):
             solves one shape gets the fastest, shape-specialised kernels. ``"auto"``: compiled
             on the CPU in float32 when a C++ compiler is found (inductor needs one), else eager;
             the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
+            Compiled, the first call of every new call layout (problems, goals, obstacle slots,
+            same or mixed obstacle counts; per tile) runs twice: once to compile, once timed as
+            a solve; :attr:`last_compile_ms` reports the first.
         tile_size: solve a batch of more than this many (problem, goal) elements as tiles of
             at most this many, one call each: whole problems per tile when a problem's goals
             fit, else each problem's goals split evenly. The last tile is padded with copies
             (dropped from the result) so that every tile has one shape, compiled once.
             ``None``: 256 on the compiled CPU path, where it keeps a tile's working set in
             the L2 cache (~7 % faster at B = 1024), and no tiling elsewhere.
+
+    Attributes:
+        last_compile_ms: wall time the last call spent compiling new call layouts [ms]; 0 when
+            eager or when every layout had been compiled before.
 
     Shapes:
         see :class:`mmpc.ProblemBatch` (inputs) and :class:`mmpc.SolveResult` (outputs).
@@ -165,6 +173,8 @@ class BatchOptimizer(nn.Module):
             cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=polynomial_trig
         )
         self.compiled = compile
+        self.last_compile_ms = 0.0
+        self._compiled_layouts: set[tuple[int, int, int, bool]] = set()
         if tile_size is None and compile and on_cpu:
             tile_size = _CPU_TILE_SIZE
         self.tile_size = tile_size
@@ -213,6 +223,7 @@ class BatchOptimizer(nn.Module):
             ValueError: a wrong shape or device, an empty batch, too many obstacle slots,
                 NaN/inf in the ego state, the goals or a present obstacle, a negative speed.
         """
+        self.last_compile_ms = 0.0
         ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
@@ -220,17 +231,15 @@ class BatchOptimizer(nn.Module):
             return self._solve(ego, goals, obstacles, mask, history)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
-        rows = torch.arange(_ceil_div(num_problems, tile_problems) * tile_problems, device=self.device)
-        columns = torch.arange(_ceil_div(num_goals, tile_goals) * tile_goals, device=self.device)
-        rows, columns = rows.clamp_max(num_problems - 1), columns.clamp_max(num_goals - 1)
-        ego, obstacles, mask = (t.index_select(0, rows) for t in (ego, obstacles, mask))
-        goals = goals.index_select(0, rows).index_select(1, columns)
+        padded_problems = _ceil_div(num_problems, tile_problems) * tile_problems
+        ego, goals, obstacles, mask = (_repeat_last(t, 0, padded_problems) for t in (ego, goals, obstacles, mask))
+        goals = _repeat_last(goals, 1, _ceil_div(num_goals, tile_goals) * tile_goals)
         bands = []
-        for first in range(0, len(rows), tile_problems):
+        for first in range(0, padded_problems, tile_problems):
             problems = slice(first, first + tile_problems)
             tiles = [
                 self._solve(ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], history)
-                for g in range(0, len(columns), tile_goals)
+                for g in range(0, goals.shape[1], tile_goals)
             ]
             bands.append(SolveResult.concatenate(tiles, dim=1))
         return SolveResult.concatenate(bands, dim=0).head(num_problems, num_goals)
@@ -238,8 +247,20 @@ class BatchOptimizer(nn.Module):
     def _solve(
         self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor, history: bool
     ) -> SolveResult:
-        """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`)."""
-        prepared = self._prepare(ego, goals, obstacles, mask)
+        """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`);
+        compiled, a new call layout is run once untimed first (see :attr:`last_compile_ms`)."""
+        start = time.perf_counter()
+        prepared = self._prepare(ego, goals, obstacles, mask)  # compiles the input layout too
+        if self.compiled:
+            layout = (mask.shape[0], prepared.num_goals, mask.shape[1], prepared.uniform_count is None)
+            if layout not in self._compiled_layouts:
+                self._run(prepared, history)
+                self.last_compile_ms += (time.perf_counter() - start) * 1e3
+                self._compiled_layouts.add(layout)
+        return self._run(prepared, history)
+
+    def _run(self, prepared: _Prepared, history: bool) -> SolveResult:
+        """The cold start, the iterations and the outputs of one prepared call."""
         state = self._start(
             prepared.b_position, prepared.obstacles, self.position_init, self.samples, self.gather[0], self._limits
         )
@@ -288,7 +309,7 @@ class BatchOptimizer(nn.Module):
         padding = 0
         if self.compiled and self.device.type == "cpu":
             padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
-            goals = torch.cat([goals, goals[:, -1:].expand(-1, padding, -1)], dim=1)
+            goals = _repeat_last(goals, 1, goals.shape[1] + padding)
         origin, b_position, b_heading, obstacles, goal_ahead, counts = self._layout(
             ego, goals, obstacles, mask, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b)
         )
@@ -387,6 +408,12 @@ def _tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Opti
 
 def _ceil_div(numerator: int, denominator: int) -> int:
     return -(-numerator // denominator)
+
+
+def _repeat_last(tensor: torch.Tensor, dim: int, size: int) -> torch.Tensor:
+    """``tensor`` grown along ``dim`` to ``size`` entries with copies of its last one."""
+    index = torch.arange(size, device=tensor.device).clamp_max(tensor.shape[dim] - 1)
+    return tensor.index_select(dim, index)
 
 
 def _goal_padding(num_problems: int, num_goals: int, element_size: int) -> int:

@@ -145,22 +145,29 @@ def test_auto_compile_is_the_cpu_float32_path_with_a_compiler(monkeypatch):
 
 
 def test_a_compiled_optimizer_compiles_each_layout_outside_the_timed_solve(cruise_mpc):
-    calls = []
+    runs = []
 
     class Counting(mmpc.BatchOptimizer):
-        def forward(self, problem, **kwargs):
-            calls.append(tuple(problem.goals.shape[:2]))
-            return super().forward(problem, **kwargs)
+        def _run(self, prepared, history):
+            runs.append(prepared.mask.shape)
+            return super()._run(prepared, history)
 
     optimizer = Counting()
     optimizer.compiled = True  # the warm-up rule only reads the flag; eager keeps the test fast
     mpc = mmpc.MPC(optimizer, cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road)
     ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
     car = torch.tensor([[[40.0, 8.0, 10.0, 0.0]]])
-    mpc.plan(ego, car)
-    mpc.plan(ego, car)
-    assert len(calls) == 3  # the new layout once untimed, then one call per step
+    first, second = mpc.plan(ego, car), mpc.plan(ego, car)
+    assert len(runs) == 3  # the new layout once untimed, then one call per step
+    assert first.compile_ms > 0 and second.compile_ms == 0 and optimizer.last_compile_ms == 0
     two = torch.cat([ego, ego])
     mpc.plan(two, torch.cat([car, torch.zeros(1, 1, 4)]), torch.tensor([[True], [False]]))  # E = 2, mixed counts
     mpc.plan(two, torch.cat([car, car]))  # E = 2, uniform counts
-    assert len(calls) == 7
+    assert len(runs) == 7
+    # Tiled, each tile's layout counts: the batch mixes counts, its one-problem tiles do not.
+    tiled = Counting(tile_size=mpc.plan(ego, car).result.status.shape[1])
+    tiled.compiled = True
+    mmpc.MPC(tiled, cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road).plan(
+        two, torch.cat([car, torch.zeros(1, 1, 4)]), torch.tensor([[True], [False]])
+    )
+    assert len(runs) == 8 + 3  # the plan above; then one layout (1 problem, uniform): compile, two tiles
