@@ -59,6 +59,7 @@ import torch
 from mmpc.config import dataclass_from_dict
 from mmpc.drive import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
+from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
 from mmpc.imitation.dataset import Transitions, scenario_dict
 from mmpc.imitation.policy import PolicyDriver, load_policy, save_policy
@@ -287,17 +288,9 @@ def label_rollouts(expert: Driver, rollouts: Sequence[Rollout], batch: int, *, n
     return labels, int(sum(d.sum() for d in drove))
 
 
-def _save_data(path: Path, data: Transitions) -> None:
-    temporary = path.with_name(f".tmp-{path.name}")
-    with open(temporary, "wb") as handle:
-        np.savez_compressed(handle, **data._asdict())
-    temporary.replace(path)
-
-
-def _write_report(out: Path, report: dict) -> None:
-    temporary = out / ".tmp-dagger.json"
-    temporary.write_text(json.dumps(report, indent=2) + "\n")
-    temporary.replace(out / "dagger.json")
+def _report(identity: dict, config: DaggerConfig, rounds: list[dict]) -> dict:
+    """The content of ``dagger.json``: the run's identity, its rounds and the best of them."""
+    return {**identity, "iterations": config.iterations, "best_round": best_round(rounds), "rounds": rounds}
 
 
 def _resume(out: Path, identity: dict) -> tuple[list[dict], Optional[Transitions]]:
@@ -430,14 +423,15 @@ def run_dagger(
             writer.add_scalar("dagger/samples", entry["samples"], round_index)
             writer.add_scalar("dagger/val_loss", entry["val_loss"], round_index)
             save_policy(out / f"round_{round_index}" / "policy.pt", policy, scenario=scenario.name, info={"round": round_index})
-            _save_data(out / "data.npz", data)
+            atomic_write(out / "data.npz", lambda handle: np.savez_compressed(handle, **data._asdict()))
             rounds.append(entry)
-            _write_report(out, {**identity, "iterations": config.iterations, "best_round": best_round(rounds), "rounds": rounds})
+            atomic_write_text(out / "dagger.json", json.dumps(_report(identity, config, rounds), indent=2) + "\n")
             logger.info("DAgger round %d: %s", round_index, entry)
             if on_round is not None:
                 on_round(entry)
-    best = best_round(rounds)
+    report = _report(identity, config, rounds)
+    best = report["best_round"]
     chosen = next(entry for entry in rounds if entry["round"] == best)
     save_policy(out / "policy.pt", load_policy(out / f"round_{best}" / "policy.pt"), scenario=scenario.name,
                 info={"round": best, "samples": chosen["samples"]})
-    return {**identity, "iterations": config.iterations, "best_round": best, "rounds": rounds}
+    return report

@@ -26,7 +26,6 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 import warnings
 import zipfile
 from importlib import metadata as importlib_metadata
@@ -35,6 +34,7 @@ from typing import Iterator, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from mmpc.files import TEMPORARY_PREFIX, atomic_write
 from mmpc.imitation.rollout import INFO_FIELDS, Episode
 from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
@@ -123,22 +123,6 @@ class Manifest:
         return manifest
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Write through ``write(handle)`` to a temporary file in ``path``'s folder, flush it to disk,
-    then rename it onto ``path`` (readers see the old file or the complete new one)."""
-    handle = tempfile.NamedTemporaryFile("wb", dir=path.parent, prefix=".tmp-", suffix=path.suffix, delete=False)
-    try:
-        with handle:
-            write(handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(handle.name, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(handle.name)
-        raise
-
-
 def save_episode(path: Path, episode: Episode) -> None:
     """Write one episode atomically as ``.npz``."""
     arrays = {
@@ -150,7 +134,7 @@ def save_episode(path: Path, episode: Episode) -> None:
         "truncations": episode.truncations,
         **{f"info_{name}": values for name, values in episode.infos.items()},
     }
-    _atomic_write(path, lambda handle: np.savez(handle, **arrays))
+    atomic_write(path, lambda handle: np.savez(handle, **arrays))
 
 
 def load_episode(path: Path) -> Episode:
@@ -205,9 +189,9 @@ class DemonstrationsDir:
                                       "directory; refusing to write into it (choose another --out)")
         else:
             self.root.mkdir(parents=True, exist_ok=True)
-            _atomic_write(path, lambda handle: handle.write(manifest.to_json().encode()))
+            atomic_write(path, lambda handle: handle.write(manifest.to_json().encode()))
         self.episodes_dir.mkdir(exist_ok=True)
-        for stale in self.episodes_dir.glob(".tmp-*"):  # left by a process killed mid-write
+        for stale in self.episodes_dir.glob(f"{TEMPORARY_PREFIX}*"):  # left by a process killed mid-write
             stale.unlink()
 
     @property

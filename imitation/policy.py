@@ -28,8 +28,10 @@ from torch import nn
 
 from mmpc.config import dataclass_from_dict
 from mmpc.drivers import Decision, Driver, Observation
+from mmpc.files import atomic_write
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE
-from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, nearest_neighbours, road_dict, road_features, road_of
+from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, road_dict, road_features, road_of
+from mmpc.imitation.rollout import observation_neighbours
 from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
@@ -192,8 +194,7 @@ def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None
     path.parent.mkdir(parents=True, exist_ok=True)
     config = asdict(policy.config)
     config["hidden"] = list(config["hidden"])
-    temporary = path.with_name(f".tmp-{path.name}")
-    torch.save({
+    checkpoint = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
         "config": config,
@@ -201,8 +202,8 @@ def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None
         "state_dict": policy.state_dict(),
         "scenario": scenario,
         "info": info or {},
-    }, temporary)
-    temporary.replace(path)
+    }
+    atomic_write(path, lambda handle: torch.save(checkpoint, handle))
     return path
 
 
@@ -224,8 +225,12 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def load_policy(path: Path) -> MLPPolicy:
-    """The :class:`MLPPolicy` of a checkpoint, in eval mode."""
-    checkpoint = load_checkpoint(path)
+    """The :class:`MLPPolicy` of a checkpoint file, in eval mode."""
+    return policy_from_checkpoint(load_checkpoint(path))
+
+
+def policy_from_checkpoint(checkpoint: dict) -> MLPPolicy:
+    """The :class:`MLPPolicy` of a checkpoint read by :func:`load_checkpoint`, in eval mode."""
     policy = MLPPolicy(road_of(checkpoint["road"]), PolicyConfig.from_dict(checkpoint["config"]))
     policy.load_state_dict(checkpoint["state_dict"])
     return policy.eval()
@@ -261,10 +266,8 @@ class PolicyDriver(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
-        mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
-        ego = observation.ego.numpy()
-        neighbours = nearest_neighbours(ego, observation.vehicles.numpy(), mask)  # all stored ones, as in training
-        command = self.commands(self.policy.features(ego, neighbours))
+        neighbours = observation_neighbours(observation)  # all stored ones, as in training
+        command = self.commands(self.policy.features(observation.ego.numpy(), neighbours))
         elapsed_ms = (time.perf_counter() - start) * 1e3
         return Decision.command_only(torch.from_numpy(command[:, 0].copy()), torch.from_numpy(command[:, 1].copy()), elapsed_ms)
 
@@ -276,7 +279,7 @@ def make_policy_driver(scenario, argument: Optional[str]) -> Driver:
     checkpoint = load_checkpoint(Path(argument))
     if checkpoint.get("scenario") not in (None, scenario.name):
         logger.warning("policy %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)
-    policy = load_policy(Path(argument))
+    policy = policy_from_checkpoint(checkpoint)
     if policy.road != scenario.road:
         raise ValueError(f"policy {argument} was trained on {policy.road}; scenario {scenario.name!r} has {scenario.road}")
     return PolicyDriver(policy, name=f"bc:{argument}")

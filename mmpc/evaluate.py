@@ -51,6 +51,7 @@ import torch
 from mmpc.drive import EpisodeResult, run_episode, run_lockstep, write_outputs
 from mmpc.drivers import DRIVERS, driver_names, make_driver
 from mmpc.evaluate_report import format_table, summarize, write_report
+from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
 
 __all__ = [
@@ -427,22 +428,13 @@ def _csv_lines(rows: Sequence[dict]) -> str:
     return buffer.getvalue()
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    staging = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(staging, "w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(staging, path)
-
-
 class _EpisodeFile:
     """``episodes.csv``, written by the coordinating process only: rewritten atomically at the
     start of a run, then appended to (one write + fsync per finished group)."""
 
     def __init__(self, path: Path, rows: Sequence[dict]) -> None:
         self.path = path
-        _write_atomic(path, ",".join(COLUMNS) + "\n" + _csv_lines(rows))
+        atomic_write_text(path, ",".join(COLUMNS) + "\n" + _csv_lines(rows))
         self._handle = open(path, "a", encoding="utf-8", newline="")
 
     def append(self, rows: Sequence[dict]) -> None:
@@ -484,7 +476,7 @@ def _check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
                 f"{out} holds episodes of another scenario named {scenario.name!r} (settings changed, e.g. --duration or "
                 f"--set); use another `out` or rename the scenario (--set name=...)"
             )
-    _write_atomic(path, json.dumps(known, indent=2) + "\n")
+    atomic_write_text(path, json.dumps(known, indent=2) + "\n")
 
 
 # ----------------------------------------------------------------------------------- evaluate
@@ -574,7 +566,7 @@ def evaluate(
             "lockstep": config.lockstep, "threads": config.threads, "backend": "ray" if config.ray else "local",
             "summary": summary,
         }
-        _write_atomic(out / "summary.json", json.dumps(report, indent=2, allow_nan=False) + "\n")
+        atomic_write_text(out / "summary.json", json.dumps(report, indent=2, allow_nan=False) + "\n")
         if config.report:
             write_report(rows, summary, out)
     errors = sum(row["status"] != "ok" for row in rows)
