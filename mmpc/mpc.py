@@ -19,7 +19,9 @@ from mmpc.config import dataclass_from_dict, require, require_positive
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
-from mmpc.problem import EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity
+from mmpc.problem import (
+    EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
+)
 from mmpc.ranking import Selection, constraint_violation, select_best
 from mmpc.result import SolveResult, Status, Trajectories
 from mmpc.road import Road
@@ -35,6 +37,14 @@ Selector = Callable[[SolveResult, torch.Tensor, torch.Tensor], Selection]
 UNDRIVABLE = Status.NONHOLONOMIC | Status.HEADING | Status.SPEED | Status.NUMERICAL | Status.OFF_ROAD
 
 
+#: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
+#: road) -> (E, M, N, 2)`` centres.
+PREDICTIONS = {
+    "lanes": predict_within_lanes,
+    "constant_velocity": lambda states, times, road: predict_constant_velocity(states, times),
+}
+
+
 @dataclass(frozen=True)
 class MPCConfig:
     """Settings of the receding-horizon loop.
@@ -43,6 +53,12 @@ class MPCConfig:
         num_obstacles: M, the nearest vehicles given to the optimizer (must not exceed the
             optimizer's ``max_obstacles``).
         ignore_behind: vehicles more than this far behind the ego are ignored [m].
+        prediction: how the obstacles move over the horizon: ``"lanes"`` (constant velocity,
+            lateral motion ending on the next lane centre, :func:`mmpc.predict_within_lanes`)
+            or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
+            unbounded). Measured in highway-env cruise traffic: a vehicle changing lanes at
+            2-3 m/s of vy, extrapolated straight, crossed every lane within the horizon and left
+            no feasible candidate, and the fallback braked the ego from 14.5 to 6.3 m/s.
         wheelbase: L of ``steering = atan(L psidot / v)`` [m]; highway-env's kinematic bicycle
             turns at ``v tan(delta) / L`` with L its 5 m vehicle length.
         command_window: the command is the plan's tangential acceleration and heading rate
@@ -63,6 +79,7 @@ class MPCConfig:
 
     num_obstacles: int = 6
     ignore_behind: float = 20.0
+    prediction: str = "lanes"
     wheelbase: float = 5.0
     command_window: float = 0.3
     brake_deceleration: float = 4.0
@@ -71,6 +88,8 @@ class MPCConfig:
     compile: bool | str = "auto"
 
     def __post_init__(self) -> None:
+        require(self.prediction in PREDICTIONS,
+                f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
         require(self.compile == "auto" or isinstance(self.compile, bool),
                 f"`compile` must be true, false or 'auto'; got {self.compile!r}")
         if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
@@ -210,9 +229,14 @@ class MPC:
             ego, vehicles, vehicle_mask, self.config.num_obstacles, (cfg.ellipse_a, cfg.ellipse_b),
             self.config.ignore_behind,
         )
-        obstacles = predict_constant_velocity(states, opt.times)
+        obstacles = self.predict(states, opt.times)
         goals = self.goal_sampler(ego, self.road)
         return ProblemBatch(ego, goals, obstacles, mask)
+
+    def predict(self, states: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
+        """(E, M, 4) obstacle states -> (E, M, N, 2) centres at ``times`` (N,) [s], by
+        :attr:`MPCConfig.prediction`."""
+        return PREDICTIONS[self.config.prediction](states, times.to(states.dtype), self.road)
 
     @torch.no_grad()
     def plan(

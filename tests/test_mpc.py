@@ -52,6 +52,24 @@ def test_blocked_lanes_choose_a_following_goal(cruise_mpc):
     assert float(plan.acceleration[0]) < 0.0
 
 
+def test_a_neighbour_changing_lanes_ahead_does_not_block_the_cruise_plans(cruise_mpc):
+    # A scene from cruise traffic (seed 4, t = 2.6 s): the car 13 m ahead, two lanes to the left,
+    # moves right at 2.7 m/s (highway-env's lane change). Straight extrapolation sweeps it through
+    # the ego's lane and beyond; the lane-bounded prediction ends its motion on the adjacent centre.
+    ego = mmpc.ego_state(0.0, 15.0, 0.0, 14.6)
+    cars = torch.tensor([[[-0.5, 20.0, 9.7, 0.0], [2.0, 0.2, 7.5, -0.55], [13.2, 10.0, 6.7, 2.72], [35.5, 20.0, 10.4, 0.0],
+                          [40.1, 8.4, 8.7, -0.89], [51.5, 3.6, 7.7, -1.98], [59.3, 12.0, 6.4, 0.0]]])
+    lanes = cruise_mpc.plan(ego, cars)
+    straight = mmpc.MPC(cruise_mpc.optimizer, cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road,
+                        mmpc.MPCConfig(prediction="constant_velocity")).plan(ego, cars)
+    changing = (lanes.problem.obstacles[0, :, 0] - torch.tensor([13.2, 10.0])).norm(dim=-1).argmin()
+    assert float(lanes.problem.obstacles[0, changing, :, 1].max()) == 12.0
+    assert float(straight.problem.obstacles[0, changing, :, 1].max()) > 20.0
+    assert bool(lanes.selection.feasible[0]) and bool(straight.selection.feasible[0])
+    assert int(lanes.result.feasible.sum()) > int(straight.result.feasible.sum())
+    assert float(lanes.selection.cost[0]) < 0.1 * float(straight.selection.cost[0])  # ~3 vs ~230
+
+
 def test_candidates_leaving_the_road_are_flagged(cruise_mpc):
     off_road = lambda ego, road: torch.tensor([[[120.0, 8.0], [120.0, 30.0], [120.0, -9.0]]])  # noqa: E731
     mpc = mmpc.MPC(cruise_mpc.optimizer, off_road, cruise_mpc.meta_cost, cruise_mpc.road)
@@ -112,7 +130,8 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
 
 
 @pytest.mark.parametrize("kwargs, name", [({"command_window": 0.0}, "command_window"), ({"road_margin": -1.0}, "road_margin"),
-                                          ({"num_obstacles": -1}, "num_obstacles"), ({"compile": "yes"}, "compile")])
+                                          ({"num_obstacles": -1}, "num_obstacles"), ({"compile": "yes"}, "compile"),
+                                          ({"prediction": "straight"}, "prediction")])
 def test_mpc_config_is_validated(kwargs, name):
     with pytest.raises(ValueError, match=name):
         mmpc.MPCConfig(**kwargs)

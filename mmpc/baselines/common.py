@@ -2,7 +2,7 @@
 scenario's meta cost, and the command extraction with its fallback.
 
 Every baseline plans against the same obstacles as ours (the M nearest vehicles in
-ellipse-normalised distance, constant-velocity prediction; :func:`mmpc.mpc.nearest_obstacles`),
+ellipse-normalised distance, :func:`mmpc.mpc.nearest_obstacles`, predicted by :meth:`mmpc.MPC.predict`),
 ranks its candidates with the same meta cost, and turns the chosen plan into a command exactly as
 :class:`mmpc.MPC` does (tangential acceleration and heading rate averaged over the command
 window; ``steering = atan(L psidot / v)``; the lane-keeping brake where nothing is usable).
@@ -17,7 +17,6 @@ import torch
 
 from mmpc.drivers import Candidates, Decision, Observation
 from mmpc.mpc import MPC, nearest_obstacles
-from mmpc.problem import predict_constant_velocity
 from mmpc.result import Trajectories
 
 
@@ -45,7 +44,7 @@ def obstacles_for(mpc: MPC, ego: torch.Tensor, vehicles: torch.Tensor, mask, tim
     states, present = nearest_obstacles(
         ego, vehicles, mask, mpc.config.num_obstacles, (cfg.ellipse_a, cfg.ellipse_b), mpc.config.ignore_behind
     )
-    return predict_constant_velocity(states, times.to(states.dtype)), present
+    return mpc.predict(states, times), present
 
 
 def rank(cost: torch.Tensor, feasible: torch.Tensor) -> Ranked:
