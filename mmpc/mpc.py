@@ -66,6 +66,11 @@ class MPCConfig:
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
             (measured in highway-env: 1.1 m overshoot on a two-lane change); averaging over
             0.3 s anticipates the plan's trend (0.15 m) at no cost in speed tracking.
+        tie_tolerance, tie_margin: candidates whose meta cost is within
+            ``tie_tolerance * lowest + tie_margin`` of the lowest count as tied [-, meta-cost
+            units], and the tie goes to the goal nearest the ego laterally. Without it, two
+            lanes that cost the same (following at 9 m/s in either) were chosen in turn from one
+            step to the next, and the ego drove on the lane line for 10 s (cruise seed 11).
         brake_deceleration: deceleration of the lane-keeping brake, the fallback when no
             candidate is feasible and the least-infeasible one is not drivable [m/s^2].
         max_steering: steering saturation [rad].
@@ -82,6 +87,8 @@ class MPCConfig:
     prediction: str = "lanes"
     wheelbase: float = 5.0
     command_window: float = 0.3
+    tie_tolerance: float = 0.01
+    tie_margin: float = 0.0
     brake_deceleration: float = 4.0
     max_steering: float = math.pi / 4
     road_margin: float = 1.0
@@ -98,6 +105,10 @@ class MPCConfig:
             raise ValueError(f"`road_margin` must be a finite number >= 0 m; got {self.road_margin!r}")
         names = ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
+        for name in ("tie_tolerance", "tie_margin"):
+            value = getattr(self, name)
+            require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
+                    f"`{name}` must be a finite number >= 0; got {value!r}")
 
     @classmethod
     def from_dict(cls, values) -> "MPCConfig":
@@ -267,7 +278,8 @@ class MPC:
             problem: E problems with G goals each.
             selector: ``selector(result, cost, violation) -> Selection`` over the (E, G)
                 candidates (``violation`` ranks infeasible ones, see :meth:`plan`); default
-                :func:`mmpc.ranking.select_best`, the feasible candidate of lowest meta cost.
+                :func:`mmpc.ranking.select_best`, the feasible candidate of lowest meta cost (ties
+                within :attr:`MPCConfig.tie_tolerance` to the goal nearest the ego laterally).
                 A selection with ``feasible`` False gets :meth:`plan`'s fallback.
 
         Returns:
@@ -283,7 +295,10 @@ class MPC:
         cost = self.meta_cost(result.trajectories, self.road)
         violation = self._violation(result, road_excess)
         if selector is None:
-            selection = select_best(result, cost, self.optimizer.config, violation=violation)
+            lateral_move = (problem.goals[..., 1] - problem.ego[:, None, EGO_Y]).abs()
+            selection = select_best(result, cost, self.optimizer.config, violation=violation,
+                                    preference=lateral_move, tie_tolerance=self.config.tie_tolerance,
+                                    tie_margin=self.config.tie_margin)
         else:
             selection = selector(result, cost, violation)
         trajectory = result.trajectories.select(selection.index)

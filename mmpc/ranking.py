@@ -43,7 +43,14 @@ def constraint_violation(result: SolveResult, config: OptimizerConfig) -> torch.
 
 
 def select_best(
-    result: SolveResult, cost: torch.Tensor, config: OptimizerConfig, *, violation: Optional[torch.Tensor] = None
+    result: SolveResult,
+    cost: torch.Tensor,
+    config: OptimizerConfig,
+    *,
+    violation: Optional[torch.Tensor] = None,
+    preference: Optional[torch.Tensor] = None,
+    tie_tolerance: float = 0.0,
+    tie_margin: float = 0.0,
 ) -> Selection:
     """Best element of every problem: the feasible one with the lowest ``cost``; when a problem
     has none feasible, the one with the smallest violation (flagged).
@@ -55,6 +62,11 @@ def select_best(
         violation: (E, G) how far each element is from feasible; default
             :func:`constraint_violation` (a caller that adds constraints of its own adds their
             violation to it).
+        preference: (E, G) tie-break, lower is preferred: among the feasible elements whose
+            cost is within ``tie_tolerance * |lowest| + tie_margin`` of the lowest, the one of
+            lowest preference wins. ``None``: no tie-break.
+        tie_tolerance: relative width of the tie band [-] (0.01: within 1 % of the lowest).
+        tie_margin: absolute width of the tie band, in the units of ``cost``.
     """
     if cost.shape != result.feasible.shape:
         raise ValueError(f"`cost` must have shape {tuple(result.feasible.shape)}; got {tuple(cost.shape)}")
@@ -66,6 +78,15 @@ def select_best(
     inf = torch.full((), float("inf"), dtype=cost.dtype, device=cost.device)
     feasible_cost = torch.where(result.feasible, cost, inf)
     best_feasible = feasible_cost.argmin(dim=-1)
+    if preference is not None:
+        if preference.shape != cost.shape:
+            raise ValueError(f"`preference` must have shape {tuple(cost.shape)}; got {tuple(preference.shape)}")
+        for name, value in (("tie_tolerance", tie_tolerance), ("tie_margin", tie_margin)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"`{name}` must be a finite number >= 0; got {value!r}")
+        lowest = feasible_cost.amin(dim=-1, keepdim=True)
+        tied = result.feasible & (feasible_cost <= lowest + tie_tolerance * lowest.abs() + tie_margin)
+        best_feasible = torch.where(tied, preference, inf).argmin(dim=-1)
     any_feasible = result.feasible.any(dim=-1)
     least_infeasible = violation.argmin(dim=-1)
     index = torch.where(any_feasible, best_feasible, least_infeasible)

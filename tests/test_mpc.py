@@ -131,7 +131,8 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
 
 @pytest.mark.parametrize("kwargs, name", [({"command_window": 0.0}, "command_window"), ({"road_margin": -1.0}, "road_margin"),
                                           ({"num_obstacles": -1}, "num_obstacles"), ({"compile": "yes"}, "compile"),
-                                          ({"prediction": "straight"}, "prediction")])
+                                          ({"prediction": "straight"}, "prediction"), ({"tie_margin": -1.0}, "tie_margin"),
+                                          ({"tie_tolerance": float("inf")}, "tie_tolerance")])
 def test_mpc_config_is_validated(kwargs, name):
     with pytest.raises(ValueError, match=name):
         mmpc.MPCConfig(**kwargs)
