@@ -22,7 +22,7 @@ from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
     EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
 )
-from mmpc.ranking import Selection, constraint_violation, select_best
+from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best
 from mmpc.result import SolveResult, Status, Trajectories
 from mmpc.road import Road
 
@@ -68,7 +68,8 @@ class MPCConfig:
             0.3 s anticipates the plan's trend (0.15 m) at no cost in speed tracking.
         tie_tolerance, tie_margin: candidates whose meta cost is within
             ``tie_tolerance * lowest + tie_margin`` of the lowest count as tied [-, meta-cost
-            units], and the tie goes to the goal nearest the ego laterally. Without it, two
+            units], and the tie goes to the candidate ending nearest the ego laterally
+            (:func:`mmpc.ranking.lateral_move`; the baselines rank the same way). Without it, two
             lanes that cost the same (following at 9 m/s in either) were chosen in turn from one
             step to the next, and the ego drove on the lane line for 10 s (cruise seed 11).
         brake_deceleration: deceleration of the lane-keeping brake, the fallback when no
@@ -279,7 +280,7 @@ class MPC:
             selector: ``selector(result, cost, violation) -> Selection`` over the (E, G)
                 candidates (``violation`` ranks infeasible ones, see :meth:`plan`); default
                 :func:`mmpc.ranking.select_best`, the feasible candidate of lowest meta cost (ties
-                within :attr:`MPCConfig.tie_tolerance` to the goal nearest the ego laterally).
+                within :attr:`MPCConfig.tie_tolerance` to the smallest lateral move).
                 A selection with ``feasible`` False gets :meth:`plan`'s fallback.
 
         Returns:
@@ -295,10 +296,9 @@ class MPC:
         cost = self.meta_cost(result.trajectories, self.road)
         violation = self._violation(result, road_excess)
         if selector is None:
-            lateral_move = (problem.goals[..., 1] - problem.ego[:, None, EGO_Y]).abs()
             selection = select_best(result, cost, self.optimizer.config, violation=violation,
-                                    preference=lateral_move, tie_tolerance=self.config.tie_tolerance,
-                                    tie_margin=self.config.tie_margin)
+                                    preference=lateral_move(result.trajectories, problem.ego),
+                                    tie_tolerance=self.config.tie_tolerance, tie_margin=self.config.tie_margin)
         else:
             selection = selector(result, cost, violation)
         trajectory = result.trajectories.select(selection.index)

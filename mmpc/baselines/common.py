@@ -3,7 +3,7 @@ scenario's meta cost, and the command extraction with its fallback.
 
 Every baseline plans against the same obstacles as ours (the M nearest vehicles in
 ellipse-normalised distance, :func:`mmpc.mpc.nearest_obstacles`, predicted by :meth:`mmpc.MPC.predict`),
-ranks its candidates with the same meta cost, and turns the chosen plan into a command exactly as
+ranks its candidates with the same meta cost and tie-break, and turns the chosen plan into a command exactly as
 :class:`mmpc.MPC` does (tangential acceleration and heading rate averaged over the command
 window; ``steering = atan(L psidot / v)``; the lane-keeping brake where nothing is usable).
 """
@@ -17,6 +17,7 @@ import torch
 
 from mmpc.drivers import Candidates, Decision, Observation
 from mmpc.mpc import MPC, nearest_obstacles
+from mmpc.ranking import lateral_move, lowest_feasible
 from mmpc.result import Trajectories
 
 
@@ -47,10 +48,14 @@ def obstacles_for(mpc: MPC, ego: torch.Tensor, vehicles: torch.Tensor, mask, tim
     return mpc.predict(states, times), present
 
 
-def rank(cost: torch.Tensor, feasible: torch.Tensor) -> Ranked:
-    """Lowest ``cost`` (E, C) among the ``feasible`` (E, C) candidates of every row."""
-    masked = torch.where(feasible, torch.nan_to_num(cost, nan=float("inf")), torch.full_like(cost, float("inf")))
-    index = masked.argmin(dim=1)
+def rank(mpc: MPC, ego: torch.Tensor, trajectories: Trajectories, cost: torch.Tensor, feasible: torch.Tensor) -> Ranked:
+    """The lowest ``cost`` (E, C) among the ``feasible`` (E, C) candidates of every row, ties
+    broken as :class:`mmpc.MPC` breaks them (``mpc.config.tie_tolerance`` / ``tie_margin``,
+    towards the smallest :func:`mmpc.ranking.lateral_move`)."""
+    index = lowest_feasible(
+        cost, feasible, preference=lateral_move(trajectories, ego),
+        tie_tolerance=mpc.config.tie_tolerance, tie_margin=mpc.config.tie_margin,
+    )
     any_feasible = feasible.any(dim=1)
     rows = torch.arange(cost.shape[0])
     chosen = torch.where(any_feasible, cost[rows, index], torch.full_like(cost[:, 0], float("nan")))
@@ -86,7 +91,7 @@ def ranked_decision(
     """
     dtype = mpc.optimizer.dtype
     cost = mpc.meta_cost(trajectories, mpc.road)
-    ranked = rank(cost, feasible)
+    ranked = rank(mpc, ego, trajectories, cost, feasible)
     acceleration, steering, _ = mpc.command(ego, trajectories.select(ranked.index), ranked.feasible)
     elapsed_ms = (time.perf_counter() - start) * 1e3
     return Decision(
