@@ -13,7 +13,7 @@ samples them on the batch optimizer's N instants of its horizon, and keeps the c
 speed ``hypot(s', d')`` stays in ``[v_min, v_max]``, acceleration ``hypot(s'', d'')`` below
 ``a_max``, curvature ``(s' d'' - d' s'') / v^3`` below ``max_curvature``, heading
 ``atan2(d', s')`` within ``+-max_heading_deg``, that stay on the road and outside every
-obstacle ellipse (same ellipse and the same constant-velocity predictions of the same nearest
+obstacle ellipse (same ellipse and the same predictions (:meth:`mmpc.MPC.predict`) of the same nearest
 vehicles as ours). Among those the scenario's meta cost picks one (Werling's own cost, jerk plus
 time plus deviation, is replaced by the meta cost so that every method optimises the same
 objective). Everything is one batch of tensor operations over (E, candidates, N).

@@ -17,7 +17,7 @@ k >= 1 (knot 0 is the measured state):
   ``road_margin`` (each band widened to include the start value, as the MPC's road filter does);
 * ``a_k^2 + v_k^2 omega_k^2 <= a_max^2``;
 * ``((x_k - o_jx(t_k)) / a)^2 + ((y_k - o_jy(t_k)) / b)^2 >= 1`` for every obstacle slot j
-  (absent slots parked far away), with ``o_j`` the constant-velocity prediction;
+  (absent slots parked far away), with ``o_j`` the MPC's prediction (:meth:`mmpc.MPC.predict`);
 * end heading and heading rate 0 (the optimizer's boundary conditions).
 
 Objective: smoothness ``sum_k dt [w_xy (a_k^2 + v_k^2 omega_k^2) + w_psi omega_dot_k^2 +
