@@ -158,8 +158,12 @@ def _demos_command(out: Path) -> list[str]:
 def test_interrupted_generation_resumes_to_exactly_the_uninterrupted_episodes(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     interrupted = tmp_path / "interrupted"  # given relative to the working directory, as users do
+    # Ctrl-C's disposition as in a terminal's foreground job, even when pytest itself runs as a
+    # background job of a shell without job control (which starts it with SIGINT ignored, and
+    # an ignored SIGINT is inherited: the run then finished all eight episodes uninterrupted).
     process = subprocess.Popen(_demos_command(Path("interrupted")), env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while time.time() < deadline and not list((interrupted / "episodes").glob("seed_*.npz")):
         assert process.poll() is None, process.communicate()
