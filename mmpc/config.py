@@ -77,6 +77,13 @@ def require_positive(where: str, **values: Any) -> None:
         require(is_finite_number(value) and value > 0, f"{prefix}`{name}` must be a finite number > 0; got {value!r}")
 
 
+def require_non_negative(where: str, **values: Any) -> None:
+    """Check that every keyword value is a finite number >= 0 (messages as :func:`require_positive`)."""
+    prefix = f"{where}: " if where else ""
+    for name, value in values.items():
+        require(is_finite_number(value) and value >= 0, f"{prefix}`{name}` must be a finite number >= 0; got {value!r}")
+
+
 @dataclass(frozen=True)
 class OptimizerConfig:
     """Settings of :class:`mmpc.BatchOptimizer`. Defaults are the paper authors' values.

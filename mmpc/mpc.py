@@ -15,7 +15,7 @@ from typing import Callable, NamedTuple, Optional
 
 import torch
 
-from mmpc.config import dataclass_from_dict, require, require_positive
+from mmpc.config import dataclass_from_dict, require, require_non_negative, require_positive
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
@@ -103,14 +103,9 @@ class MPCConfig:
                 f"`compile` must be true, false or 'auto'; got {self.compile!r}")
         if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
             raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
-        if not (isinstance(self.road_margin, (int, float)) and math.isfinite(self.road_margin) and self.road_margin >= 0):
-            raise ValueError(f"`road_margin` must be a finite number >= 0 m; got {self.road_margin!r}")
         names = ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
-        for name in ("tie_tolerance", "tie_margin"):
-            value = getattr(self, name)
-            require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
-                    f"`{name}` must be a finite number >= 0; got {value!r}")
+        require_non_negative("", road_margin=self.road_margin, tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin)
 
     @classmethod
     def from_dict(cls, values) -> "MPCConfig":

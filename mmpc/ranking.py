@@ -7,7 +7,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from mmpc.config import OptimizerConfig
+from mmpc.config import OptimizerConfig, require_non_negative
 from mmpc.problem import EGO_Y
 from mmpc.result import SolveResult, Trajectories
 
@@ -76,9 +76,7 @@ def lowest_feasible(
         return feasible_cost.argmin(dim=-1)
     if preference.shape != cost.shape:
         raise ValueError(f"`preference` must have shape {tuple(cost.shape)}; got {tuple(preference.shape)}")
-    for name, value in (("tie_tolerance", tie_tolerance), ("tie_margin", tie_margin)):
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"`{name}` must be a finite number >= 0; got {value!r}")
+    require_non_negative("", tie_tolerance=tie_tolerance, tie_margin=tie_margin)
     lowest = feasible_cost.amin(dim=-1, keepdim=True)
     tied = feasible & (feasible_cost <= lowest + tie_tolerance * lowest.abs() + tie_margin)
     return torch.where(tied, preference.to(cost.dtype), inf).argmin(dim=-1)

@@ -20,7 +20,9 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 
-from mmpc.config import dataclass_from_dict, is_finite_number, read_config_yaml, require, require_positive
+from mmpc.config import (
+    dataclass_from_dict, is_finite_number, read_config_yaml, require, require_non_negative, require_positive,
+)
 from mmpc.scenario import CruiseObjective, EgoConfig, IDMTraffic, ScenarioConfig, load_scenario
 
 #: Algorithms ``mmpc train-rl`` knows, with the action space each trains on by default.
@@ -156,8 +158,7 @@ class SafeEnvConfig:
                  f"{where}: `speed_range` must be [low, high] with 0 < low <= high m/s; got {low_high!r}")
         require(isinstance(self.solver_features, bool), f"{where}: `solver_features` must be true or false; got {self.solver_features!r}")
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
-        require(is_finite_number(self.intervention_penalty) and self.intervention_penalty >= 0,
-                 f"{where}: `intervention_penalty` must be a finite number >= 0; got {self.intervention_penalty!r}")
+        require_non_negative(where, intervention_penalty=self.intervention_penalty)
         require(isinstance(self.kinematics_vehicles, int) and self.kinematics_vehicles >= 1,
                  f"{where}: `kinematics_vehicles` must be an int >= 1; got {self.kinematics_vehicles!r}")
 
