@@ -113,6 +113,26 @@ def test_nearest_obstacles_ignores_far_behind_and_pads():
     assert states[0, 0, 0] == 105.0 and states[0, 1, 0] == 130.0  # nearest first
 
 
+def test_nearest_obstacles_rank_a_closing_car_ahead_by_its_closest_approach():
+    # the high-speed scene (seed 12 with 24 m/s goals): a 7 m/s car 46 m ahead in the ego's lane
+    # (5.75 now at a = 8 m) against a car a lane over just behind (1.83) and one beside two lanes
+    # over (2.67), both falling back
+    ego = mmpc.ego_state(100.0, 20.0, 0.0, 23.5)
+    ahead, behind, beside = [146.0, 20.0, 7.0, 0.0], [90.0, 16.0, 7.5, 0.0], [101.0, 12.0, 9.0, 0.0]
+    vehicles = torch.tensor([[beside, behind, ahead]])
+    now, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0)
+    assert now[0].tolist() == [behind, beside]  # today's distance: the car ahead is left out
+    soon, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0, lookahead=3.0)
+    assert soon[0].tolist() == [ahead, behind]  # met within 2.8 s: first; the others keep their distance now
+    shorter, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0, lookahead=1.0)
+    assert shorter[0].tolist() == [behind, beside]  # 30 m off after 1 s: still last
+    # a car overtaking fast in the ego's lane from 15 m behind comes before the one beside
+    overtaking = [85.0, 20.0, 35.0, 0.0]
+    states, _ = nearest_obstacles(ego, torch.tensor([[beside, overtaking]]), None, 1, (8.0, 3.0),
+                                  ignore_behind=20.0, lookahead=3.0)
+    assert states[0, 0].tolist() == overtaking
+
+
 def test_near_lane_goals_cover_the_lanes_around_the_ego():
     road = mmpc.Road(num_lanes=4)
     sampler = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0, 10.0), horizon=8.0, lanes_around=1)
@@ -132,7 +152,8 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
 @pytest.mark.parametrize("kwargs, name", [({"command_window": 0.0}, "command_window"), ({"road_margin": -1.0}, "road_margin"),
                                           ({"num_obstacles": -1}, "num_obstacles"), ({"compile": "yes"}, "compile"),
                                           ({"prediction": "straight"}, "prediction"), ({"tie_margin": -1.0}, "tie_margin"),
-                                          ({"tie_tolerance": float("inf")}, "tie_tolerance")])
+                                          ({"tie_tolerance": float("inf")}, "tie_tolerance"),
+                                          ({"obstacle_lookahead": -3.0}, "obstacle_lookahead")])
 def test_mpc_config_is_validated(kwargs, name):
     with pytest.raises(ValueError, match=name):
         mmpc.MPCConfig(**kwargs)

@@ -1,8 +1,9 @@
 """Pieces the baselines share with the multi-modal MPC: the obstacle set, the ranking by the
 scenario's meta cost, and the command extraction with its fallback.
 
-Every baseline plans against the same obstacles as ours (the M nearest vehicles in
-ellipse-normalised distance, :func:`mmpc.mpc.nearest_obstacles`, predicted by :meth:`mmpc.MPC.predict`),
+Every baseline plans against the same obstacles as ours (the M vehicles nearest in
+ellipse-normalised distance within the lookahead, :meth:`mmpc.MPC.nearest_obstacles`, predicted
+by :meth:`mmpc.MPC.predict`),
 ranks its candidates with the same meta cost and tie-break, and turns the chosen plan into a command exactly as
 :class:`mmpc.MPC` does (tangential acceleration and heading rate averaged over the command
 window; ``steering = atan(L psidot / v)``; the lane-keeping brake where nothing is usable).
@@ -16,7 +17,7 @@ from typing import NamedTuple, Optional
 import torch
 
 from mmpc.drivers import Candidates, Decision, Observation
-from mmpc.mpc import MPC, nearest_obstacles
+from mmpc.mpc import MPC
 from mmpc.ranking import lateral_move, lowest_feasible
 from mmpc.result import Trajectories
 
@@ -36,15 +37,12 @@ class Ranked(NamedTuple):
 
 
 def obstacles_for(mpc: MPC, ego: torch.Tensor, vehicles: torch.Tensor, mask, times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The M nearest vehicles of ``mpc``'s settings predicted at ``times``.
+    """The M obstacles of ``mpc``'s settings (:meth:`mmpc.MPC.nearest_obstacles`) predicted at ``times``.
 
     Returns:
         (E, M, T, 2) predicted centres [m] and (E, M) mask of present slots.
     """
-    cfg = mpc.optimizer.config
-    states, present = nearest_obstacles(
-        ego, vehicles, mask, mpc.config.num_obstacles, (cfg.ellipse_a, cfg.ellipse_b), mpc.config.ignore_behind
-    )
+    states, present = mpc.nearest_obstacles(ego, vehicles, mask)
     return mpc.predict(states, times), present
 
 
