@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
+from mmpc.config import require_positive
+
 logger = logging.getLogger(__name__)
 
 #: The methods of the paper's comparison, ours first.
@@ -80,8 +82,7 @@ class BenchSpec:
             raise ValueError(f"`seeds` must be distinct ints >= 0, at least one; got {self.seeds!r}")
         if not self.methods or len(set(self.methods)) != len(self.methods):
             raise ValueError(f"`methods` must be distinct driver specs, at least one; got {self.methods!r}")
-        if not (math.isfinite(self.duration) and self.duration > 0):
-            raise ValueError(f"`duration` must be a finite number > 0 s; got {self.duration!r}")
+        require_positive("", duration=self.duration)
         for name in ("scaling_batches", "scaling_nlp_batches"):
             if any(not isinstance(b, int) or b < 1 for b in getattr(self, name)):
                 raise ValueError(f"`{name}` must hold ints >= 1; got {getattr(self, name)!r}")

@@ -29,7 +29,7 @@ from typing import Optional
 import torch
 
 from mmpc.baselines.common import checked_ego, obstacles_for, ranked_decision
-from mmpc.config import dataclass_from_dict
+from mmpc.config import dataclass_from_dict, require_positive
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
@@ -67,8 +67,7 @@ class FrenetConfig:
             raise ValueError(f"frenet: `durations` must be a non-empty list of finite times > 0 s; got {self.durations!r}")
         if not 0 < self.max_heading_deg < 90:
             raise ValueError(f"frenet: `max_heading_deg` must be in (0, 90) deg; got {self.max_heading_deg!r}")
-        if not (math.isfinite(self.max_curvature) and self.max_curvature > 0):
-            raise ValueError(f"frenet: `max_curvature` must be a finite number > 0 1/m; got {self.max_curvature!r}")
+        require_positive("frenet", max_curvature=self.max_curvature)
 
     @property
     def num_candidates(self) -> int:

@@ -41,7 +41,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import numpy as np
 import torch
 
-from mmpc.config import OptimizerConfig, dataclass_from_dict, require_positive
+from mmpc.config import OptimizerConfig, dataclass_from_dict, require_non_negative, require_positive
 from mmpc.result import Trajectories
 from mmpc.road import Road
 
@@ -93,8 +93,7 @@ class NLPConfig:
         if not isinstance(self.max_iter, int) or isinstance(self.max_iter, bool) or self.max_iter < 1:
             raise ValueError(f"`max_iter` must be an int >= 1; got {self.max_iter!r}")
         require_positive("", tol=self.tol, feasibility_tolerance=self.feasibility_tolerance, max_cpu_time=self.max_cpu_time)
-        if not (isinstance(self.jerk_weight, (int, float)) and math.isfinite(self.jerk_weight) and self.jerk_weight >= 0):
-            raise ValueError(f"`jerk_weight` must be a finite number >= 0; got {self.jerk_weight!r}")
+        require_non_negative("", jerk_weight=self.jerk_weight)
 
     @classmethod
     def from_dict(cls, values) -> "NLPConfig":
