@@ -50,8 +50,8 @@ class MPCConfig:
     """Settings of the receding-horizon loop.
 
     Attributes:
-        num_obstacles: M, the nearest vehicles given to the optimizer (must not exceed the
-            optimizer's ``max_obstacles``).
+        num_obstacles: M, the vehicles given to the optimizer, nearest first within
+            ``obstacle_lookahead`` (must not exceed the optimizer's ``max_obstacles``).
         ignore_behind: vehicles more than this far behind the ego are ignored [m].
         obstacle_lookahead: the M obstacles are the vehicles that come nearest within this
             many seconds at constant velocity (:func:`nearest_obstacles`) [s]; 0: nearest now.
