@@ -21,7 +21,8 @@ from typing import Any, Mapping, Optional
 
 
 from mmpc.config import (
-    dataclass_from_dict, is_finite_number, read_config_yaml, require, require_non_negative, require_positive,
+    OptimizerConfig, dataclass_from_dict, is_finite_number, read_config_yaml, require, require_non_negative,
+    require_positive,
 )
 from mmpc.scenario import CruiseObjective, EgoConfig, IDMTraffic, ScenarioConfig, load_scenario
 
@@ -51,6 +52,8 @@ def rl_scenario() -> ScenarioConfig:
         ego=EgoConfig(speed=25.0, lane=None),
         traffic=IDMTraffic(vehicles_count=20, vehicles_density=1.0, target_speeds=None, window=None,
                            initial_clearance=10.0, lane_changes=True),
+        # fast traffic: the high-speed scenario's ellipse and 8-degree band, not cruise's 13 degrees
+        optimizer=OptimizerConfig(ellipse_a=8.0, ellipse_b=3.0, max_heading_deg=8.0, heading_target_deg=7.2),
     )
 
 
