@@ -273,6 +273,14 @@ class MPC:
         :attr:`MPCConfig.prediction`."""
         return PREDICTIONS[self.config.prediction](states, times.to(states.dtype), self.road)
 
+    def tie_break(self, trajectories: Trajectories, ego: torch.Tensor) -> dict:
+        """The tie-break keywords of :func:`mmpc.ranking.lowest_feasible` (and
+        :func:`mmpc.ranking.select_best`) for (E, G) candidates of the (E, 6) egos: ties within
+        :attr:`MPCConfig.tie_tolerance` / ``tie_margin`` go to the smallest
+        :func:`mmpc.ranking.lateral_move`. The baselines rank with the same keywords."""
+        return {"preference": lateral_move(trajectories, ego), "tie_tolerance": self.config.tie_tolerance,
+                "tie_margin": self.config.tie_margin}
+
     @torch.no_grad()
     def plan(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
@@ -320,8 +328,7 @@ class MPC:
         violation = self._violation(result, road_excess)
         if selector is None:
             selection = select_best(result, cost, self.optimizer.config, violation=violation,
-                                    preference=lateral_move(result.trajectories, problem.ego),
-                                    tie_tolerance=self.config.tie_tolerance, tie_margin=self.config.tie_margin)
+                                    **self.tie_break(result.trajectories, problem.ego))
         else:
             selection = selector(result, cost, violation)
         trajectory = result.trajectories.select(selection.index)

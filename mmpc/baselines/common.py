@@ -18,7 +18,7 @@ import torch
 
 from mmpc.drivers import Candidates, Decision, Observation
 from mmpc.mpc import MPC
-from mmpc.ranking import lateral_move, lowest_feasible
+from mmpc.ranking import lowest_feasible
 from mmpc.result import Trajectories
 
 
@@ -48,12 +48,8 @@ def obstacles_for(mpc: MPC, ego: torch.Tensor, vehicles: torch.Tensor, mask, tim
 
 def rank(mpc: MPC, ego: torch.Tensor, trajectories: Trajectories, cost: torch.Tensor, feasible: torch.Tensor) -> Ranked:
     """The lowest ``cost`` (E, C) among the ``feasible`` (E, C) candidates of every row, ties
-    broken as :class:`mmpc.MPC` breaks them (``mpc.config.tie_tolerance`` / ``tie_margin``,
-    towards the smallest :func:`mmpc.ranking.lateral_move`)."""
-    index = lowest_feasible(
-        cost, feasible, preference=lateral_move(trajectories, ego),
-        tie_tolerance=mpc.config.tie_tolerance, tie_margin=mpc.config.tie_margin,
-    )
+    broken as :class:`mmpc.MPC` breaks them (:meth:`mmpc.MPC.tie_break`)."""
+    index = lowest_feasible(cost, feasible, **mpc.tie_break(trajectories, ego))
     any_feasible = feasible.any(dim=1)
     rows = torch.arange(cost.shape[0])
     chosen = torch.where(any_feasible, cost[rows, index], torch.full_like(cost[:, 0], float("nan")))
