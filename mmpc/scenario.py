@@ -29,11 +29,12 @@ from mmpc.road import Road
 
 #: Obstacle ellipse semi-axes for highway-env [m] (the default cruise scenario's). Its collision
 #: check intersects 5 m x 2 m rectangles, so a covering ellipse must hold their Minkowski sum
-#: (half extents 5 m x 2 m, more with a relative heading): 25 / a^2 + 4 / b^2 <= 1. The
-#: authors' (5.6, 3.0) gives 1.24 and lets the ego graze cars it believes it clears (observed as
-#: side collisions in closed loop). With the ego turned to the band's 13 degrees and the other
-#: car 3 degrees the other way (a lane change) the sum's corners reach 0.99 for (8.0, 3.3) and
-#: 1.13 for (8.0, 3.0); the high-speed scenario keeps (8.0, 3.0) with an 8-degree band (1.03).
+#: (half extents 5 m x 2 m, more with a relative heading): 25 / a^2 + 4 / b^2 <= 1
+#: (:func:`mmpc.footprint.ellipse_coverage`). The authors' (5.6, 3.0) gives 1.24 and lets the ego
+#: graze cars it believes it clears (observed as side collisions in closed loop). With the ego
+#: turned to the band's 13 degrees and the other car turned 3 degrees the same way (changing
+#: lane) the sum's corners reach 0.99 for (8.0, 3.3) and 1.13 for (8.0, 3.0); the high-speed
+#: scenario keeps (8.0, 3.0) with an 8-degree band (0.97; 1.03 with the other car turned 3 degrees).
 HIGHWAY_ELLIPSE = (8.0, 3.3)
 #: Heading band [deg], the paper's 13. With b = 3.0 m an 11-degree band had ended in a collision
 #: (cruise, seed 12), hence 8 degrees before b = 3.3 m; 13 degrees gives 2.2 m/s of lateral speed

@@ -1,6 +1,7 @@
 import pytest
 
 from mmpc import HighSpeedGoals, NearLaneGoals, Road
+from mmpc.footprint import ellipse_coverage
 from mmpc.scenario import (
     SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, load_scenario,
 )
@@ -93,3 +94,22 @@ def test_objectives_build_the_paper_goals_plus_near_lane_goals():
     high = HighSpeedObjective().goal_sampler(road, 8.0)
     assert isinstance(high, NearLaneGoals) and isinstance(high.base, HighSpeedGoals)
     assert isinstance(CruiseObjective(near_lane_speeds=()).goal_sampler(road, 8.0), type(cruise.base))
+
+
+def test_ellipse_coverage_is_exact_on_aligned_boxes_and_grows_with_heading():
+    # aligned 5 m x 2 m boxes touch at |dx| <= 5, |dy| <= 2: the corner (5, 2) decides
+    assert ellipse_coverage((8.0, 3.0), 0.0) == pytest.approx(25 / 64 + 4 / 9)
+    assert ellipse_coverage((5.6, 3.1), 0.0) > 1  # the authors' ellipse misses highway-env's corners
+    turned = [ellipse_coverage((8.0, 3.3), heading) for heading in (0.0, 4.0, 8.0, 13.0, 16.0)]
+    assert turned == sorted(turned) and ellipse_coverage((8.0, 3.3), -13.0) == pytest.approx(turned[3])
+    with pytest.raises(ValueError, match="semi_axes"):
+        ellipse_coverage((8.0, 0.0), 0.0)
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml")))
+def test_shipped_ellipses_cover_highway_vehicles_across_the_heading_band(name):
+    """The ego anywhere in its heading band, the other car along its lane: no corner of the two
+    highway-env boxes' Minkowski sum lies outside the obstacle ellipse."""
+    optimizer = load_scenario(name).optimizer
+    axes, band = (optimizer.ellipse_a, optimizer.ellipse_b), optimizer.max_heading_deg
+    assert max(ellipse_coverage(axes, heading) for heading in (-band, band)) <= 1.0
