@@ -3,13 +3,11 @@ visited (``mmpc imitate bc``).
 
 Loss: mean squared error between the policy's and the expert's standardised commands,
 ``L = mean_s || u_hat(o_s) - (u_s - mu_u) / sigma_u ||^2`` (see :mod:`mmpc.imitation.policy`),
-minimised with Adam over mini-batches; a lane-mode policy regresses the head of the expert's
-lateral mode and adds the classifier's cross-entropy (:meth:`MLPPolicy.loss`). Steps without a
-chosen goal (the expert's fallback, which brakes in lane) count as ``keep``. A fraction of the *episodes* is held out (whole
+minimised with Adam over mini-batches. A fraction of the *episodes* is held out (whole
 episodes, so that consecutive, nearly identical states do not leak into validation); the
 checkpoint keeps the weights of the epoch with the lowest held-out loss. Scalars go to
 TensorBoard (``train/loss``, ``val/loss``, ``val/rmse_acceleration`` [m/s^2],
-``val/rmse_steering`` [rad], ``val/mode_accuracy`` for lane modes) with the hyperparameters as text.
+``val/rmse_steering`` [rad]) with the hyperparameters as text.
 """
 
 from __future__ import annotations
@@ -28,8 +26,7 @@ import torch
 from mmpc.config import dataclass_from_dict, read_config_yaml
 from mmpc.imitation.dataset import Transitions
 from mmpc.imitation.features import road_features
-from mmpc.imitation.policy import LANE_MODES, MLPPolicy, PolicyConfig, lane_modes, save_policy
-from mmpc.problem import EGO_Y
+from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
 from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
@@ -88,13 +85,11 @@ def load_yaml_config(cls, name_or_path: str | Path, overrides: Optional[Mapping[
 
 
 class History(NamedTuple):
-    """Per-epoch losses of one training run (``val_*`` NaN without a validation set;
-    ``val_mode_accuracy`` NaN without lane modes)."""
+    """Per-epoch losses of one training run (``val_*`` NaN without a validation set)."""
 
     train_loss: list[float]
     val_loss: list[float]
     val_rmse: list[tuple[float, float]]
-    val_mode_accuracy: list[float]
     best_epoch: int
 
 
@@ -112,25 +107,11 @@ def split_by_episode(episodes: np.ndarray, fraction: float, seed: int) -> tuple[
     return ~validation, validation
 
 
-def training_modes(data: Transitions, road: Road) -> torch.Tensor:
-    """(S,) long lateral-mode labels of ``data`` (:func:`mmpc.imitation.policy.lane_modes`),
-    ``keep`` where no goal was chosen."""
-    modes = lane_modes(data.ego[:, EGO_Y], data.goal_y, road)
-    return torch.as_tensor(np.where(modes < 0, LANE_MODES.index("keep"), modes))
-
-
-def _evaluate(policy: MLPPolicy, inputs: torch.Tensor, actions: torch.Tensor,
-              modes: Optional[torch.Tensor]) -> tuple[float, tuple[float, float], float]:
-    """Held-out loss, RMSE of the executed command (acceleration [m/s^2], steering [rad]) and
-    share of samples whose mode the classifier picks (NaN without lane modes)."""
+def _evaluate(policy: MLPPolicy, inputs: torch.Tensor, actions: torch.Tensor) -> tuple[float, tuple[float, float]]:
     with torch.no_grad():
-        loss = policy.loss(inputs, policy.standardize_actions(actions), modes)
+        loss = torch.mean((policy.standardized(inputs) - policy.standardize_actions(actions)) ** 2)
         rmse = torch.sqrt(torch.mean((policy(inputs) - actions) ** 2, dim=0))
-        accuracy = math.nan
-        if modes is not None:
-            logits = policy.outputs(inputs)[:, :policy.config.modes]
-            accuracy = float((logits.argmax(dim=1) == modes).float().mean())
-    return float(loss), (float(rmse[0]), float(rmse[1])), accuracy
+    return float(loss), (float(rmse[0]), float(rmse[1]))
 
 
 def train_policy(
@@ -145,8 +126,7 @@ def train_policy(
     """Fit a new :class:`MLPPolicy` to ``data``.
 
     Args:
-        data: (state, expert command) pairs with their episode ids (and, for a lane-mode
-            policy, the expert's goals).
+        data: (state, expert command) pairs with their episode ids.
         road: the road the states refer to.
         config: training settings.
         writer: a ``torch.utils.tensorboard.SummaryWriter`` (optional).
@@ -166,10 +146,6 @@ def train_policy(
         raise ValueError("`data` holds NaN or inf ego states or actions")
     inputs = torch.as_tensor(road_features(data.ego, data.neighbours, road, config.policy.features))
     actions = torch.as_tensor(data.actions, dtype=torch.float32)
-    modes = training_modes(data, road) if config.policy.lane_modes else None
-    if modes is not None and not np.isfinite(data.goal_y).any():
-        raise ValueError("a lane-mode policy learns the expert's goals, and `data` holds none (goal_y all NaN): "
-                         "record the demonstrations with this mmpc (`mmpc demos`)")
     train_mask, val_mask = split_by_episode(data.episodes, config.validation_fraction, config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
@@ -177,11 +153,10 @@ def train_policy(
     train, val = torch.as_tensor(train_mask), torch.as_tensor(val_mask)
     train_in, train_act = inputs[train], actions[train]
     val_in, val_act = inputs[val], actions[val]
-    train_modes, val_modes = (None, None) if modes is None else (modes[train], modes[val])
     policy.fit_normalization(train_in, train_act)
     optimizer = torch.optim.Adam(policy.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
     targets = policy.standardize_actions(train_act)
-    history = History([], [], [], [], -1)
+    history = History([], [], [], -1)
     best_state, best_loss = None, math.inf
     count = train_in.shape[0]
     for epoch in range(config.epochs):
@@ -190,19 +165,17 @@ def train_policy(
         total = 0.0
         for start in range(0, count, config.batch_size):
             index = order[start:start + config.batch_size]
-            loss = policy.loss(train_in[index], targets[index], None if train_modes is None else train_modes[index])
+            loss = torch.mean((policy.standardized(train_in[index]) - targets[index]) ** 2)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             total += float(loss.detach()) * index.numel()
         policy.eval()
         train_loss = total / count
-        val_loss, rmse, accuracy = (_evaluate(policy, val_in, val_act, val_modes) if val_in.shape[0]
-                                    else (math.nan, (math.nan, math.nan), math.nan))
+        val_loss, rmse = _evaluate(policy, val_in, val_act) if val_in.shape[0] else (math.nan, (math.nan, math.nan))
         history.train_loss.append(train_loss)
         history.val_loss.append(val_loss)
         history.val_rmse.append(rmse)
-        history.val_mode_accuracy.append(accuracy)
         score = val_loss if val_in.shape[0] else -epoch  # without validation: keep the last epoch
         if score < best_loss:
             best_loss, best_state = score, copy.deepcopy(policy.state_dict())
@@ -213,8 +186,6 @@ def train_policy(
                 writer.add_scalar(f"{tag}val/loss", val_loss, epoch)
                 writer.add_scalar(f"{tag}val/rmse_acceleration", rmse[0], epoch)
                 writer.add_scalar(f"{tag}val/rmse_steering", rmse[1], epoch)
-                if modes is not None:
-                    writer.add_scalar(f"{tag}val/mode_accuracy", accuracy, epoch)
         if on_epoch is not None:
             on_epoch(epoch, train_loss, val_loss)
     policy.load_state_dict(best_state)
@@ -269,8 +240,6 @@ def run_bc(
         "train_loss": history.train_loss,
         "val_loss_per_epoch": history.val_loss,
     }
-    if config.policy.lane_modes:
-        report["val_mode_accuracy"] = history.val_mode_accuracy[history.best_epoch]
     save_policy(out / "policy.pt", policy, scenario=scenario, info={k: report[k] for k in ("dataset_id", "samples", "best_epoch", "val_loss")})
     (out / "train.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     return report

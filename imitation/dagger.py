@@ -63,7 +63,7 @@ from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
 from mmpc.imitation.dataset import Transitions, scenario_dict
 from mmpc.imitation.policy import PolicyDriver, load_policy, save_policy
-from mmpc.imitation.rollout import Rollout, chosen_goal_y, executed_command, rollout_lockstep
+from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
 from mmpc.scenario import ScenarioConfig
 
@@ -215,24 +215,20 @@ class NoisyDriver(Driver):
                                  steering=decision.steering + noise[:, 1].to(decision.steering.dtype))
 
 
-def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> tuple[np.ndarray, np.ndarray]:
+def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> np.ndarray:
     """The expert's executed commands at ``states`` (E = 1 observations), ``batch`` states per call.
 
     Returns:
-        (S, 2) float32 (acceleration [m/s^2], steering [rad]), clipped as highway-env applies
-        them, and (S,) float32 the lateral position of each chosen goal [m]
-        (:func:`mmpc.imitation.rollout.chosen_goal_y`; NaN: fallback).
+        (S, 2) float32 (acceleration [m/s^2], steering [rad]), clipped as highway-env applies them.
     """
     labels = np.empty((len(states), 2), dtype=np.float32)
-    goal_y = np.empty(len(states), dtype=np.float32)
     expert.reset(min(batch, len(states)))
     for start in range(0, len(states), batch):
         chunk = list(states[start:start + batch])
         decision = expert.decide(stack_observations(chunk, range(len(chunk))))
-        goal_y[start:start + len(chunk)] = chosen_goal_y(decision)
         for row in range(len(chunk)):
             labels[start + row] = executed_command(float(decision.acceleration[row]), float(decision.steering[row]))
-    return labels, goal_y
+    return labels
 
 
 def _drive(scenario: ScenarioConfig, seeds: Sequence[int], driver: Driver, lockstep: int, keep_states: bool) -> list[Rollout]:
@@ -261,44 +257,35 @@ def best_round(rounds: Sequence[dict]) -> int:
     return min(checked, key=lambda entry: (entry["check_collisions"], -entry["round"]))["round"]
 
 
-def _transitions(rollouts: Sequence[Rollout], actions: Sequence[np.ndarray], goal_y: Sequence[np.ndarray],
-                 first_id: int) -> Transitions:
-    """The steps of ``rollouts`` with the given (T, 2) labels and (T,) goals (rows with NaN labels
-    left out), episode ids from ``first_id``."""
+def _transitions(rollouts: Sequence[Rollout], actions: Sequence[np.ndarray], first_id: int) -> Transitions:
+    """The steps of ``rollouts`` with the given (T, 2) labels (NaN rows left out), episode ids
+    from ``first_id``."""
     parts = []
-    for i, (r, labels, goals) in enumerate(zip(rollouts, actions, goal_y)):
+    for i, (r, labels) in enumerate(zip(rollouts, actions)):
         keep = ~np.isnan(labels[:, 0])
         parts.append(Transitions(r.episode.infos["ego"][:-1][keep], r.episode.infos["neighbours"][:-1][keep], labels[keep],
-                                 np.full(int(keep.sum()), first_id + i, dtype=np.int64),
-                                 goals[keep].astype(np.float32)))
+                                 np.full(int(keep.sum()), first_id + i, dtype=np.int64)))
     return Transitions.concatenate(parts)
 
 
-def label_rollouts(expert: Driver, rollouts: Sequence[Rollout], batch: int, *,
-                   noisy: bool = False) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+def label_rollouts(expert: Driver, rollouts: Sequence[Rollout], batch: int, *, noisy: bool = False) -> tuple[list[np.ndarray], int]:
     """Expert labels of every step of ``rollouts`` (recorded with ``keep_states``): the executed
     command where the expert drove (``feasible_goals >= 0``) and no noise was added,
-    :func:`label_states` elsewhere (and where the recorded step lacks the expert's goal); NaN
-    where the ego was reversing (outside the MPC's domain).
+    :func:`label_states` elsewhere; NaN where the ego was reversing (outside the MPC's domain).
 
     Returns:
-        One (T, 2) float32 command array and one (T,) float32 goal array (lateral position [m])
-        per rollout, and the number of steps the expert drove.
+        One (T, 2) float32 array per rollout, and the number of steps the expert drove.
     """
     labels = [r.episode.actions.copy() for r in rollouts]
-    goals = [r.episode.infos["goal_y"][:-1].astype(np.float32) for r in rollouts]
     drove = [r.episode.infos["feasible_goals"][:-1] >= 0 for r in rollouts]
     for label, rollout in zip(labels, rollouts):
         label[rollout.episode.infos["ego"][:-1, EGO_V] < 0] = np.nan
     pending = [(i, t) for i, r in enumerate(rollouts) for t in range(r.episode.steps)
-               if (noisy or not drove[i][t] or np.isnan(goals[i][t])) and not np.isnan(labels[i][t, 0])]
-    if pending:
-        computed, computed_goals = label_states(expert, [rollouts[i].states[t] for i, t in pending], batch)
-        for (i, t), label, goal in zip(pending, computed, computed_goals):
-            goals[i][t] = goal
-            if noisy or not drove[i][t]:  # else only the goal was missing (a mixture records none)
-                labels[i][t] = label
-    return labels, goals, int(sum(d.sum() for d in drove))
+               if (noisy or not drove[i][t]) and not np.isnan(labels[i][t, 0])]
+    computed = label_states(expert, [rollouts[i].states[t] for i, t in pending], batch) if pending else []
+    for (i, t), label in zip(pending, computed):
+        labels[i][t] = label
+    return labels, int(sum(d.sum() for d in drove))
 
 
 def _report(identity: dict, config: DaggerConfig, rounds: list[dict]) -> dict:
@@ -397,8 +384,7 @@ def run_dagger(
                 seeds = list(range(config.seed_start, config.seed_start + config.initial_episodes))
                 with torch.inference_mode():
                     rollouts = _drive(scenario, seeds, expert, config.lockstep, keep_states=False)
-                data = _transitions(rollouts, [r.episode.actions for r in rollouts],
-                                    [r.episode.infos["goal_y"][:-1] for r in rollouts], 0)
+                data = _transitions(rollouts, [r.episode.actions for r in rollouts], 0)
                 stats = {"source": "expert", "seeds": seeds, **_rollout_stats(rollouts)}
             else:
                 first = config.seed_start + config.initial_episodes + (round_index - 1) * config.episodes_per_iteration
@@ -411,8 +397,8 @@ def run_dagger(
                     driver = NoisyDriver(driver, config.noise, rng)
                 with torch.inference_mode():
                     rollouts = _drive(scenario, seeds, driver, config.lockstep, keep_states=True)
-                    labels, goals, expert_steps = label_rollouts(expert, rollouts, config.label_batch, noisy=noisy)
-                data = Transitions.concatenate([data, _transitions(rollouts, labels, goals, int(data.episodes.max()) + 1)])
+                    labels, expert_steps = label_rollouts(expert, rollouts, config.label_batch, noisy=noisy)
+                data = Transitions.concatenate([data, _transitions(rollouts, labels, int(data.episodes.max()) + 1)])
                 stats = {"source": "mixture", "beta": beta, "seeds": seeds, **_rollout_stats(rollouts)}
                 stats["expert_share"] = expert_steps / max(stats["steps"], 1)
                 writer.add_scalar("dagger/collisions", stats["collisions"], round_index)
@@ -427,8 +413,6 @@ def run_dagger(
                 "val_rmse_acceleration": history.val_rmse[history.best_epoch][0],
                 "val_rmse_steering": history.val_rmse[history.best_epoch][1],
             }
-            if config.train.policy.lane_modes:
-                entry["val_mode_accuracy"] = history.val_mode_accuracy[history.best_epoch]
             if config.check_episodes:
                 seeds = list(range(config.check_seed_start, config.check_seed_start + config.check_episodes))
                 with torch.inference_mode():

@@ -42,7 +42,7 @@ from mmpc.scenario import ScenarioConfig
 logger = logging.getLogger(__name__)
 
 FORMAT = "mmpc-demonstrations"
-FORMAT_VERSION = 3  # 2: infos gained "neighbours"; 3: "goal_y"
+FORMAT_VERSION = 2  # 2: infos gained "neighbours"
 MANIFEST = "manifest.json"
 EPISODES = "episodes"
 MINARI_ROOT = "minari"
@@ -362,15 +362,12 @@ class Transitions(NamedTuple):
             empty slots; :func:`mmpc.imitation.features.nearest_neighbours`).
         actions: (S, 2) float32 the expert's (acceleration [m/s^2], steering [rad]).
         episodes: (S,) int64 index of the episode each pair came from (for held-out splits).
-        goal_y: (S,) float32 lateral position of the expert's chosen goal [m] (NaN: unknown);
-            what a lane-mode policy's classifier learns (:func:`mmpc.imitation.policy.lane_modes`).
     """
 
     ego: np.ndarray
     neighbours: np.ndarray
     actions: np.ndarray
     episodes: np.ndarray
-    goal_y: np.ndarray
 
     @classmethod
     def concatenate(cls, parts: Sequence["Transitions"]) -> "Transitions":
@@ -386,8 +383,7 @@ def dataset_transitions(dataset) -> Transitions:
         parts.append(Transitions(np.asarray(episode.infos["ego"][:steps], dtype=np.float32),
                                  np.asarray(episode.infos["neighbours"][:steps], dtype=np.float32),
                                  np.asarray(episode.actions, dtype=np.float32),
-                                 np.full(steps, episode.id, dtype=np.int64),
-                                 np.asarray(episode.infos["goal_y"][:steps], dtype=np.float32)))
+                                 np.full(steps, episode.id, dtype=np.int64)))
     if not parts:
         raise DemonstrationsError("the dataset holds no episodes")
     return Transitions.concatenate(parts)

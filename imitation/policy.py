@@ -12,14 +12,6 @@ Outputs. The network predicts standardised commands ``u_hat``; the command is
 ranges as bounds. Training minimises the mean squared error in standardised units, so
 acceleration (m/s^2) and steering (rad) weigh alike. Every statistic is a buffer, and the road
 the features refer to is part of the checkpoint, so a checkpoint alone maps states to commands.
-
-Lane modes (``lane_modes: true``). The expert is multi-modal: in the same state it may change
-lane (steer, keep speed) or stay and brake, and a regression on both averages them into a
-command that does neither (steer a little, brake a little) and runs into the car ahead. A
-lane-mode policy has one command head per lateral mode of :data:`LANE_MODES` (the expert's goal
-lane left of, on, or right of the ego's lane) and a classifier over the modes; it executes the
-command of the most probable mode. Training adds the cross-entropy of the classifier to the
-squared error of the expert's mode's head (the other heads get no gradient from that sample).
 """
 
 from __future__ import annotations
@@ -47,19 +39,6 @@ logger = logging.getLogger(__name__)
 CHECKPOINT_FORMAT = "mmpc-policy"
 CHECKPOINT_VERSION = 2  # 2: road-frame features (version 1 read highway-env's Kinematics observation)
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
-#: Lateral modes of a lane-mode policy, by index: the expert's goal lane is left of (lower lane
-#: index), on, or right of the ego's nearest lane.
-LANE_MODES = ("left", "keep", "right")
-
-
-def lane_modes(ego_y: np.ndarray, goal_y: np.ndarray, road: Road) -> np.ndarray:
-    """(S,) lateral mode indices into :data:`LANE_MODES` of goals at ``goal_y`` for egos at
-    ``ego_y`` (both (S,) [m]); -1 where ``goal_y`` is NaN (no goal known)."""
-    ego_y, goal_y = np.asarray(ego_y, dtype=np.float64), np.asarray(goal_y, dtype=np.float64)
-    known = np.isfinite(goal_y)
-    ego_lane = road.lane_index(torch.from_numpy(ego_y)).numpy()
-    goal_lane = road.lane_index(torch.from_numpy(np.where(known, goal_y, ego_y))).numpy()
-    return np.where(known, np.sign(goal_lane - ego_lane) + 1, -1).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -73,8 +52,6 @@ class PolicyConfig:
         ego_command: also read the ego's executing (a [m/s^2], psidot [rad/s]).
         lane_slots: also read the nearest neighbour ahead and behind in the ego's and the
             adjacent lanes.
-        lane_modes: one command head per lateral mode and a classifier choosing among them
-            (module docstring); training needs the expert's goals.
     """
 
     hidden: tuple[int, ...] = (256, 256)
@@ -82,7 +59,6 @@ class PolicyConfig:
     neighbours: int = STORED_NEIGHBOURS
     ego_command: bool = False
     lane_slots: bool = False
-    lane_modes: bool = False
 
     def __post_init__(self) -> None:
         if isinstance(self.hidden, list):
@@ -91,19 +67,7 @@ class PolicyConfig:
             raise ValueError(f"`hidden` must be a non-empty list of positive ints; got {self.hidden!r}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"`activation` must be one of {sorted(ACTIVATIONS)}; got {self.activation!r}")
-        if not isinstance(self.lane_modes, bool):
-            raise ValueError(f"`lane_modes` must be true or false; got {self.lane_modes!r}")
         self.features  # validates the feature settings
-
-    @property
-    def modes(self) -> int:
-        """Command heads: len(:data:`LANE_MODES`) with ``lane_modes``, else 1."""
-        return len(LANE_MODES) if self.lane_modes else 1
-
-    @property
-    def output_size(self) -> int:
-        """Width of the last layer: the mode logits (with ``lane_modes``), then 2 per head."""
-        return (self.modes if self.lane_modes else 0) + 2 * self.modes
 
     @property
     def features(self) -> FeatureConfig:
@@ -123,7 +87,6 @@ class MLPPolicy(nn.Module):
 
     Shapes:
         forward: features (B, D) (:meth:`features`) -> (B, 2).
-        outputs: features (B, D) -> (B, H), H = ``config.output_size`` (standardised heads).
 
     Example:
         >>> policy = MLPPolicy(Road(), PolicyConfig(hidden=(32,), neighbours=2))
@@ -149,7 +112,7 @@ class MLPPolicy(nn.Module):
             layers += [nn.Linear(width, size), ACTIVATIONS[config.activation]()]
             width = size
         self.body = nn.Sequential(*layers)
-        self.head = nn.Linear(width, config.output_size)
+        self.head = nn.Linear(width, 2)
 
     @property
     def input_size(self) -> int:
@@ -173,56 +136,18 @@ class MLPPolicy(nn.Module):
         if inputs.ndim != 2 or inputs.shape[1] != self.input_size:
             raise ValueError(f"`inputs` must have shape (B, {self.input_size}) (road features); got {tuple(inputs.shape)}")
 
-    def outputs(self, inputs: torch.Tensor) -> torch.Tensor:
-        """(B, D) features -> (B, H) last-layer outputs: the mode logits (lane modes only), then
-        each head's standardised command (:func:`split_outputs`)."""
+    def standardized(self, inputs: torch.Tensor) -> torch.Tensor:
+        """(B, D) features -> (B, 2) standardised command (what the loss compares)."""
         self._check(inputs)
         return self.head(self.body((inputs - self.in_mean) / self.in_std))
-
-    def standardized(self, inputs: torch.Tensor) -> torch.Tensor:
-        """(B, D) features -> (B, 2) standardised command of the most probable mode."""
-        return select_command(self.outputs(inputs), self.config.modes)
 
     def standardize_actions(self, actions: torch.Tensor) -> torch.Tensor:
         """(B, 2) commands -> standardised units."""
         return (actions - self.act_mean) / self.act_std
 
-    def loss(self, inputs: torch.Tensor, targets: torch.Tensor, modes: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """Training loss over a batch: the mean squared error of the standardised command,
-        plus, with lane modes, the cross-entropy of the mode classifier; the squared error is
-        then the expert's mode's head's.
-
-        Args:
-            inputs: (B, D) features.
-            targets: (B, 2) the expert's standardised commands (:meth:`standardize_actions`).
-            modes: (B,) long indices into :data:`LANE_MODES` (lane-mode policies only).
-        """
-        logits, commands = split_outputs(self.outputs(inputs), self.config.modes)
-        if logits is None:
-            return torch.mean((commands[:, 0] - targets) ** 2)
-        if modes is None or modes.shape != targets.shape[:1]:
-            raise ValueError(f"a lane-mode policy trains on (B,) mode labels; got {None if modes is None else tuple(modes.shape)}")
-        chosen = commands[torch.arange(commands.shape[0]), modes]
-        return torch.mean((chosen - targets) ** 2) + nn.functional.cross_entropy(logits, modes)
-
     def forward(self, inputs: torch.Tensor) -> torch.Tensor:
         command = self.act_mean + self.act_std * self.standardized(inputs)
         return torch.maximum(torch.minimum(command, self.act_high), self.act_low)
-
-
-def split_outputs(outputs, modes: int):
-    """(B, H) last-layer outputs (torch or numpy) of a policy with ``modes`` heads -> the (B, modes)
-    logits (``None`` for a single head) and the (B, modes, 2) commands."""
-    logits = outputs[:, :modes] if modes > 1 else None
-    return logits, outputs[:, (modes if modes > 1 else 0):].reshape(outputs.shape[0], modes, 2)
-
-
-def select_command(outputs, modes: int):
-    """(B, H) last-layer outputs (torch or numpy) -> (B, 2) the command of the most probable mode."""
-    logits, commands = split_outputs(outputs, modes)
-    if logits is None:
-        return commands[:, 0]
-    return commands[np.arange(commands.shape[0]), logits.argmax(1)]
 
 
 def _spread(values: torch.Tensor) -> torch.Tensor:
@@ -234,14 +159,13 @@ def _spread(values: torch.Tensor) -> torch.Tensor:
 
 
 def fold(policy: MLPPolicy) -> nn.Sequential:
-    """The policy as one plain network from features (B, D) to its last-layer outputs (B, H),
-    commands unclipped, with the standardisation folded into the first layer and the output
-    scaling into the command rows of the last (computed in float64):
+    """The policy as one plain network from features (B, D) to the command (B, 2) before
+    clipping, with the standardisation folded into the first layer and the output scaling into
+    the last (computed in float64):
 
     ``W1 ((f - mu_f) / sigma_f) + b1 = W1' f + b1'`` with ``W1' = W1 diag(1 / sigma_f)``,
     ``b1' = b1 - W1' mu_f``; ``mu_u + sigma_u (W h + b) = W' h + b'`` with
-    ``W' = diag(sigma_u) W``, ``b' = mu_u + sigma_u b``. Mode logits pass unchanged;
-    :func:`select_command` picks the command.
+    ``W' = diag(sigma_u) W``, ``b' = mu_u + sigma_u b``.
 
     It is what :class:`PolicyDriver` runs (in numpy) and what :mod:`mmpc.imitation.export`
     writes into stable-baselines3.
@@ -258,14 +182,9 @@ def fold(policy: MLPPolicy) -> nn.Sequential:
             else:
                 layer.load_state_dict(source.state_dict())
             layers += [layer, ACTIVATIONS[policy.config.activation]()]
-        head = nn.Linear(policy.head.in_features, policy.head.out_features)
-        scale = torch.ones(policy.head.out_features, dtype=torch.float64)
-        shift = torch.zeros(policy.head.out_features, dtype=torch.float64)
-        commands = policy.head.out_features - 2 * policy.config.modes  # first command row
-        scale[commands:] = policy.act_std.double().repeat(policy.config.modes)
-        shift[commands:] = policy.act_mean.double().repeat(policy.config.modes)
-        head.weight.copy_(scale[:, None] * policy.head.weight.double())
-        head.bias.copy_(shift + scale * policy.head.bias.double())
+        head = nn.Linear(policy.head.in_features, 2)
+        head.weight.copy_(policy.act_std.double()[:, None] * policy.head.weight.double())
+        head.bias.copy_(policy.act_mean.double() + policy.act_std.double() * policy.head.bias.double())
     return nn.Sequential(*layers, head).eval()
 
 
@@ -343,7 +262,7 @@ class PolicyDriver(Driver):
         for weight, bias in self.layers[:-1]:
             hidden = self.activation(hidden @ weight + bias)
         weight, bias = self.layers[-1]
-        return np.clip(select_command(hidden @ weight + bias, self.policy.config.modes), self.low, self.high)
+        return np.clip(hidden @ weight + bias, self.low, self.high)
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()

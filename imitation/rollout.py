@@ -32,7 +32,6 @@ from mmpc.scenario import ScenarioConfig
 #: Per-step info arrays of an :class:`Episode`: name -> (dtype, per-row shape, value of the final row).
 INFO_FIELDS: dict[str, tuple[type, tuple[int, ...], float]] = {
     "goal_index": (np.int64, (), -1),           # chosen goal of the expert (-1: the driver has none)
-    "goal_y": (np.float64, (), math.nan),       # that goal's lateral position [m] (NaN: none)
     "feasible_goals": (np.int64, (), -1),       # number of feasible candidates (-1: not applicable)
     "fallback": (np.bool_, (), False),          # no candidate was feasible
     "plan_cost": (np.float64, (), math.nan),    # the chosen plan's meta cost as the MPC ranked it
@@ -94,25 +93,11 @@ def observation_neighbours(observation: Observation) -> np.ndarray:
     return nearest_neighbours(observation.ego.numpy(), observation.vehicles.numpy(), mask)
 
 
-def chosen_goal_y(decision: Decision) -> np.ndarray:
-    """(E,) float64 lateral position [m] of each row's chosen goal; NaN where the driver has no
-    goals (learned policies, mixtures) or executed its fallback (no feasible goal)."""
-    count = decision.acceleration.shape[0]
-    candidates = decision.candidates
-    if candidates is None or candidates.goals is None:
-        return np.full(count, math.nan)
-    index = decision.goal_index.clamp(min=0)
-    goal_y = candidates.goals[torch.arange(count), index, 1].double().numpy()
-    chosen = (decision.goal_index >= 0) & ~decision.fallback
-    return np.where(chosen.numpy(), goal_y, math.nan)
-
-
 def decision_infos(decision: Decision, observation: Observation, scenario: ScenarioConfig) -> dict[str, np.ndarray]:
     """The :data:`INFO_FIELDS` of each of the E rows of a decision, as (E, ...) arrays."""
     count = observation.num_envs
     infos = {
         "goal_index": decision.goal_index.numpy().astype(np.int64),
-        "goal_y": chosen_goal_y(decision),
         "feasible_goals": decision.feasible_goals.numpy().astype(np.int64),
         "fallback": decision.fallback.numpy().astype(np.bool_),
         "plan_cost": decision.plan_cost.double().numpy(),

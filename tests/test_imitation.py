@@ -119,13 +119,9 @@ def test_recorded_actions_are_the_experts_commands_at_the_recorded_states():
     expert = MPCDriver(build_mpc(scenario))
     with torch.inference_mode():
         rollout = rollout_lockstep(scenario, [1000], expert, keep_states=True)[0]
-        relabelled, goal_y = label_states(expert, rollout.states, batch=4)  # batched, off-line: the DAgger labelling
+        relabelled = label_states(expert, rollout.states, batch=4)  # batched, off-line: the DAgger labelling
     assert len(rollout.states) == rollout.episode.steps == 10
     np.testing.assert_allclose(relabelled, rollout.episode.actions, atol=2e-3)
-    recorded = rollout.episode.infos["goal_y"]  # the chosen goal's lane-centre y, none after the last step
-    chosen = recorded[:-1][np.isfinite(recorded[:-1])]  # NaN: a fallback step
-    assert np.isnan(recorded[-1]) and chosen.size and set(np.unique(chosen)) <= set(scenario.road.lane_centers().tolist())
-    np.testing.assert_array_equal(goal_y, recorded[:-1])
 
 
 def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refused(demos_dir, tmp_path):
@@ -297,7 +293,7 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
     features = road_features(ego, neighbours, road, config.features)
     # acceleration from the first neighbour's gap, steering from the lane offset and heading
     actions = np.stack([np.tanh(features[:, 6] / 20.0) * 2, -0.05 * features[:, 0] - 0.5 * features[:, 3]], axis=1)
-    data = Transitions(ego, neighbours, actions.astype(np.float32), np.repeat(np.arange(20), 100), np.full(2000, np.nan))
+    data = Transitions(ego, neighbours, actions.astype(np.float32), np.repeat(np.arange(20), 100))
     policy, history = train_policy(data, road, TrainConfig(epochs=30, batch_size=64, policy=config))
     assert history.val_loss[history.best_epoch] < 0.05  # standardised: 1.0 is the mean predictor
     rmse_acc, rmse_steer = history.val_rmse[history.best_epoch]
@@ -327,57 +323,6 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
         make_driver(f"bc:{tmp_path / 'p.pt'}", short_cruise().replace(lanes=4))
 
 
-def test_lane_mode_policy_executes_one_of_the_experts_modes_not_their_average(tmp_path):
-    """The expert, in the same states, either changes lane to the left (steering -0.05 rad) or to
-    the right (+0.05 rad), half and half: a regression learns their average (drive straight into
-    whatever made the expert leave), the lane-mode policy one of the two."""
-    import gymnasium as gym
-
-    from mmpc.imitation.export import LaneModeActorCriticPolicy, export_sb3, ppo_from_policy
-    from mmpc.imitation.policy import LANE_MODES, lane_modes
-
-    road = Road()
-    ego, neighbours = _synthetic_states(2000)
-    ego[:, 1] = 8.0  # all in lane 2, so that lanes 1 and 3 are the modes
-    right = np.random.default_rng(1).random(2000) < 0.5
-    goal_y = np.where(right, 12.0, 4.0).astype(np.float32)
-    np.testing.assert_array_equal(lane_modes(ego[:, 1], goal_y, road), np.where(right, 2, 0))
-    assert list(lane_modes(np.array([8.0, 8.0, 1.9]), np.array([8.0, np.nan, 0.0]), road)) == [1, -1, 1]
-    gap = road_features(ego, neighbours, road, FeatureConfig(2))[:, 6]
-    actions = np.stack([np.tanh(gap / 20.0), np.where(right, 0.05, -0.05)], axis=1).astype(np.float32)
-    data = Transitions(ego, neighbours, actions, np.repeat(np.arange(20), 100), goal_y)
-    probe = torch.as_tensor(road_features(ego[:200], neighbours[:200], road, FeatureConfig(2)))
-    steering = {}
-    for modes in (False, True):
-        config = TrainConfig(epochs=20, batch_size=64, policy=PolicyConfig(hidden=(64, 64), neighbours=2, lane_modes=modes))
-        policy, history = train_policy(data, road, config)
-        with torch.no_grad():
-            steering[modes] = policy(probe)[:, 1].numpy()
-        assert math.isnan(history.val_mode_accuracy[0]) != modes
-    assert np.abs(steering[False]).mean() < 0.02  # the average of the two modes
-    np.testing.assert_allclose(np.abs(steering[True]), 0.05, atol=0.01)  # one mode, fully
-    with torch.no_grad():
-        chosen = policy.outputs(probe)[:, :len(LANE_MODES)].argmax(1)
-    assert set(chosen.tolist()) <= {0, 2}  # never "keep": the expert never stayed
-    # checkpoint, driver and SB3 export execute the same command
-    save_policy(tmp_path / "modes.pt", policy)
-    again = load_policy(tmp_path / "modes.pt")
-    expected = again(probe).detach().numpy()
-    np.testing.assert_allclose(PolicyDriver(again).commands(probe.numpy()), expected, atol=1e-5)
-    sb3 = LaneModeActorCriticPolicy.load(str(export_sb3(tmp_path / "modes.pt", tmp_path / "modes.zip")))
-    half = (again.act_high - again.act_low).numpy() / 2
-    centre = (again.act_high + again.act_low).numpy() / 2
-    np.testing.assert_allclose(sb3.predict(probe.numpy(), deterministic=True)[0], (expected - centre) / half, atol=1e-5)
-    env = gym.make("highway-v0", config={"action": {"type": "ContinuousAction"}, "lanes_count": 6})
-    model = ppo_from_policy(tmp_path / "modes.pt", env, n_steps=8, batch_size=8)
-    assert isinstance(model.policy, LaneModeActorCriticPolicy)
-    np.testing.assert_allclose(model.predict(probe.numpy()[:10], deterministic=True)[0], ((expected - centre) / half)[:10],
-                               atol=1e-5)
-    env.close()
-    with pytest.raises(ValueError, match="goal_y all NaN"):
-        train_policy(data._replace(goal_y=np.full(2000, np.nan, dtype=np.float32)), road, config)
-
-
 def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
     scenario = short_cruise(1.0)
     expert = MPCDriver(build_mpc(scenario))
@@ -386,8 +331,8 @@ def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
     with torch.inference_mode():
         rollouts = rollout_lockstep(scenario, [5, 6], MixtureDriver(expert, learner, 0.5, np.random.default_rng(0)),
                                     keep_states=True)
-        labels, goals, expert_steps = label_rollouts(expert, rollouts, batch=8)
-        relabelled, goals_again = zip(*(label_states(expert, r.states, batch=8) for r in rollouts))
+        labels, expert_steps = label_rollouts(expert, rollouts, batch=8)
+        relabelled = [label_states(expert, r.states, batch=8) for r in rollouts]
         states = [state for r in rollouts for state in r.states]
         learner_only = MixtureDriver(expert, learner, 0.0, np.random.default_rng(0)).decide(states[0])
         expert_only = MixtureDriver(expert, learner, 1.0, np.random.default_rng(0)).decide(states[0])
@@ -397,16 +342,13 @@ def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
         np.testing.assert_array_equal(label[expert_drove], rollout.episode.actions[expert_drove])
         np.testing.assert_allclose(label, again, atol=2e-3)  # every label is the expert's command at that state
         assert not np.allclose(rollout.episode.actions[~expert_drove], again[~expert_drove], atol=2e-3)
-    for goal, goal_again in zip(goals, goals_again):  # the mixture records no goals: every step's is the expert's
-        np.testing.assert_array_equal(goal, goal_again)  # (NaN: its fallback, frequent behind the untrained learner)
-    assert np.isfinite(np.concatenate(goals)).any()
     assert int(learner_only.goal_index[0]) == -1 and int(expert_only.goal_index[0]) >= 0
     with torch.inference_mode():
         np.testing.assert_allclose(float(expert_only.acceleration[0]), float(expert.decide(states[0]).acceleration[0]))
         # DART: the expert drives with noise on its commands; every step is relabelled with its clean command
         noisy = rollout_lockstep(scenario, [7], NoisyDriver(expert, (0.5, 0.01), np.random.default_rng(1)), keep_states=True)
-        clean, _, _ = label_rollouts(expert, noisy, batch=8, noisy=True)
-        np.testing.assert_allclose(clean[0], label_states(expert, noisy[0].states, batch=8)[0], atol=2e-3)
+        clean, _ = label_rollouts(expert, noisy, batch=8, noisy=True)
+        np.testing.assert_allclose(clean[0], label_states(expert, noisy[0].states, batch=8), atol=2e-3)
         # a reversing ego (outside the MPC's domain): the learner drives it even at beta = 1, and it gets no label
         reversing = states[0]._replace(ego=states[0].ego.clone())
         reversing.ego[0, 3] = -0.5
@@ -414,7 +356,7 @@ def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
         backwards = noisy[0]._replace(episode=noisy[0].episode._replace(infos=dict(noisy[0].episode.infos)))
         backwards.episode.infos["ego"] = backwards.episode.infos["ego"].copy()
         backwards.episode.infos["ego"][3, 3] = -0.5
-        dropped, _, _ = label_rollouts(expert, [backwards], batch=8, noisy=True)
+        dropped, _ = label_rollouts(expert, [backwards], batch=8, noisy=True)
         assert np.isnan(dropped[0][3]).all() and np.isfinite(np.delete(dropped[0], 3, axis=0)).all()
     error = noisy[0].episode.actions - clean[0]
     assert 0.2 < error[:, 0].std() < 0.9 and 0.004 < error[:, 1].std() < 0.02  # the executed commands carry the noise
@@ -466,7 +408,7 @@ def test_dagger_aggregates_labelled_rounds_and_resumes(tmp_path):
     scenario = short_cruise(0.5)  # 5 steps per episode
     config = DaggerConfig(iterations=1, initial_episodes=2, episodes_per_iteration=2, beta=0.5, noise=(0.3, 0.005),
                           lockstep=2, label_batch=4, check_episodes=2,
-                          train=TrainConfig(epochs=2, batch_size=4, policy=PolicyConfig(hidden=(8,), lane_modes=True)))
+                          train=TrainConfig(epochs=2, batch_size=4, policy=PolicyConfig(hidden=(8,))))
     report = run_dagger(scenario, tmp_path, config)
     first, second = report["rounds"]
     assert first["source"] == "expert" and first["steps"] == 10 and second["source"] == "mixture"
@@ -479,8 +421,7 @@ def test_dagger_aggregates_labelled_rounds_and_resumes(tmp_path):
     for name, value in load_policy(tmp_path / "policy.pt").state_dict().items():
         torch.testing.assert_close(value, best[name])
     data = np.load(tmp_path / "data.npz")
-    assert data["actions"].shape == (20, 2) and data["neighbours"].shape == (20, 8, 4) and data["goal_y"].shape == (20,)
-    assert np.isfinite(data["goal_y"]).any() and all(0 <= e["val_mode_accuracy"] <= 1 for e in report["rounds"])
+    assert data["actions"].shape == (20, 2) and data["neighbours"].shape == (20, 8, 4)
     assert len(np.unique(data["episodes"])) == 4
     assert (tmp_path / "policy.pt").is_file() and (tmp_path / "round_1" / "policy.pt").is_file()
     assert json.loads((tmp_path / "dagger.json").read_text())["rounds"] == report["rounds"]
