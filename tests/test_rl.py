@@ -226,3 +226,14 @@ def test_ppo_and_sac_train_on_their_action_spaces(algo, smoke, tmp_path, one_thr
     events = EventAccumulator(str(folder))
     events.Reload()
     assert {"solver/solve_ms", "safety/intervention_rate"} <= set(events.Tags()["scalars"])
+
+
+def test_rl_default_scenario_keeps_the_high_speed_ellipse_and_band():
+    """Fast traffic: rl_scenario() spells the high-speed scenario's obstacle ellipse and heading
+    band (not cruise's 13 degrees); the two must not drift apart."""
+    from mmpc.rl.config import rl_scenario
+    from mmpc.scenario import load_scenario
+
+    keys = ("ellipse_a", "ellipse_b", "max_heading_deg", "heading_target_deg")
+    high_speed, rl = load_scenario("high_speed").optimizer, rl_scenario().optimizer
+    assert [getattr(rl, k) for k in keys] == [getattr(high_speed, k) for k in keys] == [8.0, 3.0, 8.0, 7.2]
