@@ -100,6 +100,8 @@ def test_ellipse_coverage_is_exact_on_aligned_boxes_and_grows_with_heading():
     # aligned 5 m x 2 m boxes touch at |dx| <= 5, |dy| <= 2: the corner (5, 2) decides
     assert ellipse_coverage((8.0, 3.0), 0.0) == pytest.approx(25 / 64 + 4 / 9)
     assert ellipse_coverage((5.6, 3.1), 0.0) > 1  # the authors' ellipse misses highway-env's corners
+    assert ellipse_coverage((8.0, 3.3), 13.0, 3.0) == pytest.approx(0.991, abs=1e-3)  # cruise: both turned, still inside
+    assert ellipse_coverage((8.0, 3.0), 13.0, 3.0) == pytest.approx(1.128, abs=1e-3)  # why cruise's b is not 3.0
     turned = [ellipse_coverage((8.0, 3.3), heading) for heading in (0.0, 4.0, 8.0, 13.0, 16.0)]
     assert turned == sorted(turned) and ellipse_coverage((8.0, 3.3), -13.0) == pytest.approx(turned[3])
     with pytest.raises(ValueError, match="semi_axes"):
