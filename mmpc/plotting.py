@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Ellipse  # noqa: E402
 import torch  # noqa: E402
 
+from mmpc.footprint import HIGHWAY_VEHICLE  # noqa: E402
 from mmpc.problem import ProblemBatch  # noqa: E402
 from mmpc.result import SolveResult  # noqa: E402
 from mmpc.road import Road  # noqa: E402
@@ -74,7 +75,9 @@ def plot_candidates(
                              facecolor="tab:blue", alpha=0.35, zorder=4))
         ax.add_patch(Ellipse((float(obstacles[j, -1, 0]), float(obstacles[j, -1, 1])), 2 * ellipse[0], 2 * ellipse[1],
                              facecolor="none", edgecolor="tab:blue", ls="--", alpha=0.6, zorder=4))
-    ax.add_patch(plt.Rectangle((float(ego[0]) - 2.5, float(ego[1]) - 1.0), 5.0, 2.0, color="crimson", zorder=6))
+    length, width = HIGHWAY_VEHICLE
+    ax.add_patch(plt.Rectangle((float(ego[0]) - length / 2, float(ego[1]) - width / 2), length, width, color="crimson",
+                               zorder=6))
     ax.plot([], [], color="0.55", ls=":", label="infeasible")
     ax.plot([], [], color=colors[0], label="feasible")
     ax.set_xlim(x_min, x_max)
