@@ -95,7 +95,7 @@ class DaggerConfig:
         train: training of each round's policy.
     """
 
-    iterations: int = 12
+    iterations: int = 8
     initial_episodes: int = 16
     episodes_per_iteration: int = 16
     beta: float = 0.5
