@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from mmpc.config import dataclass_from_dict, read_config_yaml
+from mmpc.configs import shipped_config_dir
 from mmpc.imitation.dataset import Transitions
 from mmpc.imitation.features import road_features
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
@@ -31,7 +32,7 @@ from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "imitation"
+CONFIG_DIR = shipped_config_dir("imitation")
 
 
 @dataclass(frozen=True)

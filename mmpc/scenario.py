@@ -21,6 +21,7 @@ from typing import Any, ClassVar, Mapping, Optional, Union
 
 
 from mmpc.config import OptimizerConfig, dataclass_from_dict, read_config_yaml, require, require_positive
+from mmpc.configs import shipped_config_dir
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig
@@ -48,7 +49,7 @@ HIGHWAY_MAX_HEADING_DEG = 13.0
 #: high speed from 67.1 to 44.4.
 HIGHWAY_HEADING_TARGET_DEG = 11.7
 #: Folder of the scenarios that ship with the repository.
-SCENARIO_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+SCENARIO_DIR = shipped_config_dir("scenarios")
 
 
 def _speeds(where: str, name: str, values: tuple[float, ...]) -> None:

@@ -24,6 +24,7 @@ from mmpc.config import (
     OptimizerConfig, dataclass_from_dict, is_finite_number, read_config_yaml, require, require_non_negative,
     require_positive,
 )
+from mmpc.configs import shipped_config_dir
 from mmpc.scenario import CruiseObjective, EgoConfig, IDMTraffic, ScenarioConfig, load_scenario
 
 #: Algorithms ``mmpc train-rl`` knows, with the action space each trains on by default.
@@ -295,7 +296,7 @@ def load_rl_config(path: Optional[str | Path] = None) -> RLConfig:
 
 
 #: Folder of the RL configs that ship with the repository.
-RL_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "rl"
+RL_CONFIG_DIR = shipped_config_dir("rl")
 
 
 def _scenario_dict(scenario: ScenarioConfig) -> dict:

@@ -1,0 +1,93 @@
+"""The wheel carries the shipped YAML configs: a non-editable install finds them by name.
+
+The README installs in editable mode, where ``configs/`` is the checkout's folder; ``pip install
+mmpc`` from a wheel has no checkout, so the configs must travel inside the package
+(``mmpc.configs``). This builds the wheel from a copy of the sources, unpacks it and loads every
+shipped config by name in a subprocess that cannot see the checkout.
+"""
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from mmpc.configs import KINDS, shipped_config_dir
+
+REPO = Path(__file__).resolve().parents[1]
+SOURCES = ("pyproject.toml", "README.md", "mmpc", "rl", "imitation", "configs")
+
+
+def shipped_files() -> dict[str, list[str]]:
+    return {kind: sorted(p.name for p in shipped_config_dir(kind).glob("*.yaml")) for kind in KINDS}
+
+
+def test_every_config_folder_is_a_known_kind_and_holds_yaml():
+    folders = sorted(p.name for p in (REPO / "configs").iterdir() if p.is_dir() and p.name != "__pycache__")
+    assert folders == sorted(KINDS)
+    assert all(shipped_files()[kind] for kind in KINDS)
+    with pytest.raises(ValueError, match="expected one of"):
+        shipped_config_dir("scenario")
+
+
+@pytest.fixture(scope="module")
+def installed_wheel(tmp_path_factory) -> Path:
+    pytest.importorskip("setuptools", reason="building the wheel without network needs setuptools")
+    work = tmp_path_factory.mktemp("wheel")
+    source = work / "source"
+    source.mkdir()
+    for name in SOURCES:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(REPO / name, source / name)
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(work / "dist"), str(source)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert built.returncode == 0, built.stderr
+    (wheel,) = (work / "dist").glob("mmpc-*.whl")
+    site = work / "site"
+    with zipfile.ZipFile(wheel) as archive:
+        archive.extractall(site)
+    return site
+
+
+def test_wheel_ships_every_config(installed_wheel):
+    in_wheel = {kind: sorted(p.name for p in (installed_wheel / "mmpc" / "configs" / kind).glob("*.yaml")) for kind in KINDS}
+    assert in_wheel == shipped_files()
+
+
+def test_installed_wheel_loads_shipped_configs_by_name(installed_wheel, tmp_path):
+    script = textwrap.dedent(
+        """
+        import json, sys
+        import mmpc
+        from mmpc.configs import shipped_config_dir
+        from mmpc.scenario import load_scenario, SCENARIO_DIR
+        from mmpc.rl.config import load_rl_config
+        from mmpc.imitation.bc import load_yaml_config, TrainConfig
+        from mmpc.imitation.dagger import DaggerConfig
+        assert mmpc.__file__.startswith(sys.argv[1]), mmpc.__file__
+        loaded = {
+            "scenarios": sorted(load_scenario(p.stem).name for p in SCENARIO_DIR.glob("*.yaml")),
+            "rl": sorted(p.stem for p in shipped_config_dir("rl").glob("*.yaml") if load_rl_config(p.stem)),
+            "imitation": [type(load_yaml_config(TrainConfig, "bc")).__name__, type(load_yaml_config(DaggerConfig, "dagger")).__name__],
+            "optimizer": mmpc.OptimizerConfig.from_yaml(shipped_config_dir("optimizer") / "default.yaml").num_steps,
+        }
+        print(json.dumps(loaded))
+        """
+    )
+    env = {**os.environ, "PYTHONPATH": str(installed_wheel)}
+    run = subprocess.run(
+        [sys.executable, "-c", script, str(installed_wheel)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 0, run.stderr
+    loaded = __import__("json").loads(run.stdout.strip().splitlines()[-1])
+    assert loaded["scenarios"] == sorted(name[: -len(".yaml")] for name in shipped_files()["scenarios"])
+    assert loaded["rl"] == sorted(name[: -len(".yaml")] for name in shipped_files()["rl"])
+    assert loaded["imitation"] == ["TrainConfig", "DaggerConfig"]
+    assert loaded["optimizer"] > 0
