@@ -37,7 +37,8 @@ CONFIG_DIR = shipped_config_dir("imitation")
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Supervised training of :class:`MLPPolicy`.
+    """Supervised training of :class:`MLPPolicy`. The defaults are ``configs/imitation/bc.yaml``'s
+    (a test keeps them equal).
 
     Attributes:
         epochs: passes over the training set [-].
@@ -49,10 +50,10 @@ class TrainConfig:
         policy: the architecture.
     """
 
-    epochs: int = 40
+    epochs: int = 30
     batch_size: int = 256
     learning_rate: float = 1e-3
-    weight_decay: float = 0.0
+    weight_decay: float = 1e-4
     validation_fraction: float = 0.2
     seed: int = 0
     policy: PolicyConfig = field(default_factory=PolicyConfig)

@@ -62,7 +62,7 @@ from mmpc.drivers import Decision, Driver, Observation
 from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
 from mmpc.imitation.dataset import Transitions, scenario_dict
-from mmpc.imitation.policy import PolicyDriver, load_policy, save_policy
+from mmpc.imitation.policy import PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
 from mmpc.scenario import ScenarioConfig
@@ -70,9 +70,15 @@ from mmpc.scenario import ScenarioConfig
 logger = logging.getLogger(__name__)
 
 
+#: The policy DAgger trains by default: 2 x 128 ReLU (7/20 check collisions against 8/20 for BC's
+#: 2 x 256 tanh on the same data).
+DAGGER_POLICY = PolicyConfig(hidden=(128, 128), activation="relu")
+
+
 @dataclass(frozen=True)
 class DaggerConfig:
-    """Settings of :func:`run_dagger`.
+    """Settings of :func:`run_dagger`. The defaults are ``configs/imitation/dagger.yaml``'s (a
+    test keeps them equal), the recipe of the README's results.
 
     Attributes:
         iterations: DAgger rounds after round 0 [-].
@@ -95,20 +101,20 @@ class DaggerConfig:
         train: training of each round's policy.
     """
 
-    iterations: int = 8
-    initial_episodes: int = 16
-    episodes_per_iteration: int = 16
-    beta: float = 0.5
+    iterations: int = 12
+    initial_episodes: int = 20
+    episodes_per_iteration: int = 20
+    beta: float = 0.3
     beta_decay: float = 0.5
-    noise: tuple[float, float] = (0.0, 0.0)
-    label_window: Optional[float] = None
+    noise: tuple[float, float] = (0.5, 0.01)
+    label_window: Optional[float] = 1.0
     seed_start: int = 2000
     lockstep: int = 8
     label_batch: int = 256
     duration: Optional[float] = None
-    check_episodes: int = 0
+    check_episodes: int = 20
     check_seed_start: int = 3000
-    train: TrainConfig = field(default_factory=TrainConfig)
+    train: TrainConfig = field(default_factory=lambda: TrainConfig(policy=DAGGER_POLICY))
 
     def __post_init__(self) -> None:
         for name in ("iterations", "initial_episodes", "episodes_per_iteration", "seed_start", "lockstep", "label_batch",

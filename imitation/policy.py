@@ -58,7 +58,7 @@ class PolicyConfig:
     activation: str = "tanh"
     neighbours: int = STORED_NEIGHBOURS
     ego_command: bool = False
-    lane_slots: bool = False
+    lane_slots: bool = True
 
     def __post_init__(self) -> None:
         if isinstance(self.hidden, list):

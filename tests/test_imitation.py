@@ -20,7 +20,7 @@ import torch
 
 from mmpc.drive import run_episode, write_outputs
 from mmpc.drivers import MPCDriver, Observation, make_driver
-from mmpc.imitation.bc import TrainConfig, run_bc, train_policy
+from mmpc.imitation.bc import TrainConfig, load_yaml_config, run_bc, train_policy
 from mmpc.imitation.dagger import (
     DaggerConfig,
     MixtureDriver,
@@ -289,7 +289,7 @@ def _synthetic_states(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray
 def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
     road = Road()
     ego, neighbours = _synthetic_states(2000)
-    config = PolicyConfig(hidden=(64, 64), neighbours=2)
+    config = PolicyConfig(hidden=(64, 64), neighbours=2, lane_slots=False)  # 15 features, indexed below
     features = road_features(ego, neighbours, road, config.features)
     # acceleration from the first neighbour's gap, steering from the lane offset and heading
     actions = np.stack([np.tanh(features[:, 6] / 20.0) * 2, -0.05 * features[:, 0] - 0.5 * features[:, 3]], axis=1)
@@ -472,3 +472,10 @@ def test_cli_evaluates_expert_and_policy_side_by_side_and_benchmarks_them(bc_run
         assert entry["block"] == block
         assert entry["rows"]["expert"]["steps"] == entry["rows"]["policy"]["steps"] == 5
         assert entry["speedup_mean"] == pytest.approx(entry["rows"]["expert"]["mean_ms"] / entry["rows"]["policy"]["mean_ms"])
+
+
+def test_library_defaults_are_the_shipped_recipes():
+    """``run_bc(...)`` / ``run_dagger(...)`` from Python train what ``mmpc imitate bc|dagger`` do."""
+    assert load_yaml_config(TrainConfig, "bc") == TrainConfig()
+    assert load_yaml_config(DaggerConfig, "dagger") == DaggerConfig()
+    assert DaggerConfig().train.policy != TrainConfig().policy  # DAgger's 2 x 128 ReLU, BC's 2 x 256 tanh
