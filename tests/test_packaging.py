@@ -5,6 +5,7 @@ mmpc`` from a wheel has no checkout, so the configs must travel inside the packa
 (``mmpc.configs``). This builds the wheel from a copy of the sources, unpacks it and loads every
 shipped config by name in a subprocess that cannot see the checkout.
 """
+import json
 import os
 import shutil
 import subprocess
@@ -21,14 +22,18 @@ REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "mmpc", "rl", "imitation", "configs")
 
 
-def shipped_files() -> dict[str, list[str]]:
-    return {kind: sorted(p.name for p in shipped_config_dir(kind).glob("*.yaml")) for kind in KINDS}
+def yaml_names(folder: Path) -> list[str]:
+    return sorted(p.stem for p in folder.glob("*.yaml"))
+
+
+def shipped_names() -> dict[str, list[str]]:
+    return {kind: yaml_names(shipped_config_dir(kind)) for kind in KINDS}
 
 
 def test_every_config_folder_is_a_known_kind_and_holds_yaml():
     folders = sorted(p.name for p in (REPO / "configs").iterdir() if p.is_dir() and p.name != "__pycache__")
     assert folders == sorted(KINDS)
-    assert all(shipped_files()[kind] for kind in KINDS)
+    assert all(shipped_names()[kind] for kind in KINDS)
     with pytest.raises(ValueError, match="expected one of"):
         shipped_config_dir("scenario")
 
@@ -57,8 +62,8 @@ def installed_wheel(tmp_path_factory) -> Path:
 
 
 def test_wheel_ships_every_config(installed_wheel):
-    in_wheel = {kind: sorted(p.name for p in (installed_wheel / "mmpc" / "configs" / kind).glob("*.yaml")) for kind in KINDS}
-    assert in_wheel == shipped_files()
+    in_wheel = {kind: yaml_names(installed_wheel / "mmpc" / "configs" / kind) for kind in KINDS}
+    assert in_wheel == shipped_names()
 
 
 def test_installed_wheel_loads_shipped_configs_by_name(installed_wheel, tmp_path):
@@ -72,6 +77,7 @@ def test_installed_wheel_loads_shipped_configs_by_name(installed_wheel, tmp_path
         from mmpc.imitation.bc import load_yaml_config, TrainConfig
         from mmpc.imitation.dagger import DaggerConfig
         assert mmpc.__file__.startswith(sys.argv[1]), mmpc.__file__
+        assert str(shipped_config_dir("scenarios")).startswith(sys.argv[1]), shipped_config_dir("scenarios")
         loaded = {
             "scenarios": sorted(load_scenario(p.stem).name for p in SCENARIO_DIR.glob("*.yaml")),
             "rl": sorted(p.stem for p in shipped_config_dir("rl").glob("*.yaml") if load_rl_config(p.stem)),
@@ -86,8 +92,8 @@ def test_installed_wheel_loads_shipped_configs_by_name(installed_wheel, tmp_path
         [sys.executable, "-c", script, str(installed_wheel)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
     )
     assert run.returncode == 0, run.stderr
-    loaded = __import__("json").loads(run.stdout.strip().splitlines()[-1])
-    assert loaded["scenarios"] == sorted(name[: -len(".yaml")] for name in shipped_files()["scenarios"])
-    assert loaded["rl"] == sorted(name[: -len(".yaml")] for name in shipped_files()["rl"])
+    loaded = json.loads(run.stdout.strip().splitlines()[-1])
+    assert loaded["scenarios"] == shipped_names()["scenarios"]
+    assert loaded["rl"] == shipped_names()["rl"]
     assert loaded["imitation"] == ["TrainConfig", "DaggerConfig"]
     assert loaded["optimizer"] > 0
