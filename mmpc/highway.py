@@ -9,9 +9,10 @@ lanes), which coincides with the world frame for highway-env's straight road but
 from the lane, not assumed.
 
 Vehicle model. highway-env's kinematic bicycle moves along ``heading + beta`` with
-``beta = atan(tan(delta) / 2)`` and turns at ``v sin(beta) / (L / 2)`` (L = 5 m): the
-optimizer's heading psi (the direction of the velocity) is ``heading + beta`` and its heading
-rate that turn rate; the command's steering ``atan(L psidot / v)`` inverts it to first order.
+``beta = atan(tan(delta) / 2)`` and turns at ``v sin(beta) / (L / 2)`` (L its length: 5 m
+unless ``ScenarioConfig.vehicle_size`` says otherwise): the optimizer's heading psi (the
+direction of the velocity) is ``heading + beta`` and its heading rate that turn rate; the
+command's steering ``atan(L psidot / v)`` inverts it to first order.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.scenario import IDMTraffic, ScenarioConfig
-from mmpc.traffic import TrafficController, make_traffic
+from mmpc.traffic import TrafficController, make_traffic, resize
 
 #: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.
 ACCELERATION_RANGE = (-5.0, 5.0)
@@ -166,6 +167,9 @@ class HighwayEpisode:
         self.unwrapped.vehicle.speed = scenario.ego.speed
         self.traffic: TrafficController = make_traffic(scenario, self.unwrapped)
         self.traffic.reset()
+        if scenario.vehicle_size is not None:
+            for vehicle in self.unwrapped.road.vehicles:
+                resize(vehicle, *scenario.vehicle_size)
         self.frame = RoadFrame.of(self.unwrapped)
         self.time = 0.0
         self.reward = 0.0

@@ -65,7 +65,8 @@ class MPCConfig:
             2-3 m/s of vy, extrapolated straight, crossed every lane within the horizon and left
             no feasible candidate, and the fallback braked the ego from 14.5 to 6.3 m/s.
         wheelbase: L of ``steering = atan(L psidot / v)`` [m]; highway-env's kinematic bicycle
-            turns at ``v tan(delta) / L`` with L its 5 m vehicle length.
+            turns at ``v tan(delta) / L`` with L its vehicle length (5 m; a scenario with
+            another ``vehicle_size`` must set it to that length).
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped

@@ -22,6 +22,7 @@ from typing import Any, ClassVar, Mapping, Optional, Union
 
 from mmpc.config import OptimizerConfig, dataclass_from_dict, read_config_yaml, require, require_positive
 from mmpc.configs import shipped_config_dir
+from mmpc.footprint import HIGHWAY_VEHICLE
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig
@@ -221,9 +222,13 @@ class IDMTraffic:
         if self.target_speeds is not None:
             require(len(self.target_speeds) == 2 and 0 < self.target_speeds[0] <= self.target_speeds[1],
                      f"{where}: `target_speeds` must be [low, high] with 0 < low <= high m/s; got {self.target_speeds!r}")
-        if self.window is not None:
-            require(len(self.window) == 2, f"{where}: `window` must be [behind, ahead] in m; got {self.window!r}")
-            require_positive(where, window_behind=self.window[0], window_ahead=self.window[1])
+        _check_window(where, self.window)
+
+
+def _check_window(where: str, window: Optional[tuple[float, float]]) -> None:
+    if window is not None:
+        require(isinstance(window, tuple) and len(window) == 2, f"{where}: `window` must be [behind, ahead] in m; got {window!r}")
+        require_positive(where, window_behind=window[0], window_ahead=window[1])
 
 
 @dataclass(frozen=True)
@@ -258,10 +263,18 @@ class ScriptedTraffic:
 
     Attributes:
         vehicles: the vehicles (YAML: a list of mappings with the :class:`ScriptedVehicle` fields).
+        window: (behind, ahead) [m]: a vehicle farther behind the ego than ``behind`` is moved
+            ahead near ``ahead`` and one farther ahead than ``ahead`` is moved behind, each into
+            a free gap of its own lane (the scene repeats around the ego); ``None``: the
+            vehicles stay where they drive.
     """
 
     kind: ClassVar[str] = "scripted"
     vehicles: tuple[ScriptedVehicle, ...] = ()
+    window: Optional[tuple[float, float]] = None
+
+    def __post_init__(self) -> None:
+        _check_window("traffic scripted", self.window)
 
 
 @dataclass(frozen=True)
@@ -336,6 +349,10 @@ class ScenarioConfig:
         env_id: highway-env environment (``highway-v0`` checks collisions between all vehicles).
         ego: the controlled vehicle at the start.
         traffic: the other vehicles.
+        vehicle_size: (length, width) of every vehicle, the ego included [m]; ``None`` keeps
+            highway-env's 5 m x 2 m (:data:`mmpc.footprint.HIGHWAY_VEHICLE`). highway-env's
+            bicycle model turns with the length as wheelbase, so ``mpc.wheelbase`` must equal
+            it. Not with NGSIM traffic (recorded vehicles keep their recorded size).
         optimizer: batch optimizer settings (default: the authors' with :data:`HIGHWAY_ELLIPSE`,
             :data:`HIGHWAY_MAX_HEADING_DEG` and :data:`HIGHWAY_HEADING_TARGET_DEG`).
         mpc: receding-horizon settings.
@@ -350,6 +367,7 @@ class ScenarioConfig:
     env_id: str = "highway-v0"
     ego: EgoConfig = field(default_factory=EgoConfig)
     traffic: Traffic = field(default_factory=IDMTraffic)
+    vehicle_size: Optional[tuple[float, float]] = None
     optimizer: OptimizerConfig = field(
         default_factory=lambda: OptimizerConfig(
             ellipse_a=HIGHWAY_ELLIPSE[0],
@@ -373,6 +391,17 @@ class ScenarioConfig:
         if isinstance(self.traffic, ScriptedTraffic):
             for vehicle in self.traffic.vehicles:
                 require(vehicle.lane < self.lanes, f"{where}: scripted vehicle lane {vehicle.lane} must be < lanes={self.lanes}")
+        if self.vehicle_size is not None:
+            require(isinstance(self.vehicle_size, tuple) and len(self.vehicle_size) == 2,
+                     f"{where}: `vehicle_size` must be [length, width] in m; got {self.vehicle_size!r}")
+            require_positive(where, vehicle_length=self.vehicle_size[0], vehicle_width=self.vehicle_size[1])
+            require(not isinstance(self.traffic, NGSIMTraffic),
+                     f"{where}: `vehicle_size` does not apply to NGSIM traffic (recorded vehicles keep their size)")
+        require(
+            self.mpc.wheelbase == self.vehicle[0],
+            f"{where}: `mpc.wheelbase` ({self.mpc.wheelbase} m) must equal the vehicle length ({self.vehicle[0]} m): "
+            f"highway-env's bicycle model turns with the length as wheelbase",
+        )
         require(
             self.optimizer.v_max >= self.objective.top_speed,
             f"{where}: `optimizer.v_max` ({self.optimizer.v_max} m/s) must be >= the objective's speed "
@@ -383,6 +412,11 @@ class ScenarioConfig:
             f"{where}: `mpc.num_obstacles` ({self.mpc.num_obstacles}) must be <= `optimizer.max_obstacles` "
             f"({self.optimizer.max_obstacles})",
         )
+
+    @property
+    def vehicle(self) -> tuple[float, float]:
+        """Every vehicle's (length, width) [m]: ``vehicle_size`` or highway-env's."""
+        return self.vehicle_size if self.vehicle_size is not None else HIGHWAY_VEHICLE
 
     @property
     def road(self) -> Road:
@@ -409,8 +443,9 @@ class ScenarioConfig:
             values["optimizer"] = dataclass_from_dict(OptimizerConfig, values["optimizer"] or {}, where=f"{where}: optimizer")
         if "mpc" in values:
             values["mpc"] = dataclass_from_dict(MPCConfig, values["mpc"] or {}, where=f"{where}: mpc")
-        if "seeds" in values:
-            values["seeds"] = _as_tuple(values["seeds"])
+        for key in ("seeds", "vehicle_size"):
+            if key in values:
+                values[key] = _as_tuple(values[key])
         return dataclass_from_dict(cls, values, where=where)
 
 

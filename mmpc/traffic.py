@@ -86,16 +86,24 @@ class _Lanes:
         if hasattr(vehicle, "target_lane_index"):
             vehicle.target_lane_index = vehicle.lane_index
 
-    def relocate(self, vehicle: Vehicle, s_low: float, s_high: float) -> bool:
-        """Move ``vehicle`` to a free spot in [s_low, s_high] of a random lane; False if none was found."""
+    def relocate(self, vehicle: Vehicle, s_low: float, s_high: float, *, keep_lane: bool = False) -> bool:
+        """Move ``vehicle`` to a free spot in [s_low, s_high] of a random lane (of its own lane
+        with ``keep_lane``); False if none was found."""
         rng = self.env.np_random
         for _ in range(_PLACEMENT_TRIES):
-            index = int(rng.integers(self.count))
+            index = self.lane_of(vehicle) if keep_lane else int(rng.integers(self.count))
             s = float(rng.uniform(s_low, s_high))
             if self.is_free(index, s, PLACEMENT_GAP, ignore=vehicle):
                 self.place(vehicle, index, s)
                 return True
         return False
+
+
+def resize(vehicle: Vehicle, length: float, width: float) -> None:
+    """Give one highway-env vehicle another footprint [m] (collisions, drawing, and the bicycle
+    model's wheelbase all read it)."""
+    vehicle.LENGTH, vehicle.WIDTH = float(length), float(width)
+    vehicle.diagonal = float(np.hypot(length, width))
 
 
 def _others(env: AbstractEnv) -> list[Vehicle]:
@@ -129,21 +137,28 @@ class IDMTrafficController:
                     self.lanes.relocate(vehicle, far, far + 10 * PLACEMENT_GAP)
 
     def after_step(self) -> None:
-        if self.config.window is None:
-            return
-        behind, ahead = self.config.window
-        s_ego = self.lanes.along(self.env.vehicle)
-        for vehicle in _others(self.env):
-            ds = self.lanes.along(vehicle) - s_ego
-            if ds < -behind:
-                self.lanes.relocate(vehicle, s_ego + 0.75 * ahead, s_ego + ahead)
-            elif ds > ahead:
-                self.lanes.relocate(vehicle, s_ego - behind, s_ego - 0.75 * behind)
+        if self.config.window is not None:
+            _keep_in_window(self.env, self.lanes, self.config.window, keep_lane=False)
+
+
+def _keep_in_window(env: AbstractEnv, lanes: _Lanes, window: tuple[float, float], *, keep_lane: bool) -> None:
+    """Move every other vehicle farther than ``window = (behind, ahead)`` [m] from the ego
+    along the road to the window's other end (its last quarter), into a free gap of a random
+    lane or, with ``keep_lane``, of its own."""
+    behind, ahead = window
+    s_ego = lanes.along(env.vehicle)
+    for vehicle in _others(env):
+        ds = lanes.along(vehicle) - s_ego
+        if ds < -behind:
+            lanes.relocate(vehicle, s_ego + 0.75 * ahead, s_ego + ahead, keep_lane=keep_lane)
+        elif ds > ahead:
+            lanes.relocate(vehicle, s_ego - behind, s_ego - 0.75 * behind, keep_lane=keep_lane)
 
 
 class ScriptedTrafficController:
     """A hand-built scene: the scenario's vehicles, placed relative to the ego, keep their
-    speed (IDM, or constant) and, unless allowed, their lane."""
+    speed (IDM, or constant) and, unless allowed, their lane; with a window they are recycled
+    in their lane around the ego."""
 
     def __init__(self, config: ScriptedTraffic, env: AbstractEnv) -> None:
         self.config = config
@@ -168,7 +183,8 @@ class ScriptedTrafficController:
             road.vehicles.append(vehicle)
 
     def after_step(self) -> None:
-        """Scripted vehicles follow their own IDM/MOBIL rules; nothing to do."""
+        if self.config.window is not None:
+            _keep_in_window(self.env, self.lanes, self.config.window, keep_lane=True)
 
 
 class ReplayVehicle(Vehicle):
@@ -189,8 +205,7 @@ class ReplayVehicle(Vehicle):
         self.clock = time
         position, heading, speed = self._recorded(time)
         super().__init__(road, position, heading, speed)
-        self.LENGTH, self.WIDTH = track.length, track.width
-        self.diagonal = float(np.hypot(self.LENGTH, self.WIDTH))
+        resize(self, track.length, track.width)
         # Recorded vehicles may overlap each other after the lateral rescaling; only collisions
         # with the ego (which checks its own) matter.
         self.check_collisions = False

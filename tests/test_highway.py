@@ -9,6 +9,7 @@ import pytest
 from mmpc.drive import run_episode
 from mmpc.drivers import make_driver
 from mmpc.highway import HighwayEpisode, command_to_action, env_config, vehicle_motion
+from mmpc.mpc import MPCConfig
 from mmpc.scenario import (
     EgoConfig, HighSpeedObjective, IDMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle,
 )
@@ -90,6 +91,49 @@ def test_idm_traffic_gets_the_scenario_speeds_and_stays_around_the_ego():
         behind, front = scenario.traffic.window
         for vehicle in episode.unwrapped.road.vehicles:
             assert -behind - 3.0 <= vehicle.position[0] - episode.ego.position[0] <= front + 3.0
+    finally:
+        episode.close()
+
+
+def test_scripted_scene_with_a_window_recycles_vehicles_in_their_own_lane():
+    """The ego at 15 m/s passes two 5 m/s cars; each falls out of the 20 m window behind and
+    re-enters 75-100 m ahead in its own lane; a scene without a window leaves them behind."""
+    vehicles = (ScriptedVehicle(lane=0, x=10.0, speed=5.0), ScriptedVehicle(lane=2, x=-5.0, speed=5.0))
+    for window in [(20.0, 100.0), None]:
+        scenario = scripted([]).replace(traffic=ScriptedTraffic(vehicles, window=window))
+        episode = HighwayEpisode(scenario, seed=0)
+        try:
+            lowest = math.inf
+            for _ in range(40):  # 4 s; at 10 m/s closing, both leave the window after 2-3 s
+                episode.apply(0.0, 0.0)
+                others = [v for v in episode.unwrapped.road.vehicles if v is not episode.ego]
+                offsets = [v.position[0] - episode.ego.position[0] for v in others]
+                lowest = min(lowest, *offsets)
+            if window is None:
+                assert all(dx < -20.0 for dx in offsets)
+                continue
+            assert lowest >= -21.5 and all(40.0 < dx <= 100.0 for dx in offsets)
+            assert sorted(v.lane_index[2] for v in others) == [0, 2]
+            assert all(v.target_lane_index == v.lane_index and v.speed == pytest.approx(5.0) for v in others)
+        finally:
+            episode.close()
+
+
+def test_vehicle_size_resizes_every_vehicle_and_the_steering_inverts_the_new_wheelbase():
+    """The authors' 4 m x 1.4 m cars: every vehicle (ego included) gets the footprint, and a
+    lane change's commanded turn rate is what highway-env's bicycle executes with L = 4 m."""
+    scenario = scripted([(1, 25.0, 8.0), (0, -10.0, 12.0)]).replace(
+        vehicle_size=(4.0, 1.4), mpc=MPCConfig(wheelbase=4.0))
+    episode, mpc = HighwayEpisode(scenario, seed=0), make_driver("mpc", scenario)
+    try:
+        vehicles = episode.unwrapped.road.vehicles
+        assert len(vehicles) == 3
+        assert all((v.LENGTH, v.WIDTH, v.diagonal) == pytest.approx((4.0, 1.4, math.hypot(4.0, 1.4))) for v in vehicles)
+        for _ in range(5):
+            _, decision = episode.step(mpc)
+        _, turn_rate = vehicle_motion(episode.ego)
+        assert abs(float(decision.plan.heading_rate[0])) > 1e-3
+        assert turn_rate == pytest.approx(float(decision.plan.heading_rate[0]), rel=0.05)
     finally:
         episode.close()
 

@@ -3,7 +3,8 @@ import pytest
 from mmpc import HighSpeedGoals, NearLaneGoals, Road
 from mmpc.footprint import ellipse_coverage
 from mmpc.scenario import (
-    SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, load_scenario,
+    SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
+    load_scenario,
 )
 
 
@@ -71,6 +72,11 @@ def test_missing_scenario_lists_the_shipped_ones():
         ({"mpc": {"num_obstacles": 12}}, "max_obstacles"),
         ({"duration": 0.0}, "duration"),
         ({"seeds": []}, "seeds"),
+        ({"vehicle_size": [4.0, 1.4]}, "wheelbase"),
+        ({"vehicle_size": [4.0, -1.4], "mpc": {"wheelbase": 4.0}}, "vehicle_width"),
+        ({"vehicle_size": [4.0], "mpc": {"wheelbase": 4.0}}, "vehicle_size"),
+        ({"vehicle_size": [4.0, 1.4], "mpc": {"wheelbase": 4.0}, "traffic": {"type": "ngsim", "path": "x.csv"}}, "NGSIM"),
+        ({"mpc": {"wheelbase": 4.0}}, "wheelbase"),
     ],
 )
 def test_inconsistent_scenarios_are_rejected(values, message):
@@ -83,6 +89,8 @@ def test_traffic_values_are_validated():
         IDMTraffic(target_speeds=(12.0, 7.0))
     with pytest.raises(ValueError, match="window"):
         IDMTraffic(window=(-1.0, 100.0))
+    with pytest.raises(ValueError, match="window"):
+        ScriptedTraffic(window=(30.0,))
     with pytest.raises(ValueError, match="path"):
         NGSIMTraffic(path="")
 
@@ -109,9 +117,10 @@ def test_ellipse_coverage_is_exact_on_aligned_boxes_and_grows_with_heading():
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml")))
-def test_shipped_ellipses_cover_highway_vehicles_across_the_heading_band(name):
+def test_shipped_ellipses_cover_the_scenario_vehicles_across_the_heading_band(name):
     """The ego anywhere in its heading band, the other car along its lane: no corner of the two
-    highway-env boxes' Minkowski sum lies outside the obstacle ellipse."""
-    optimizer = load_scenario(name).optimizer
+    vehicle boxes' Minkowski sum lies outside the obstacle ellipse."""
+    scenario = load_scenario(name)
+    optimizer = scenario.optimizer
     axes, band = (optimizer.ellipse_a, optimizer.ellipse_b), optimizer.max_heading_deg
-    assert max(ellipse_coverage(axes, heading) for heading in (-band, band)) <= 1.0
+    assert max(ellipse_coverage(axes, heading, vehicle=scenario.vehicle) for heading in (-band, band)) <= 1.0
