@@ -66,8 +66,12 @@ def package_versions() -> dict[str, Optional[str]]:
 
 
 def scenario_dict(scenario: ScenarioConfig) -> dict:
-    """The scenario as plain JSON data (tuples become lists; objective/traffic keep their ``type``)."""
-    values = dataclasses.asdict(scenario)
+    """The scenario as plain JSON data (tuples become lists; objective/traffic keep their ``type``).
+
+    Top-level settings left at ``None`` (e.g. ``vehicle_size``) are omitted, so that a setting
+    added to :class:`ScenarioConfig` later leaves the identity of earlier datasets unchanged.
+    """
+    values = {key: value for key, value in dataclasses.asdict(scenario).items() if value is not None}
     values["objective"] = {"type": scenario.objective.kind, **values["objective"]}
     values["traffic"] = {"type": scenario.traffic.kind, **values["traffic"]}
     return json.loads(json.dumps(values))
