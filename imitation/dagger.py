@@ -61,7 +61,7 @@ from mmpc.drive import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
-from mmpc.imitation.dataset import Transitions, scenario_dict
+from mmpc.imitation.dataset import Transitions
 from mmpc.imitation.policy import PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
@@ -357,7 +357,7 @@ def run_dagger(
     out.mkdir(parents=True, exist_ok=True)
     settings = json.loads(json.dumps(asdict(config), default=list))
     settings.pop("iterations")  # a re-run with more iterations extends the run
-    identity = {"scenario": scenario_dict(scenario), "config": settings,
+    identity = {"scenario": scenario.to_dict(), "config": settings,
                 "dataset": None if dataset_dir is None else str(dataset_dir)}
     rounds, data = _resume(out, identity)
     for entry in rounds:

@@ -65,18 +65,6 @@ def package_versions() -> dict[str, Optional[str]]:
     return versions
 
 
-def scenario_dict(scenario: ScenarioConfig) -> dict:
-    """The scenario as plain JSON data (tuples become lists; objective/traffic keep their ``type``).
-
-    Top-level settings left at ``None`` (e.g. ``vehicle_size``) are omitted, so that a setting
-    added to :class:`ScenarioConfig` later leaves the identity of earlier datasets unchanged.
-    """
-    values = {key: value for key, value in dataclasses.asdict(scenario).items() if value is not None}
-    values["objective"] = {"type": scenario.objective.kind, **values["objective"]}
-    values["traffic"] = {"type": scenario.traffic.kind, **values["traffic"]}
-    return json.loads(json.dumps(values))
-
-
 def dataset_id(scenario: ScenarioConfig) -> str:
     """Minari id of a scenario's expert dataset: ``mmpc/<scenario>-expert-v0``."""
     name = "".join(c if c.isalnum() else "_" for c in scenario.name)
@@ -89,7 +77,7 @@ class Manifest:
     (lockstep batches round differently from single solves) and the file format.
 
     Attributes:
-        scenario: :func:`scenario_dict` of the scenario (its ``seeds`` are not part of it; the
+        scenario: :meth:`ScenarioConfig.to_dict` of the scenario (its ``seeds`` are not part of it; the
             episodes' seeds are chosen on the command line).
         lockstep: episodes per lockstep chunk (chunk k holds seeds ``k * lockstep ...``).
         packages: package versions of the run that created the directory (informative only).
@@ -310,7 +298,7 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
             requirements=[f"mmpc=={package_versions()['mmpc']}"],
         )
         dataset.storage.update_metadata({
-            "mmpc_scenario": scenario_dict(scenario),
+            "mmpc_scenario": scenario.to_dict(),
             "mmpc_seeds": [int(s) for s in seeds],
             "mmpc_lockstep": directory.manifest.lockstep,
             "mmpc_packages": package_versions(),

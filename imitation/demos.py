@@ -29,7 +29,6 @@ from mmpc.imitation.dataset import (
     minari_dataset_path,
     package_versions,
     save_episode,
-    scenario_dict,
 )
 from mmpc.scenario import ScenarioConfig
 
@@ -153,7 +152,7 @@ def generate_demonstrations(
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     if workers < 1 or lockstep < 1 or threads < 1:
         raise ValueError(f"`workers`, `lockstep` and `threads` must be >= 1; got {workers}, {lockstep}, {threads}")
-    directory = DemonstrationsDir(Path(out), Manifest(scenario_dict(scenario), lockstep, package_versions()))
+    directory = DemonstrationsDir(Path(out), Manifest(scenario.to_dict(), lockstep, package_versions()))
     staged = directory.finished_seeds()
     reused = [s for s in seeds if s in staged]
     jobs = [(chunk, [s for s in chunk if s not in staged]) for chunk in chunks(seeds, lockstep)]

@@ -461,8 +461,8 @@ def _exclusive(out: Path) -> Iterator[None]:
 
 
 def scenario_fingerprint(scenario: ScenarioConfig) -> str:
-    """A short hash of every setting of a scenario (its dataclass repr)."""
-    return hashlib.sha256(repr(scenario).encode()).hexdigest()[:16]
+    """A short hash of every setting of a scenario (:meth:`ScenarioConfig.to_dict`)."""
+    return hashlib.sha256(json.dumps(scenario.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:

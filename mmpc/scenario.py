@@ -14,6 +14,7 @@ environment.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -426,6 +427,16 @@ class ScenarioConfig:
     def replace(self, **changes: Any) -> "ScenarioConfig":
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """Plain JSON data that :meth:`from_dict` reads back: tuples become lists, the objective
+        and traffic keep their ``type``, and top-level settings left at ``None`` (e.g.
+        ``vehicle_size``) are omitted, so that a setting added later leaves the records of
+        earlier runs (dataset identities, fingerprints) unchanged."""
+        values = {key: value for key, value in dataclasses.asdict(self).items() if value is not None}
+        values["objective"] = {"type": self.objective.kind, **values["objective"]}
+        values["traffic"] = {"type": self.traffic.kind, **values["traffic"]}
+        return json.loads(json.dumps(values))
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any], *, where: str = "scenario") -> "ScenarioConfig":

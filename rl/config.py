@@ -256,7 +256,7 @@ class RLConfig:
     def to_dict(self) -> dict:
         """Plain data (YAML-ready) that :meth:`from_dict` reads back; the scenario inline."""
         values = dataclasses.asdict(self)
-        values["scenario"] = _scenario_dict(self.scenario)
+        values["scenario"] = self.scenario.to_dict()
         values["algorithms"] = {name: dict(kwargs) for name, kwargs in self.algorithms.items()}
         return _plain(values)
 
@@ -297,14 +297,6 @@ def load_rl_config(path: Optional[str | Path] = None) -> RLConfig:
 
 #: Folder of the RL configs that ship with the repository.
 RL_CONFIG_DIR = shipped_config_dir("rl")
-
-
-def _scenario_dict(scenario: ScenarioConfig) -> dict:
-    """A scenario as the mapping :meth:`ScenarioConfig.from_dict` reads (variants with ``type``)."""
-    values = dataclasses.asdict(scenario)
-    values["objective"] = {"type": scenario.objective.kind, **values["objective"]}
-    values["traffic"] = {"type": scenario.traffic.kind, **values["traffic"]}
-    return values
 
 
 def _as_tuple(value: Any) -> Any:

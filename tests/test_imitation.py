@@ -36,14 +36,13 @@ from mmpc.imitation.dataset import (
     dataset_transitions,
     load_episode,
     open_dataset,
-    scenario_dict,
 )
 from mmpc.imitation.demos import chunks, generate_demonstrations
 from mmpc.imitation.features import FeatureConfig, nearest_neighbours, road_features
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import rollout_lockstep
 from mmpc.road import Road
-from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
+from mmpc.scenario import build_mpc, load_scenario
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -144,16 +143,6 @@ def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refus
     with pytest.raises(DemonstrationsError, match="manifest.json is corrupt"):
         generate_demonstrations(short_cruise(), SEEDS, corrupt)
     assert chunks([1000, 1001, 1002, 1005], 4) == [[1000, 1001, 1002], [1005]]
-
-
-def test_scenario_identity_omits_unset_settings_and_round_trips():
-    """A top-level setting left at None (vehicle_size, added after datasets were written) is not
-    part of the dataset's scenario, so earlier datasets keep their identity; a set one is."""
-    plain = short_cruise()
-    small = plain.replace(vehicle_size=(4.0, 1.4), mpc=dataclasses.replace(plain.mpc, wheelbase=4.0))
-    assert "vehicle_size" not in scenario_dict(plain) and scenario_dict(small)["vehicle_size"] == [4.0, 1.4]
-    for scenario in (plain, small):
-        assert ScenarioConfig.from_dict(scenario_dict(scenario)) == scenario
 
 
 INTERRUPTED_EPISODES = 8

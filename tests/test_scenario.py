@@ -1,6 +1,9 @@
+import dataclasses
+
 import pytest
 
 from mmpc import HighSpeedGoals, NearLaneGoals, Road
+from mmpc.evaluate import scenario_fingerprint
 from mmpc.footprint import ellipse_coverage
 from mmpc.scenario import (
     SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
@@ -82,6 +85,18 @@ def test_missing_scenario_lists_the_shipped_ones():
 def test_inconsistent_scenarios_are_rejected(values, message):
     with pytest.raises(ValueError, match=message):
         ScenarioConfig.from_dict(values)
+
+
+def test_to_dict_omits_unset_settings_and_round_trips():
+    """A top-level setting left at None (vehicle_size, added after datasets and evaluations were
+    written) is not part of the record, so earlier records keep their identity; a set one is."""
+    plain = load_scenario("cruise")
+    small = plain.replace(vehicle_size=(4.0, 1.4), mpc=dataclasses.replace(plain.mpc, wheelbase=4.0))
+    assert "vehicle_size" not in plain.to_dict() and small.to_dict()["vehicle_size"] == [4.0, 1.4]
+    for scenario in (plain, small):
+        assert ScenarioConfig.from_dict(scenario.to_dict()) == scenario
+    assert scenario_fingerprint(small) != scenario_fingerprint(plain)
+    assert scenario_fingerprint(ScenarioConfig.from_dict(plain.to_dict())) == scenario_fingerprint(plain)
 
 
 def test_traffic_values_are_validated():
