@@ -30,9 +30,9 @@ def test_from_dict_rejects_unknown_keys():
 
 
 def test_committed_yaml_matches_the_defaults():
-    from pathlib import Path
+    from mmpc.configs import shipped_config_dir
 
-    path = Path(__file__).resolve().parents[1] / "configs" / "optimizer" / "default.yaml"
+    path = shipped_config_dir("optimizer") / "default.yaml"
     assert OptimizerConfig.from_yaml(path) == OptimizerConfig()
 
 
