@@ -164,6 +164,15 @@ class ContinuousActionDriver(Driver):
                                      torch.as_tensor(steering, dtype=torch.float32), (time.perf_counter() - start) * 1e3)
 
 
+def bicycle_steering(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
+    """The steering angle [rad] at which highway-env's kinematic bicycle (slip
+    ``beta = atan(tan(delta) / 2)``, turn rate ``v sin(beta) / (L / 2)``) turns at ``rate`` [rad/s]
+    at ``speed`` [m/s] with length ``length`` [m]; rates beyond the model's reach saturate at
+    +-90 deg of slip. Shapes: rate and speed broadcast; the result has their shape."""
+    slip = torch.asin((length / 2 / speed * rate).clamp(-1.0, 1.0))
+    return torch.atan(2 * torch.tan(slip))
+
+
 class MetaActionDriver(Driver):
     """A plain highway-env agent with ``DiscreteMetaAction`` (0 LANE_LEFT, 1 IDLE, 2 LANE_RIGHT,
     3 FASTER, 4 SLOWER), executed by highway-env's ``MDPVehicle`` control laws in the road frame:
@@ -172,20 +181,20 @@ class MetaActionDriver(Driver):
       ``acceleration = (v_target - v) / 0.6 s``;
     - lane: LANE_LEFT / RIGHT move the target lane (clamped to the road); lateral speed command
       ``-(y - y_lane) / 0.6 s``, heading reference ``asin(v_lat / v)`` (within +-45 deg), heading
-      rate ``(psi_ref - psi) / 0.2 s``, slip ``asin(L / 2 / v * rate)``, steering
-      ``atan(2 tan(slip))`` (within +-60 deg; L = 5 m).
+      rate ``(psi_ref - psi) / 0.2 s``, steering :func:`bicycle_steering` (within +-60 deg; L the
+      scenario's vehicle length, highway-env's 5 m unless ``vehicle_size`` says otherwise).
     """
 
     name = "sb3"
     TARGET_SPEEDS = (20.0, 25.0, 30.0)
     TAU_ACCELERATION, TAU_HEADING, TAU_LATERAL = 0.6, 0.2, 0.6
-    LENGTH = 5.0
     MAX_STEERING = math.pi / 3
 
     def __init__(self, run: "TrainedRun", scenario: "ScenarioConfig") -> None:
         self.model = run.model
         self.vehicles = run.config.env.kinematics_vehicles
         self.road = scenario.road
+        self.length = scenario.vehicle[0]
         self.hold = _Hold(run.config.env.decision_frames)
         self.target: dict[int, tuple[int, float]] = {}
 
@@ -226,13 +235,12 @@ class MetaActionDriver(Driver):
         lanes = torch.tensor([self.target[env][0] for env in ids], dtype=torch.float64) * self.road.lane_width
         speeds = torch.tensor([self.target[env][1] for env in ids], dtype=torch.float64)
         v = ego[:, EGO_V].clamp_min(1e-3)
-        beta = torch.asin((ego[:, EGO_PSIDOT] * self.LENGTH / 2 / v).clamp(-1.0, 1.0))
+        beta = torch.asin((ego[:, EGO_PSIDOT] * self.length / 2 / v).clamp(-1.0, 1.0))
         heading = ego[:, EGO_PSI] - beta  # the body heading; psi is the direction of motion
         lateral_speed = -(ego[:, EGO_Y] - lanes) / self.TAU_LATERAL
         heading_ref = torch.asin((lateral_speed / v).clamp(-1.0, 1.0)).clamp(-math.pi / 4, math.pi / 4)
         rate = (heading_ref - heading) / self.TAU_HEADING
-        slip = torch.asin((self.LENGTH / 2 / v * rate).clamp(-1.0, 1.0))
-        steering = torch.atan(2 * torch.tan(slip)).clamp(-self.MAX_STEERING, self.MAX_STEERING)
+        steering = bicycle_steering(rate, v, self.length).clamp(-self.MAX_STEERING, self.MAX_STEERING)
         acceleration = (speeds - ego[:, EGO_V]) / self.TAU_ACCELERATION
         return Decision.command_only(acceleration.to(torch.float32), steering.to(torch.float32),
                                      (time.perf_counter() - start) * 1e3)

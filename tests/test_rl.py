@@ -237,3 +237,36 @@ def test_rl_default_scenario_keeps_the_high_speed_ellipse_and_band():
     keys = ("ellipse_a", "ellipse_b", "max_heading_deg", "heading_target_deg")
     high_speed, rl = load_scenario("high_speed").optimizer, rl_scenario().optimizer
     assert [getattr(rl, k) for k in keys] == [getattr(high_speed, k) for k in keys] == [8.0, 3.0, 8.0, 7.2]
+
+
+@pytest.mark.parametrize("length", [5.0, 4.0])
+def test_meta_action_steering_turns_highway_envs_bicycle_at_the_asked_rate(length):
+    """The meta-action controller inverts highway-env's kinematic bicycle with the scenario's
+    vehicle length (the authors' cars are 4 m, highway-env's 5 m): a real highway-env vehicle of
+    that length, stepped for 10 ms with the steering, turns at the asked heading rate."""
+    from highway_env.road.road import Road, RoadNetwork
+    from highway_env.vehicle.kinematics import Vehicle
+
+    from mmpc.rl.driver import bicycle_steering
+
+    rates, speeds = torch.tensor([-0.3, -0.05, 0.0, 0.02, 0.25]), torch.tensor([8.0, 15.0, 20.0, 25.0, 30.0])
+    steering = bicycle_steering(rates, speeds, length)
+    turned = []
+    for delta, speed in zip(steering.tolist(), speeds.tolist()):
+        vehicle = Vehicle(Road(RoadNetwork.straight_road_network(lanes=1)), [10.0, 0.0], heading=0.0, speed=speed)
+        vehicle.LENGTH = length
+        vehicle.act({"steering": delta, "acceleration": 0.0})
+        vehicle.step(0.01)
+        turned.append(vehicle.heading / 0.01)
+    assert turned == pytest.approx(rates.tolist(), abs=1e-6)
+    other = bicycle_steering(rates, speeds, 9.0 - length)  # the other length asks for another angle
+    assert not torch.allclose(other[rates != 0], steering[rates != 0])
+
+
+def test_meta_action_driver_reads_the_scenarios_vehicle_length():
+    from mmpc.rl.driver import MetaActionDriver
+    from mmpc.scenario import load_scenario
+
+    run = type("Run", (), {"model": None, "config": load_rl_config("smoke")})()
+    assert MetaActionDriver(run, load_scenario("cruise_paper")).length == 4.0
+    assert MetaActionDriver(run, load_scenario("cruise")).length == 5.0
