@@ -36,13 +36,16 @@ def plot_candidates(
     *,
     best: Optional[int] = None,
     ellipse: tuple[float, float] = (5.6, 3.0),
+    vehicle: tuple[float, float] = HIGHWAY_VEHICLE,
     problem_index: int = 0,
     title: str = "",
 ) -> Path:
     """Top-down plot of the G candidate trajectories of problem ``problem_index``.
 
     Feasible candidates are solid, infeasible ones dotted grey, the ``best`` one thick red;
-    obstacles are drawn as their ellipses at t = 0 with their predicted paths.
+    obstacles are drawn as their ellipses (semi-axes ``ellipse`` [m]) at t = 0 with their
+    predicted paths, the ego as a ``vehicle`` = (length, width) [m] rectangle (a scenario's
+    ``ScenarioConfig.vehicle``; highway-env's by default).
     """
     e = problem_index
     x = result.trajectories.x[e].detach().cpu()
@@ -75,7 +78,7 @@ def plot_candidates(
                              facecolor="tab:blue", alpha=0.35, zorder=4))
         ax.add_patch(Ellipse((float(obstacles[j, -1, 0]), float(obstacles[j, -1, 1])), 2 * ellipse[0], 2 * ellipse[1],
                              facecolor="none", edgecolor="tab:blue", ls="--", alpha=0.6, zorder=4))
-    length, width = HIGHWAY_VEHICLE
+    length, width = vehicle
     ax.add_patch(plt.Rectangle((float(ego[0]) - length / 2, float(ego[1]) - width / 2), length, width, color="crimson",
                                zorder=6))
     ax.plot([], [], color="0.55", ls=":", label="infeasible")
