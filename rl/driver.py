@@ -164,13 +164,17 @@ class ContinuousActionDriver(Driver):
                                      torch.as_tensor(steering, dtype=torch.float32), (time.perf_counter() - start) * 1e3)
 
 
+def bicycle_slip(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
+    """The slip angle beta [rad] at which highway-env's kinematic bicycle (turn rate
+    ``v sin(beta) / (L / 2)``) turns at ``rate`` [rad/s] at ``speed`` [m/s] with length ``length``
+    [m]; rates beyond the model's reach saturate at +-90 deg. Shapes: rate and speed broadcast;
+    the result has their shape."""
+    return torch.asin((length / 2 / speed * rate).clamp(-1.0, 1.0))
+
+
 def bicycle_steering(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
-    """The steering angle [rad] at which highway-env's kinematic bicycle (slip
-    ``beta = atan(tan(delta) / 2)``, turn rate ``v sin(beta) / (L / 2)``) turns at ``rate`` [rad/s]
-    at ``speed`` [m/s] with length ``length`` [m]; rates beyond the model's reach saturate at
-    +-90 deg of slip. Shapes: rate and speed broadcast; the result has their shape."""
-    slip = torch.asin((length / 2 / speed * rate).clamp(-1.0, 1.0))
-    return torch.atan(2 * torch.tan(slip))
+    """The steering angle [rad] (``beta = atan(tan(delta) / 2)``) of :func:`bicycle_slip`'s slip."""
+    return torch.atan(2 * torch.tan(bicycle_slip(rate, speed, length)))
 
 
 class MetaActionDriver(Driver):
@@ -235,7 +239,7 @@ class MetaActionDriver(Driver):
         lanes = torch.tensor([self.target[env][0] for env in ids], dtype=torch.float64) * self.road.lane_width
         speeds = torch.tensor([self.target[env][1] for env in ids], dtype=torch.float64)
         v = ego[:, EGO_V].clamp_min(1e-3)
-        beta = torch.asin((ego[:, EGO_PSIDOT] * self.length / 2 / v).clamp(-1.0, 1.0))
+        beta = bicycle_slip(ego[:, EGO_PSIDOT], v, self.length)
         heading = ego[:, EGO_PSI] - beta  # the body heading; psi is the direction of motion
         lateral_speed = -(ego[:, EGO_Y] - lanes) / self.TAU_LATERAL
         heading_ref = torch.asin((lateral_speed / v).clamp(-1.0, 1.0)).clamp(-math.pi / 4, math.pi / 4)
