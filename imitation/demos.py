@@ -6,6 +6,9 @@ k holds the requested seeds ``s`` with ``s // lockstep == k``, so a chunk always
 members and a resumed run recomputes an unfinished chunk exactly as an uninterrupted run
 would (lockstep batches round differently from single solves, so membership matters). Chunks
 run in parallel worker processes, each with its own torch threads.
+
+One run at a time writes a directory: a run holds the lock file :data:`LOCK` in it (as
+``mmpc evaluate`` does, :func:`mmpc.evaluate.exclusive`) and a second is refused.
 """
 
 from __future__ import annotations
@@ -20,8 +23,12 @@ from typing import Callable, Iterator, NamedTuple, Optional, Sequence
 
 import torch
 
+from mmpc.evaluate import exclusive
+from mmpc.files import TEMPORARY_PREFIX, atomic_write
 from mmpc.imitation.dataset import (
+    MANIFEST,
     DemonstrationsDir,
+    DemonstrationsError,
     Manifest,
     build_minari,
     built_seeds,
@@ -33,6 +40,9 @@ from mmpc.imitation.dataset import (
 from mmpc.scenario import ScenarioConfig
 
 logger = logging.getLogger(__name__)
+
+#: The lock file a run holds in its demonstrations directory.
+LOCK = ".demos.lock"
 
 
 class DemosReport(NamedTuple):
@@ -98,6 +108,24 @@ def drive_chunk(scenario: ScenarioConfig, seeds: Sequence[int], missing: Sequenc
 
 
 @contextlib.contextmanager
+def _locked_directory(root: Path, manifest: Manifest) -> Iterator[DemonstrationsDir]:
+    """``root`` (created when missing) opened as a :class:`DemonstrationsDir` while this process
+    holds its :data:`LOCK`; another run holding it raises :class:`DemonstrationsError`."""
+    ours = (root / MANIFEST).exists() or (root / LOCK).exists()
+    if root.exists() and (not root.is_dir() or not ours and any(root.iterdir())):
+        DemonstrationsDir(root, manifest)  # not a demonstrations directory: refused before a lock file goes in
+    root.mkdir(parents=True, exist_ok=True)
+    with exclusive(root, LOCK, "another `mmpc demos` run", DemonstrationsError):
+        entries = list(root.iterdir())
+        if not (root / MANIFEST).exists() and all(p.name == LOCK or p.name.startswith(TEMPORARY_PREFIX) for p in entries):
+            # new but for the lock, which DemonstrationsDir would take for foreign content: give it the manifest
+            for stale in (p for p in entries if p.name != LOCK):  # left by a run killed writing the manifest
+                stale.unlink()
+            atomic_write(root / MANIFEST, lambda handle: handle.write(manifest.to_json().encode()))
+        yield DemonstrationsDir(root, manifest)
+
+
+@contextlib.contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
     """Let SIGTERM stop generation like Ctrl-C (KeyboardInterrupt), so the same cleanup runs."""
     def handler(signum, frame):
@@ -143,8 +171,8 @@ def generate_demonstrations(
         A :class:`DemosReport`.
 
     Raises:
-        mmpc.imitation.dataset.DemonstrationsError: ``out`` is foreign or corrupt, or holds
-            another configuration's episodes.
+        mmpc.imitation.dataset.DemonstrationsError: ``out`` is foreign or corrupt, holds
+            another configuration's episodes, or another run holds its :data:`LOCK`.
         KeyboardInterrupt: interrupted (SIGINT or SIGTERM); finished episodes stay staged.
     """
     seeds = [int(s) for s in seeds]
@@ -152,44 +180,47 @@ def generate_demonstrations(
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     if workers < 1 or lockstep < 1 or threads < 1:
         raise ValueError(f"`workers`, `lockstep` and `threads` must be >= 1; got {workers}, {lockstep}, {threads}")
-    directory = DemonstrationsDir(Path(out), Manifest(scenario.to_dict(), lockstep, package_versions()))
-    staged = directory.finished_seeds()
-    reused = [s for s in seeds if s in staged]
-    jobs = [(chunk, [s for s in chunk if s not in staged]) for chunk in chunks(seeds, lockstep)]
-    jobs = [(chunk, missing) for chunk, missing in jobs if missing]
-    total = len(seeds)
+    with _locked_directory(Path(out), Manifest(scenario.to_dict(), lockstep, package_versions())) as directory:
+        staged = directory.finished_seeds()
+        reused = [s for s in seeds if s in staged]
+        jobs = [(chunk, [s for s in chunk if s not in staged]) for chunk in chunks(seeds, lockstep)]
+        jobs = [(chunk, missing) for chunk, missing in jobs if missing]
+        total = len(seeds)
 
-    def progress() -> None:
-        if on_progress is not None:
-            on_progress(len(set(seeds) & directory.finished_seeds()), total)
+        def progress() -> None:
+            if on_progress is not None:
+                on_progress(len(set(seeds) & directory.finished_seeds()), total)
 
-    progress()
-    generated: list[int] = []
-    with _sigterm_as_interrupt():
-        if workers == 1 or len(jobs) <= 1:
-            for chunk, missing in jobs:
-                generated += drive_chunk(scenario, chunk, missing, directory.episodes_dir)
-                progress()
-        elif jobs:
-            pool = multiprocessing.get_context("spawn").Pool(min(workers, len(jobs)), _worker_init, (threads,))
-            try:
-                pending = [pool.apply_async(drive_chunk, (scenario, chunk, missing, directory.episodes_dir)) for chunk, missing in jobs]
-                while pending:
-                    time.sleep(0.5)
+        progress()
+        generated: list[int] = []
+        with _sigterm_as_interrupt():
+            if workers == 1 or len(jobs) <= 1:
+                for chunk, missing in jobs:
+                    generated += drive_chunk(scenario, chunk, missing, directory.episodes_dir)
                     progress()
-                    for result in [r for r in pending if r.ready()]:
-                        generated += result.get()
-                        pending.remove(result)
-                pool.close()
-            except BaseException:
-                pool.terminate()  # workers may be mid-episode; their partial files never got renamed
-                raise
-            finally:
-                pool.join()
-    progress()
-    identifier = dataset_id(scenario)
-    rebuilt = built_seeds(directory.root, identifier) != seeds
-    if rebuilt:
-        build_minari(directory, scenario, seeds)
-    logger.info("demonstrations in %s: %d episodes (%d driven now, %d reused)", out, total, len(generated), len(reused))
-    return DemosReport(minari_dataset_path(directory.root, identifier), identifier, seeds, sorted(generated), reused, rebuilt)
+            elif jobs:
+                pool = multiprocessing.get_context("spawn").Pool(min(workers, len(jobs)), _worker_init, (threads,))
+                try:
+                    pending = [pool.apply_async(drive_chunk, (scenario, chunk, missing, directory.episodes_dir))
+                               for chunk, missing in jobs]
+                    while pending:
+                        time.sleep(0.5)
+                        progress()
+                        for result in [r for r in pending if r.ready()]:
+                            generated += result.get()
+                            pending.remove(result)
+                    pool.close()
+                except BaseException:
+                    pool.terminate()  # workers may be mid-episode; their partial files never got renamed
+                    raise
+                finally:
+                    pool.join()
+        progress()
+        identifier = dataset_id(scenario)
+        rebuilt = built_seeds(directory.root, identifier) != seeds
+        if rebuilt:
+            build_minari(directory, scenario, seeds)
+        logger.info("demonstrations in %s: %d episodes (%d driven now, %d reused)", out, total, len(generated),
+                    len(reused))
+        return DemosReport(minari_dataset_path(directory.root, identifier), identifier, seeds, sorted(generated), reused,
+                           rebuilt)

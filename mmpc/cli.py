@@ -7,6 +7,7 @@ import importlib
 import json
 import logging
 import sys
+import tempfile
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -15,6 +16,7 @@ import yaml
 
 from mmpc.bench_solver import SolverBenchmark, run as run_solver_benchmark
 from mmpc.config import OptimizerConfig
+from mmpc.files import TEMPORARY_PREFIX
 from mmpc.goals import CruiseGoals, HighSpeedGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost
 from mmpc.optimizer import BatchOptimizer
@@ -130,6 +132,17 @@ def _bench_solver(args: argparse.Namespace) -> int:
     return 0
 
 
+def _unwritable(out: Path) -> Optional[str]:
+    """Why ``out`` cannot take outputs (created, then a probe file written and removed); ``None`` if it can."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=TEMPORARY_PREFIX):
+            pass
+    except OSError as error:
+        return f"{type(error).__name__}: {error}"
+    return None
+
+
 def _drive(args: argparse.Namespace) -> int:
     """One episode (video, table, outputs) or, with --seeds, an evaluation over seeds."""
     from tqdm import tqdm
@@ -147,8 +160,13 @@ def _drive(args: argparse.Namespace) -> int:
             scenario = scenario.replace(duration=args.duration)
         scenarios.append(scenario)
     out = Path(args.out)
+    problem = _unwritable(out)  # before driving: an episode's outputs are written at its end
+    if problem is not None:
+        print(f"mmpc drive: error: --out {out} must be a folder this process can create and write to; got {problem}",
+              file=sys.stderr)
+        return 2
     if args.seeds is not None:
-        from mmpc.evaluate import EvaluationConfig, evaluate, format_table
+        from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table
 
         episodes = len(scenarios) * len(args.seeds)
         config = EvaluationConfig(drivers=(args.driver,), seeds=args.seeds, workers=args.workers, threads=args.threads,
@@ -158,7 +176,12 @@ def _drive(args: argparse.Namespace) -> int:
                 bar.update(1)
                 bar.set_postfix_str(f"{row['scenario']} seed {row['seed']}: {row['status']}, collisions {row['collisions']}")
 
-            _, summary = evaluate(scenarios, out, config, on_episode=progress)
+            try:
+                _, summary = evaluate(scenarios, out, config, on_episode=progress)
+            except EvaluationFolderError as error:  # an earlier evaluation's files, damaged or of other scenarios
+                bar.close()
+                print(f"mmpc drive: error: {error}", file=sys.stderr)
+                return 2
         print(format_table(summary))
         print(f"wrote {out / 'summary.json'}, {out / 'episodes.csv'} and one folder per episode under {out}")
         return 0

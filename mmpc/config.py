@@ -40,10 +40,12 @@ def read_config_yaml(name_or_path: str | Path, directory: Path, what: str, listi
         listing: what the shipped files are called in the message (e.g. ``"scenarios"``).
 
     Returns:
-        The resolved path and the parsed values (``{}`` for an empty file).
+        The resolved path and the parsed values.
 
     Raises:
         FileNotFoundError: no such file; the message lists the shipped names.
+        ValueError: the file is empty (or only comments) or does not hold a mapping: an empty
+            file is a mistake, not a request for the defaults.
     """
     path = Path(name_or_path)
     if not path.suffix:
@@ -52,7 +54,13 @@ def read_config_yaml(name_or_path: str | Path, directory: Path, what: str, listi
         shipped = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
         raise FileNotFoundError(f"{what} {str(name_or_path)!r}: no file {path}; shipped {listing}: {shipped}")
     with open(path, encoding="utf-8") as handle:
-        return path, yaml.safe_load(handle) or {}
+        values = yaml.safe_load(handle)
+    if values is None:
+        raise ValueError(f"{what} file {path} is empty; expected a mapping of settings (key: value lines)")
+    if not isinstance(values, dict):
+        raise ValueError(f"{what} file {path} must hold a mapping of settings (key: value lines); "
+                         f"got a {type(values).__name__}")
+    return path, values
 
 
 def require(condition: bool, message: str) -> None:

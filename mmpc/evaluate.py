@@ -23,6 +23,14 @@ pool down; the groups that were in flight are run again one at a time, so the on
 its worker is found and, after ``retries`` further deaths, written as error rows; the run goes
 on. An episode that raises is an error row: a failing group is re-run one seed at a time so
 only the failing episodes are errors.
+
+A resumed call may use another ``lockstep`` (and other seeds): done is decided per key, and
+each row records the ``group`` and ``group_size`` it was driven in. Group membership changes an
+episode only through the rounding of the batched solves, and a resume with the same
+``lockstep`` drives other groups too (error rows retried apart from their group's finished
+seeds, seeds added to a group later), so refusing a new ``lockstep`` would not make a resumed
+evaluation equal an uninterrupted one; ``summary.json`` names this call's ``lockstep``, the rows
+their groups.
 """
 
 from __future__ import annotations
@@ -55,8 +63,8 @@ from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
 
 __all__ = [
-    "COLUMNS", "Evaluation", "EvaluationConfig", "GroupTask", "evaluate", "format_table", "read_episodes",
-    "run_group", "summarize",
+    "COLUMNS", "Evaluation", "EvaluationConfig", "EvaluationFolderError", "GroupTask", "evaluate", "exclusive",
+    "format_table", "read_episodes", "run_group", "summarize",
 ]
 
 logger = logging.getLogger(__name__)
@@ -93,7 +101,8 @@ class EvaluationConfig:
             many worker processes; with ``ray``: ``None`` takes the cluster's CPU count.
         threads: torch threads of every task.
         lockstep: seeds per group (one task; driven in lockstep). Groups are ``seed //
-            lockstep``, so results do not depend on ``workers`` or the backend.
+            lockstep``, so results do not depend on ``workers`` or the backend. A resume may
+            change it (see the module docstring).
         ray: ``None`` (this machine), ``"local"`` (start a local Ray with ``workers`` CPUs),
             ``"auto"`` or a cluster address (``"host:6379"``, ``"ray://host:10001"``). A Ray
             already initialised in this process is used as it is.
@@ -393,31 +402,75 @@ def _ray_tasks(tasks: Sequence[GroupTask], address: str, workers: Optional[int],
 # ----------------------------------------------------------------------------------- the store
 
 
-def _parse(column: str, text: str) -> object:
+class EvaluationFolderError(ValueError):
+    """An evaluation folder whose ``episodes.csv`` or ``scenarios.json`` cannot be resumed from
+    (another format, a damaged line, episodes of another scenario of the same name)."""
+
+
+#: What to do about a damaged line of ``episodes.csv``.
+_DAMAGED_LINE = "fix or delete the line (a deleted episode is run again) or use another `out`"
+
+
+def _parse(column: str, text: str, where: str) -> object:
     if column in _TEXT_COLUMNS:
         return text
     if text == "":
         return None
-    return int(text) if column in _INT_COLUMNS else float(text)
+    try:
+        return int(text) if column in _INT_COLUMNS else float(text)
+    except ValueError:
+        expected = "an integer" if column in _INT_COLUMNS else "a number"
+        raise EvaluationFolderError(f"{where}: `{column}` is {text!r}, expected {expected}; {_DAMAGED_LINE}") from None
 
 
 def read_episodes(path: Path) -> list[dict]:
     """The rows of an ``episodes.csv``, typed (ints, floats, ``None`` for empty cells).
 
     A last line without its newline (a write cut short by a killed process) is dropped.
+
+    Raises:
+        EvaluationFolderError: the header lacks a key column, or a line has another number of
+            fields than the header, an empty key, a status other than ok/error or a value that
+            does not parse; the message names the file and the line.
     """
     path = Path(path)
     if not path.exists():
         return []
-    text = path.read_text(encoding="utf-8")
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        line = data[:error.start].count(b"\n") + 1
+        raise EvaluationFolderError(f"{path}, line {line}: not UTF-8 text ({error}); {_DAMAGED_LINE}") from error
     if text and not text.endswith("\n"):
         logger.warning("%s: dropping an incomplete last line (an interrupted write)", path)
         text = text[: text.rfind("\n") + 1]
-    reader = csv.DictReader(io.StringIO(text))
-    missing = [c for c in KEY_COLUMNS + ("status",) if c not in (reader.fieldnames or ())]
-    if text and missing:
-        raise ValueError(f"{path} is not an evaluation's episodes.csv: columns {missing} missing; use another `out`")
-    return [{column: _parse(column, row.get(column) or "") for column in COLUMNS} for row in reader]
+    reader = csv.reader(io.StringIO(text))
+    rows = []
+    try:
+        header = next(reader, [])
+        missing = [c for c in KEY_COLUMNS + ("status",) if c not in header]
+        if text and missing:
+            raise EvaluationFolderError(f"{path} is not an evaluation's episodes.csv: columns {missing} missing; "
+                                        "use another `out`")
+        for fields in reader:
+            if not fields:  # a blank line
+                continue
+            where = f"{path}, line {reader.line_num}"
+            if len(fields) != len(header):
+                raise EvaluationFolderError(f"{where}: {len(fields)} fields, expected {len(header)} (the header's); "
+                                            f"{_DAMAGED_LINE}")
+            values = dict(zip(header, fields))
+            row = {column: _parse(column, values.get(column, ""), where) for column in COLUMNS}
+            if not row["driver"] or not row["scenario"] or row["seed"] is None or row["status"] not in ("ok", "error"):
+                raise EvaluationFolderError(
+                    f"{where}: expected a driver, a scenario, a seed and status ok or error; got "
+                    f"driver={row['driver']!r}, scenario={row['scenario']!r}, seed={row['seed']!r}, "
+                    f"status={row['status']!r}; {_DAMAGED_LINE}")
+            rows.append(row)
+    except csv.Error as error:  # e.g. a NUL byte, as a crash can leave
+        raise EvaluationFolderError(f"{path}, line {reader.line_num}: {error}; {_DAMAGED_LINE}") from error
+    return rows
 
 
 def _csv_lines(rows: Sequence[dict]) -> str:
@@ -447,17 +500,26 @@ class _EpisodeFile:
 
 
 @contextmanager
-def _exclusive(out: Path) -> Iterator[None]:
-    """Hold ``out/.evaluate.lock`` (released by the OS if this process dies)."""
-    with open(out / ".evaluate.lock", "w") as handle:
+def exclusive(
+    out: Path, lock: str = ".evaluate.lock", holder: str = "another evaluation", error: type[Exception] = RuntimeError,
+) -> Iterator[None]:
+    """Hold the lock file ``out / lock`` while the block runs (released by the OS if this process
+    dies); when another process holds it, raise ``error`` naming ``holder``, the folder and the lock."""
+    with open(out / lock, "w") as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError as error:
-            raise RuntimeError(f"another evaluation is writing to {out}; wait for it or use another `out`") from error
+        except BlockingIOError as busy:
+            raise error(f"{holder} is writing to {out} (it holds the lock {out / lock}); wait for it or use another "
+                        "`out`") from busy
         try:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+#: What to do about a damaged ``scenarios.json``.
+_CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run with the scenarios as they are now; "
+                      "otherwise use another `out`")
 
 
 def scenario_fingerprint(scenario: ScenarioConfig) -> str:
@@ -468,11 +530,20 @@ def scenario_fingerprint(scenario: ScenarioConfig) -> str:
 def _check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
     """Refuse to mix episodes of two different scenarios under one name in ``out``."""
     path = out / "scenarios.json"
-    known: dict[str, str] = json.loads(path.read_text()) if path.exists() else {}
+    known: dict[str, str] = {}
+    if path.exists():
+        try:
+            known = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError as error:  # JSONDecodeError names the line and column; UnicodeDecodeError the byte
+            raise EvaluationFolderError(f"{path} is corrupt ({error}); expected the JSON object of scenario name -> "
+                                        f"settings hash this folder's episodes were run with; {_CORRUPT_SCENARIOS}") from error
+        if not isinstance(known, dict) or not all(isinstance(v, str) for v in known.values()):
+            raise EvaluationFolderError(f"{path} is corrupt: expected a JSON object of scenario name -> settings hash; "
+                                        f"got {str(known)[:100]}; {_CORRUPT_SCENARIOS}")
     for scenario in scenarios:
         fingerprint = scenario_fingerprint(scenario)
         if known.setdefault(scenario.name, fingerprint) != fingerprint:
-            raise ValueError(
+            raise EvaluationFolderError(
                 f"{out} holds episodes of another scenario named {scenario.name!r} (settings changed, e.g. --duration or "
                 f"--set); use another `out` or rename the scenario (--set name=...)"
             )
@@ -523,7 +594,9 @@ def evaluate(
         ones') and their summary.
 
     Raises:
-        ValueError: duplicate scenario names, or ``out`` holds another scenario of the same name.
+        ValueError: duplicate scenario names.
+        EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name, or
+            a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
         RuntimeError: another evaluation holds ``out``.
     """
     names = [s.name for s in scenarios]
@@ -531,7 +604,7 @@ def evaluate(
         raise ValueError(f"`scenarios` must be at least one, with distinct names; got {names}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    with _exclusive(out):
+    with exclusive(out):
         _check_scenarios(out, scenarios)
         wanted = {(d, s, seed) for d in config.drivers for s in names for seed in config.seeds}
         earlier: dict[Key, dict] = {}

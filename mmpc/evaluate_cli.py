@@ -16,7 +16,7 @@ def _drivers(values: list[str]) -> tuple[str, ...]:
 def _evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from mmpc.evaluate import EvaluationConfig, evaluate, format_table, read_episodes
+    from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table, read_episodes
     from mmpc.scenario import load_scenario
 
     drivers = _drivers(args.driver or ["mpc"])
@@ -47,13 +47,23 @@ def _evaluate(args: argparse.Namespace) -> int:
         return 2
     out = Path(args.out)
     wanted = {(d, s.name, seed) for d in drivers for s in scenarios for seed in args.seeds}
-    finished = {(r["driver"], r["scenario"], r["seed"]) for r in read_episodes(out / "episodes.csv") if r["status"] == "ok"}
+    try:
+        earlier = read_episodes(out / "episodes.csv")
+    except EvaluationFolderError as error:
+        print(f"mmpc evaluate: error: {error}", file=sys.stderr)
+        return 2
+    finished = {(r["driver"], r["scenario"], r["seed"]) for r in earlier if r["status"] == "ok"}
     with tqdm(total=len(wanted), initial=len(wanted & finished), desc="episodes", unit="ep") as bar:
         def progress(row: dict) -> None:
             bar.update(1)
             bar.set_postfix_str(f"{row['driver']} {row['scenario']} seed {row['seed']}: {row['status']}")
 
-        evaluation = evaluate(scenarios, out, config, on_episode=progress)
+        try:
+            evaluation = evaluate(scenarios, out, config, on_episode=progress)
+        except EvaluationFolderError as error:  # scenarios.json damaged or of other scenarios
+            bar.close()
+            print(f"mmpc evaluate: error: {error}", file=sys.stderr)
+            return 2
     print(format_table(evaluation.summary))
     print(f"wrote {out / 'episodes.csv'}, {out / 'summary.json'}, {out / 'summary.md'}, {out / 'compare.png'} and "
           f"TensorBoard scalars under {out / 'tensorboard'}")

@@ -219,6 +219,40 @@ class SafeHighwayEnv(gym.Env):
         state = road_state(self.episode.unwrapped, self.episode.frame, dtype=self.layer.mpc.optimizer.dtype)
         return Observation(state.ego, state.vehicles)
 
+    def check_action(self, action: Any) -> Any:
+        """``action`` checked against the action space: the goal index as an int (a Python or
+        numpy integer, or a 0-d integer array: SB3's vectorized environments pass numpy int64,
+        ``predict`` of one observation a 0-d array), or the (2,) array of finite numbers
+        (values outside [-1, 1] are clipped later).
+
+        Raises:
+            ValueError: anything else (a float index such as 2.7, an array of indices, a wrong
+                shape, NaN), naming what came and what is expected.
+        """
+        if self.continuous:
+            try:
+                values = np.asarray(action)
+            except ValueError as error:  # ragged nesting
+                raise ValueError(f"`action` must be an array of 2 numbers; got {action!r}") from error
+            if values.dtype.kind not in "iuf":
+                raise ValueError(f"`action` must be an array of 2 numbers; got dtype {values.dtype} ({action!r})")
+            if values.shape != (2,):
+                raise ValueError(f"`action` must have shape (2,); got {values.shape}")
+            if not np.isfinite(values).all():
+                raise ValueError(f"`action` must be finite numbers (in [-1, 1]); got {values.tolist()}")
+            return values
+        count = self.config.num_discrete_goals
+        if isinstance(action, np.ndarray) and action.shape == ():
+            action = action[()]
+        if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
+            came = (f"an array of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray)
+                    else f"{action!r} ({type(action).__name__})")
+            raise ValueError(f"`action` must be an int in [0, {count}) (a goal of the grid lane_offsets x speeds); "
+                             f"got {came}")
+        if not 0 <= action < count:
+            raise ValueError(f"`action` must be an int in [0, {count}); got {action}")
+        return int(action)
+
     def commands(self, ego: torch.Tensor, actions: Sequence[Any]) -> torch.Tensor:
         """Actions of this environment type -> (E, 2) goal commands at the egos ``ego`` (E, 6)."""
         if self.continuous:
@@ -263,11 +297,24 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
 
     Returns:
         One :class:`StepOutcome` per environment, in order.
+
+    Raises:
+        ValueError: an action its environment refuses (:meth:`SafeHighwayEnv.check_action`),
+            before any environment moves.
     """
     if len(envs) == 0:
         return []
     if len(actions) != len(envs):
         raise ValueError(f"`actions` must hold one action per environment ({len(envs)}); got {len(actions)}")
+    checked = []
+    for index, (env, action) in enumerate(zip(envs, actions)):
+        try:
+            checked.append(env.check_action(action))
+        except ValueError as error:
+            if len(envs) == 1:
+                raise
+            raise ValueError(f"environment {index}: {error}") from None
+    actions = checked
     layer = envs[0].layer
     if any(env.layer is not layer for env in envs):
         raise ValueError("environments advanced together must share one SafetyLayer (pass `layer=` when creating them)")
