@@ -143,10 +143,7 @@ class NearLaneGoals:
         if self.lanes_around is None:
             lane_y = road.lane_centers(**kw).expand(ego.shape[0], -1)  # (E, L)
         else:
-            count = min(2 * self.lanes_around + 1, road.num_lanes)
-            first = (road.lane_index(ego[:, EGO_Y]) - self.lanes_around).clamp(0, road.num_lanes - count)
-            lanes = first[:, None] + torch.arange(count, device=ego.device)  # (E, L)
-            lane_y = lanes.to(ego.dtype) * road.lane_width
+            lane_y = road.lanes_around(ego[:, EGO_Y], self.lanes_around).to(ego.dtype) * road.lane_width  # (E, L)
         ahead = torch.tensor(self.speeds, **kw) * self.horizon  # (S,)
         x = ego[:, EGO_X, None, None] + ahead[None, None, :]  # (E, 1, S)
         y = lane_y[:, :, None]  # (E, L, 1)

@@ -25,6 +25,7 @@ from mmpc.problem import (
 from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best
 from mmpc.result import SolveResult, Status, Trajectories
 from mmpc.road import Road
+from mmpc.stopping import conflict_deceleration, stop_goals
 
 #: A selection rule for :meth:`MPC.plan_problem`: ``(result, cost (E, G), violation (E, G)) -> Selection``.
 Selector = Callable[[SolveResult, torch.Tensor, torch.Tensor], Selection]
@@ -81,6 +82,14 @@ class MPCConfig:
             step to the next, and the ego drove on the lane line for 10 s (cruise seed 11).
         brake_deceleration: deceleration of the lane-keeping brake, the fallback when no
             candidate is feasible and the least-infeasible one is not drivable [m/s^2].
+        max_deceleration: the strongest braking a fallback asks for to stop behind a conflict
+            ahead (:func:`mmpc.stopping.conflict_deceleration`; highway-env's full brake) [m/s^2].
+        stop_lanes: the goal set gets a stop goal on the ego's lane and this many lanes either
+            side (:func:`mmpc.stopping.stop_goals`): rest behind the first vehicle ahead, or
+            braking to rest over the horizon on a clear lane. Without them no goal is
+            reachable close behind stopped traffic. ``None``: no stop goals.
+        stop_gap: room a stop goal and the fallback's braking leave beyond the obstacle
+            ellipse [m].
         max_steering: steering saturation [rad].
         road_margin: a candidate whose centre comes closer than this to a road edge is
             infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].
@@ -99,6 +108,9 @@ class MPCConfig:
     tie_tolerance: float = 0.01
     tie_margin: float = 1.0
     brake_deceleration: float = 4.0
+    max_deceleration: float = 5.0
+    stop_lanes: Optional[int] = 1
+    stop_gap: float = 2.0
     max_steering: float = math.pi / 4
     road_margin: float = 1.0
     compile: bool | str = "auto"
@@ -110,10 +122,15 @@ class MPCConfig:
                 f"`compile` must be true, false or 'auto'; got {self.compile!r}")
         if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
             raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
-        names = ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_steering")
+        names = ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
-                             tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin)
+                             tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
+        require(self.stop_lanes is None or (isinstance(self.stop_lanes, int) and not isinstance(self.stop_lanes, bool)
+                                            and self.stop_lanes >= 0),
+                f"`stop_lanes` must be null (no stop goals) or an int >= 0; got {self.stop_lanes!r}")
+        require(self.max_deceleration >= self.brake_deceleration,
+                f"`max_deceleration` ({self.max_deceleration}) must be >= `brake_deceleration` ({self.brake_deceleration})")
 
     @classmethod
     def from_dict(cls, values) -> "MPCConfig":
@@ -202,6 +219,40 @@ def nearest_obstacles(
     return states, mask
 
 
+def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]) -> None:
+    """Refuse what :meth:`MPC.build_problem` cannot plan from, naming what came.
+
+    Args:
+        ego: must be a finite (E, 6) float tensor.
+        vehicles: must be a (E, V, 4) float tensor, finite in every row ``vehicle_mask`` marks real.
+        vehicle_mask: ``None`` or a (E, V) bool tensor on ``vehicles``' device.
+    """
+    for name, value in (("ego", ego), ("vehicles", vehicles), ("vehicle_mask", vehicle_mask)):
+        if value is not None and not isinstance(value, torch.Tensor):
+            raise TypeError(f"`{name}` must be a torch.Tensor; got {type(value).__name__}")
+    if ego.ndim != 2 or ego.shape[1] != len(EGO_FIELDS) or not ego.is_floating_point():
+        raise ValueError(f"`ego` must be a float tensor of shape (E, {len(EGO_FIELDS)}); got {ego.dtype} {tuple(ego.shape)}")
+    if vehicles.ndim != 3 or vehicles.shape[0] != ego.shape[0] or vehicles.shape[2] != 4 or not vehicles.is_floating_point():
+        raise ValueError(f"`vehicles` must be a float tensor of shape ({ego.shape[0]}, V, 4); got {vehicles.dtype} {tuple(vehicles.shape)}")
+    if not bool(torch.isfinite(ego).all()):
+        rows = (~torch.isfinite(ego)).any(dim=1).nonzero().flatten().tolist()
+        raise ValueError(f"`ego` must be finite; non-finite values in rows {rows}")
+    real = torch.ones(vehicles.shape[:2], dtype=torch.bool, device=vehicles.device)
+    if vehicle_mask is not None:
+        if vehicle_mask.dtype != torch.bool or tuple(vehicle_mask.shape) != tuple(vehicles.shape[:2]):
+            raise ValueError(
+                f"`vehicle_mask` must be a bool tensor of shape {tuple(vehicles.shape[:2])} (one flag per vehicle); "
+                f"got {vehicle_mask.dtype} {tuple(vehicle_mask.shape)}"
+            )
+        if vehicle_mask.device != vehicles.device:
+            raise ValueError(f"`vehicle_mask` must be on {vehicles.device}; got {vehicle_mask.device}")
+        real = vehicle_mask
+    broken = real & ~torch.isfinite(vehicles).all(dim=-1)
+    if bool(broken.any()):
+        where = broken.nonzero().tolist()
+        raise ValueError(f"`vehicles` must be finite for every real vehicle; non-finite (problem, vehicle): {where[:8]}")
+
+
 class MPC:
     """Receding-horizon multi-modal MPC over a batch of E problems.
 
@@ -244,18 +295,32 @@ class MPC:
     def build_problem(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
     ) -> ProblemBatch:
-        """Road-frame state -> problem batch (goals sampled, nearest obstacles predicted)."""
+        """Road-frame state -> problem batch: the goal sampler's goals and then the stop goals
+        (:attr:`MPCConfig.stop_lanes`), the nearest obstacles predicted over the horizon.
+
+        Raises:
+            ValueError: a wrong shape, a non-finite value in ``ego`` or in a real vehicle, or a
+                ``vehicle_mask`` that is not (E, V) bool.
+        """
         opt = self.optimizer
-        if ego.ndim != 2 or ego.shape[1] != len(EGO_FIELDS):
-            raise ValueError(f"`ego` must have shape (E, {len(EGO_FIELDS)}); got {tuple(ego.shape)}")
-        if vehicles.ndim != 3 or vehicles.shape[0] != ego.shape[0] or vehicles.shape[2] != 4:
-            raise ValueError(f"`vehicles` must have shape ({ego.shape[0]}, V, 4); got {tuple(vehicles.shape)}")
+        check_state(ego, vehicles, vehicle_mask)
         ego = ego.to(dtype=opt.dtype)
         vehicles = vehicles.to(dtype=opt.dtype)
+        if vehicle_mask is not None:  # absent rows may hold anything, NaN included
+            vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))
         states, mask = self.nearest_obstacles(ego, vehicles, vehicle_mask)
         obstacles = self.predict(states, opt.times)
         goals = self.goal_sampler(ego, self.road)
+        if self.config.stop_lanes is not None:
+            stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon, ellipse=self.ellipse,
+                               lanes=self.config.stop_lanes, gap=self.config.stop_gap)
+            goals = torch.cat([goals, stops], dim=1)
         return ProblemBatch(ego, goals, obstacles, mask)
+
+    @property
+    def ellipse(self) -> tuple[float, float]:
+        """The optimizer's obstacle ellipse semi-axes (a, b) [m]."""
+        return self.optimizer.config.ellipse_a, self.optimizer.config.ellipse_b
 
     def nearest_obstacles(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]
@@ -263,9 +328,8 @@ class MPC:
         """The (E, M, 4) states and (E, M) mask of the obstacles this MPC plans around:
         :func:`nearest_obstacles` with the config's count, ignore-behind distance and lookahead
         and the optimizer's ellipse."""
-        cfg = self.optimizer.config
         return nearest_obstacles(
-            ego, vehicles, vehicle_mask, self.config.num_obstacles, (cfg.ellipse_a, cfg.ellipse_b),
+            ego, vehicles, vehicle_mask, self.config.num_obstacles, self.ellipse,
             self.config.ignore_behind, self.config.obstacle_lookahead,
         )
 
@@ -295,10 +359,14 @@ class MPC:
             vehicle_mask: (E, V) bool, True for real vehicles; ``None`` = all real.
 
         Returns:
-            A :class:`Plan`. Where no candidate is feasible the least-infeasible one is executed
-            if it is drivable (none of the :data:`UNDRIVABLE` bits: its path is kinematically
-            sound and stays on the road, it only comes too close to an obstacle or exceeds
-            ``a_max``); otherwise the command is a lane-keeping brake.
+            A :class:`Plan`. Where no candidate is feasible the fallback of :meth:`command`
+            runs: the least-infeasible candidate's path if it is drivable (none of the
+            :data:`UNDRIVABLE` bits: kinematically sound and on the road, it only comes too
+            close to an obstacle or exceeds ``a_max``), else a lane-keeping brake; either way
+            it never accelerates and brakes at least as hard as a conflict ahead needs.
+
+        Raises:
+            ValueError: bad input (see :meth:`build_problem`).
         """
         return self.plan_problem(self.build_problem(ego, vehicles, vehicle_mask))
 
@@ -335,20 +403,38 @@ class MPC:
         trajectory = result.trajectories.select(selection.index)
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0
-        acceleration, steering, heading_rate = self.command(problem.ego, trajectory, selection.feasible | drivable)
+        acceleration, steering, heading_rate = self.command(
+            problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=problem.obstacles, mask=problem.obstacle_mask
+        )
         return Plan(
             problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms, compile_ms
         )
 
     def command(
-        self, ego: torch.Tensor, trajectory: Trajectories, usable: torch.Tensor
+        self,
+        ego: torch.Tensor,
+        trajectory: Trajectories,
+        feasible: torch.Tensor,
+        *,
+        drivable: Optional[torch.Tensor] = None,
+        obstacles: Optional[torch.Tensor] = None,
+        mask: Optional[torch.Tensor] = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The commands that execute E chosen plans (any planner's, e.g. the baselines').
+
+        Rows whose plan is not feasible get the fallback: the plan's heading rate where it is
+        ``drivable``, else the lane-keeping heading rate; the plan's acceleration capped at 0
+        where drivable, else ``-brake_deceleration``; and in both cases at most the
+        :func:`mmpc.stopping.conflict_deceleration` of the ``obstacles`` ahead in that path.
 
         Args:
             ego: (E, 6) current states.
             trajectory: the chosen plans, every field (E, N), at ``trajectory.times``.
-            usable: (E,) bool; rows where it is False get the lane-keeping brake instead.
+            feasible: (E,) bool, the plan is feasible.
+            drivable: (E,) bool, an infeasible plan may still be driven; ``None``: none may.
+            obstacles: (E, M, N, 2) predicted obstacle centres at ``trajectory.times`` [m];
+                ``None``: the fallback brakes for none.
+            mask: (E, M) bool, present obstacles; ``None``: all.
 
         Returns:
             acceleration (E,) [m/s^2] and heading rate (E,) [rad/s] averaged over the command
@@ -356,7 +442,10 @@ class MPC:
             as (acceleration, steering, heading_rate).
         """
         acceleration, heading_rate = self._command(trajectory)
-        acceleration, heading_rate = self._fallback(ego, usable, acceleration, heading_rate)
+        drivable = torch.zeros_like(feasible) if drivable is None else drivable
+        acceleration, heading_rate = self._fallback(
+            ego, trajectory, feasible, drivable, acceleration, heading_rate, obstacles, mask
+        )
         speed = ego[:, EGO_V].clamp_min(1.0)
         steering = torch.atan(self.config.wheelbase * heading_rate / speed)
         steering = steering.clamp(-self.config.max_steering, self.config.max_steering)
@@ -399,14 +488,32 @@ class MPC:
         return tangential[:, window].mean(dim=1), trajectory.psidot[:, window].mean(dim=1)
 
     def _fallback(
-        self, ego: torch.Tensor, usable: torch.Tensor, acceleration: torch.Tensor, heading_rate: torch.Tensor
+        self,
+        ego: torch.Tensor,
+        trajectory: Trajectories,
+        feasible: torch.Tensor,
+        drivable: torch.Tensor,
+        acceleration: torch.Tensor,
+        heading_rate: torch.Tensor,
+        obstacles: Optional[torch.Tensor],
+        mask: Optional[torch.Tensor],
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Brake and steer back to the nearest lane centre where the chosen plan is not usable."""
+        """The commands of :meth:`command` where the plan is not feasible."""
         lane_y = self.road.lane_index(ego[:, EGO_Y]).to(ego.dtype) * self.road.lane_width
         desired_heading = torch.atan(-0.25 * (ego[:, EGO_Y] - lane_y)).clamp(-0.2, 0.2)
         keep_lane = 1.0 * (desired_heading - ego[:, EGO_PSI])
-        brake = torch.where(ego[:, EGO_V] > 0.5, -self.config.brake_deceleration, 0.0).to(ego.dtype)
+        fallback_acceleration = torch.where(drivable, acceleration.clamp_max(0.0), -self.config.brake_deceleration)
+        if obstacles is not None and obstacles.shape[1] > 0:
+            path_y = torch.where(drivable[:, None], trajectory.y, ego[:, EGO_Y, None])
+            mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask
+            needed = conflict_deceleration(
+                ego, path_y, obstacles, mask, trajectory.times, self.ellipse,
+                gap=self.config.stop_gap, max_deceleration=self.config.max_deceleration,
+            )
+            fallback_acceleration = torch.minimum(fallback_acceleration, needed)
+        # Near rest, brake only as much as stops within the command window (never into reverse).
+        fallback_acceleration = torch.maximum(fallback_acceleration, -ego[:, EGO_V] / self.config.command_window)
         return (
-            torch.where(usable, acceleration, brake),
-            torch.where(usable, heading_rate, keep_lane),
+            torch.where(feasible, acceleration, fallback_acceleration),
+            torch.where(feasible | drivable, heading_rate, keep_lane),
         )

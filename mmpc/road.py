@@ -45,3 +45,11 @@ class Road:
         """Index of the nearest lane for lateral positions ``y`` [m] (same shape, int64)."""
         index = torch.round(y / self.lane_width).to(torch.int64)
         return index.clamp(0, self.num_lanes - 1)
+
+    def lanes_around(self, y: torch.Tensor, count: int) -> torch.Tensor:
+        """(E, min(2 count + 1, num_lanes)) lane indices around lateral positions ``y`` (E,) [m]:
+        the nearest lane and ``count`` either side, the window shifted to stay on the road (on an
+        edge lane: the edge lane and the next ``2 count`` inwards, so no lane repeats)."""
+        width = min(2 * count + 1, self.num_lanes)
+        first = (self.lane_index(y) - count).clamp(0, self.num_lanes - width)
+        return first[:, None] + torch.arange(width, device=y.device)

@@ -243,6 +243,11 @@ class ScriptedVehicle:
         lane_change: whether MOBIL may change its lane.
         constant_speed: drive straight at ``speed`` without reacting to anything (a plain
             kinematic vehicle instead of IDM/MOBIL).
+        cut_in_lane: with ``cut_in_at``, a scripted manoeuvre instead of IDM: the vehicle keeps
+            ``speed``, steers into this lane at ``cut_in_at`` and brakes from ``brake_at``.
+        cut_in_at: when the lane change starts [s].
+        brake_at: when the scripted vehicle starts braking to a stop [s]; ``None``: never.
+        brake_deceleration: its braking [m/s^2].
     """
 
     lane: int
@@ -250,11 +255,27 @@ class ScriptedVehicle:
     speed: float
     lane_change: bool = False
     constant_speed: bool = False
+    cut_in_lane: Optional[int] = None
+    cut_in_at: float = 0.0
+    brake_at: Optional[float] = None
+    brake_deceleration: float = 6.0
 
     def __post_init__(self) -> None:
         require(isinstance(self.lane, int) and self.lane >= 0, f"scripted vehicle: `lane` must be an int >= 0; got {self.lane!r}")
         require(isinstance(self.x, (int, float)) and math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
         require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
+        require(self.cut_in_lane is None or (isinstance(self.cut_in_lane, int) and self.cut_in_lane >= 0),
+                f"scripted vehicle: `cut_in_lane` must be null or an int >= 0; got {self.cut_in_lane!r}")
+        require(self.cut_in_at >= 0 and (self.brake_at is None or self.brake_at >= 0),
+                f"scripted vehicle: `cut_in_at` and `brake_at` must be >= 0 s; got {self.cut_in_at!r}, {self.brake_at!r}")
+        require_positive("scripted vehicle", brake_deceleration=self.brake_deceleration)
+        require(not (self.scripted and (self.constant_speed or self.lane_change)),
+                "scripted vehicle: a cut-in or braking manoeuvre excludes `constant_speed` and `lane_change`")
+
+    @property
+    def scripted(self) -> bool:
+        """Whether the vehicle follows a scripted manoeuvre (cut-in and/or braking)."""
+        return self.cut_in_lane is not None or self.brake_at is not None
 
 
 @dataclass(frozen=True)
@@ -391,7 +412,8 @@ class ScenarioConfig:
                  f"{where}: `ego.lane` must be < lanes={self.lanes}; got {self.ego.lane}")
         if isinstance(self.traffic, ScriptedTraffic):
             for vehicle in self.traffic.vehicles:
-                require(vehicle.lane < self.lanes, f"{where}: scripted vehicle lane {vehicle.lane} must be < lanes={self.lanes}")
+                for lane in (vehicle.lane, vehicle.cut_in_lane):
+                    require(lane is None or lane < self.lanes, f"{where}: scripted vehicle lane {lane} must be < lanes={self.lanes}")
         if self.vehicle_size is not None:
             require(isinstance(self.vehicle_size, tuple) and len(self.vehicle_size) == 2,
                      f"{where}: `vehicle_size` must be [length, width] in m; got {self.vehicle_size!r}")

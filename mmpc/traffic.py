@@ -14,6 +14,7 @@ import numpy as np
 from highway_env.envs.common.abstract import AbstractEnv
 from highway_env.road.lane import AbstractLane
 from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from mmpc.ngsim import Recording, Track, read_ngsim
@@ -172,7 +173,14 @@ class ScriptedTrafficController:
         for spec in self.config.vehicles:
             lane = self.lanes.lane(spec.lane)
             s = s_ego + spec.x
-            if spec.constant_speed:
+            if spec.scripted:
+                vehicle = ManoeuvreVehicle(road, lane.position(s, 0.0), lane.heading_at(s), spec.speed,
+                                           target_lane_index=(*self.lanes.road_id, spec.lane))
+                vehicle.script(
+                    None if spec.cut_in_lane is None else (*self.lanes.road_id, spec.cut_in_lane),
+                    spec.cut_in_at, spec.brake_at, spec.brake_deceleration,
+                )
+            elif spec.constant_speed:
                 vehicle = Vehicle(road, lane.position(s, 0.0), lane.heading_at(s), spec.speed)
             else:
                 vehicle = IDMVehicle(
@@ -185,6 +193,30 @@ class ScriptedTrafficController:
     def after_step(self) -> None:
         if self.config.window is not None:
             _keep_in_window(self.env, self.lanes, self.config.window, keep_lane=True)
+
+
+class ManoeuvreVehicle(ControlledVehicle):
+    """A scripted vehicle: it holds its speed, changes lane at a given time (highway-env's
+    lateral controller) and brakes to a stop at a given time (a cut-in that brakes hard)."""
+
+    def script(self, lane_index: Optional[tuple], change_at: float, brake_at: Optional[float], deceleration: float) -> None:
+        self.cut_in_lane_index = lane_index
+        self.change_at = change_at
+        self.brake_at = brake_at
+        self.deceleration = deceleration
+        self.elapsed = 0.0
+
+    def act(self, action=None) -> None:
+        if self.cut_in_lane_index is not None and self.elapsed >= self.change_at:
+            self.target_lane_index = self.cut_in_lane_index
+        braking = self.brake_at is not None and self.elapsed >= self.brake_at and self.speed > 0
+        steering = np.clip(self.steering_control(self.target_lane_index), -self.MAX_STEERING_ANGLE, self.MAX_STEERING_ANGLE)
+        Vehicle.act(self, {"steering": steering, "acceleration": -self.deceleration if braking else 0.0})
+
+    def step(self, dt: float) -> None:
+        super().step(dt)
+        self.elapsed += dt
+        self.speed = max(self.speed, 0.0)
 
 
 class ReplayVehicle(Vehicle):
