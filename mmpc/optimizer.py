@@ -78,6 +78,7 @@ class _Prepared(NamedTuple):
     goal_ahead: torch.Tensor  # (E, G') bool
     num_goals: int  # G', the goals solved for: the G given and `padding` copies of the last
     padding: int  # goals appended to fill SIMD vectors (compiled CPU path), dropped from the result
+    compiled: bool  # run the compiled functions; False: the eager ones (autograd)
 
 
 class BatchOptimizer(nn.Module):
@@ -106,10 +107,12 @@ class BatchOptimizer(nn.Module):
             kernels, and a small batch is padded with copies of its last goal to whole SIMD
             vectors (the copies are dropped from the result). On CUDA each chunk is replayed
             as a CUDA graph. Eager (the default) is the reference and supports autograd
-            everywhere. Like any ``torch.compile`` function, a second batch shape recompiles
-            with dynamic dims (torch's default), which serve every later shape without
-            compiling again but run slower (~5-15 % at B = 1024 on the CPU): a process that
-            solves one shape gets the fastest, shape-specialised kernels. ``"auto"``: compiled
+            everywhere: a compiled optimizer solves inputs that require grad (autograd enabled)
+            eagerly, with torch's sin, cos and atan2 (the same values to float32 rounding), as
+            its compiled graphs are not differentiated. Like any ``torch.compile`` function, a
+            second batch shape recompiles with dynamic dims (torch's default), which serve
+            every later shape without compiling again but run slower (~5-15 % at B = 1024 on
+            the CPU): a process that solves one shape gets the fastest, shape-specialised kernels. ``"auto"``: compiled
             on the CPU in float32 when a C++ compiler is found (inductor needs one), else eager;
             the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
             Compiled, the first call of every new call layout (problems, goals, obstacle slots,
@@ -173,6 +176,8 @@ class BatchOptimizer(nn.Module):
             cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=polynomial_trig
         )
         self.compiled = compile
+        self._eager_limits = self._limits._replace(polynomial_trig=False)  # for inputs that require grad
+        self._fallback_logged = False
         self.last_compile_ms = 0.0
         self._compiled_layouts: set[tuple[int, int, int, bool]] = set()
         if tile_size is None and compile and on_cpu:
@@ -225,10 +230,16 @@ class BatchOptimizer(nn.Module):
         """
         self.last_compile_ms = 0.0
         ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
+        compiled = self.compiled
+        if compiled and torch.is_grad_enabled() and any(t.requires_grad for t in (ego, goals, obstacles)):
+            compiled = False  # the compiled graphs have no backward: autograd runs the eager functions
+            if not self._fallback_logged:
+                logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
+                self._fallback_logged = True
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:
-            return self._solve(ego, goals, obstacles, mask, history)
+            return self._solve(ego, goals, obstacles, mask, history, compiled)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
         padded_problems = _ceil_div(num_problems, tile_problems) * tile_problems
@@ -238,20 +249,28 @@ class BatchOptimizer(nn.Module):
         for first in range(0, padded_problems, tile_problems):
             problems = slice(first, first + tile_problems)
             tiles = [
-                self._solve(ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], history)
+                self._solve(
+                    ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], history, compiled
+                )
                 for g in range(0, goals.shape[1], tile_goals)
             ]
             bands.append(SolveResult.concatenate(tiles, dim=1))
         return SolveResult.concatenate(bands, dim=0).head(num_problems, num_goals)
 
     def _solve(
-        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor, history: bool
+        self,
+        ego: torch.Tensor,
+        goals: torch.Tensor,
+        obstacles: torch.Tensor,
+        mask: torch.Tensor,
+        history: bool,
+        compiled: bool,
     ) -> SolveResult:
         """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`);
         compiled, a new call layout is run once untimed first (see :attr:`last_compile_ms`)."""
         start = time.perf_counter()
-        prepared = self._prepare(ego, goals, obstacles, mask)  # compiles the input layout too
-        if self.compiled:
+        prepared = self._prepare(ego, goals, obstacles, mask, compiled)  # compiles the input layout too
+        if compiled:
             layout = (mask.shape[0], prepared.num_goals, mask.shape[1], prepared.uniform_count is None)
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)
@@ -261,9 +280,10 @@ class BatchOptimizer(nn.Module):
 
     def _run(self, prepared: _Prepared, history: bool) -> SolveResult:
         """The cold start, the iterations and the outputs of one prepared call."""
-        state = self._start(
-            prepared.b_position, prepared.obstacles, self.position_init, self.samples, self.gather[0], self._limits
-        )
+        start, iterate, summarise, limits = self._start, self._iterate, self._summarise, self._limits
+        if not prepared.compiled:
+            start, iterate, summarise, limits = _start, _iterate, _summarise, self._eager_limits
+        state = start(prepared.b_position, prepared.obstacles, self.position_init, self.samples, self.gather[0], limits)
         records: list[torch.Tensor] = []
         for first in range(0, self.config.iterations, self.chunk):
             last = min(first + self.chunk, self.config.iterations)
@@ -271,16 +291,16 @@ class BatchOptimizer(nn.Module):
                 position = self.position[first:last, prepared.uniform_count]  # (U, K, D)
             else:
                 position = self.position[first:last].index_select(1, prepared.counts)  # (U, E, K, D)
-            state, step = self._iterate(
+            state, step = iterate(
                 state, prepared.b_position, prepared.b_heading, prepared.obstacles, position,
                 self.gather[first:last], self.heading[first:last], self.heading_gather[first:last],
-                self.samples, self.heading_basis, self._limits, history,
+                self.samples, self.heading_basis, limits, history,
             )
             records.extend(step.records)
         num_goals = prepared.num_goals - prepared.padding
-        fields, coefficients, norms, scalars, status = self._summarise(
+        fields, coefficients, norms, scalars, status = summarise(
             state.c, step, prepared.obstacles, prepared.mask, prepared.origin, prepared.goal_ahead, num_goals,
-            self.heading_basis, self.heading_rate_basis, self.config, self._limits,
+            self.heading_basis, self.heading_rate_basis, self.config, limits,
         )
         history_norms = None
         if history:
@@ -303,14 +323,15 @@ class BatchOptimizer(nn.Module):
     # ----------------------------------------------------------------------------- inputs
 
     def _prepare(
-        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor
+        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor, compiled: bool
     ) -> _Prepared:
         cfg = self.config
         padding = 0
-        if self.compiled and self.device.type == "cpu":
+        if compiled and self.device.type == "cpu":
             padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
             goals = _repeat_last(goals, 1, goals.shape[1] + padding)
-        origin, b_position, b_heading, obstacles, goal_ahead, counts = self._layout(
+        layout = self._layout if compiled else _layout
+        origin, b_position, b_heading, obstacles, goal_ahead, counts = layout(
             ego, goals, obstacles, mask, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b)
         )
         count_values = counts.unique()
@@ -326,6 +347,7 @@ class BatchOptimizer(nn.Module):
             goal_ahead=goal_ahead,
             num_goals=goals.shape[1],
             padding=padding,
+            compiled=compiled,
         )
 
 
@@ -445,6 +467,12 @@ class _Limits(NamedTuple):
 def _atan2(y: torch.Tensor, x: torch.Tensor, limits: _Limits) -> torch.Tensor:
     """Elementwise angle of (x, y) [rad], from the implementation ``limits`` selects."""
     return trig.atan2(y, x) if limits.polynomial_trig else torch.atan2(y, x)
+
+
+def _safe_sqrt(square: torch.Tensor) -> torch.Tensor:
+    """``square.sqrt()`` with gradient 0 (a norm's subgradient) instead of NaN where ``square`` is 0."""
+    zero = square == 0
+    return torch.where(zero, 0.0, torch.where(zero, 1.0, square).sqrt())
 
 
 class _State(NamedTuple):
@@ -597,7 +625,7 @@ def _residual_norms(
         ],
         dim=-1,
     )
-    return norms.sqrt()
+    return _safe_sqrt(norms)
 
 
 def _start(
@@ -676,13 +704,13 @@ def _summarise(
     distance_squared = torch.where(present, distance_squared, inf)
     # An always-absent extra slot keeps the minimum defined (+inf) when M = 0.
     distance_squared = torch.cat([distance_squared, inf.expand(1, *distance_squared.shape[1:])])
-    min_distance = distance_squared.amin(dim=(0, 1)).sqrt()
+    min_distance = _safe_sqrt(distance_squared.amin(dim=(0, 1)))
     start_distance = distance_squared[:, 0].amin(dim=0)
 
-    acceleration_norm = (acceleration * acceleration).sum(dim=1).sqrt()  # (N, E, G)
+    acceleration_norm = _safe_sqrt((acceleration * acceleration).sum(dim=1))  # (N, E, G)
     velocity_residual = residuals.stacked[2 * n :]
-    nonholonomic_error = (velocity_residual * velocity_residual).sum(dim=1).sqrt()
-    path_speed = (velocity * velocity).sum(dim=1).sqrt()
+    nonholonomic_error = _safe_sqrt((velocity_residual * velocity_residual).sum(dim=1))
+    path_speed = (velocity * velocity).sum(dim=1).sqrt()  # status only: no gradient
     heading_deviation = psi[..., goals].abs().amax(dim=0)
     max_acceleration = acceleration_norm.amax(dim=0)
     max_nonholonomic = nonholonomic_error.amax(dim=0)
