@@ -196,10 +196,15 @@ class HighwayEpisode:
         """Send one command for one frame, then let the traffic controller move vehicles.
 
         Args:
-            acceleration: [m/s^2], clipped to :data:`ACCELERATION_RANGE`.
+            acceleration: [m/s^2], clipped to :data:`ACCELERATION_RANGE`; braking that would take
+                the ego below rest within the frame stops it instead (the drivers plan forwards only).
             steering: [rad], clipped to :data:`STEERING_RANGE`.
         """
+        speed = float(self.ego.speed)
+        acceleration = max(acceleration, -max(speed, 0.0) * self.scenario.frequency)
         _, reward, _, _, _ = self.env.step(command_to_action(acceleration, steering))
+        if speed >= 0.0 and self.ego.speed < 0.0:  # rounding of the stopping command
+            self.ego.speed = 0.0
         self.reward = float(reward)
         self.traffic.after_step()
         self.time += 1.0 / self.scenario.frequency

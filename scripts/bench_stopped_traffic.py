@@ -22,7 +22,7 @@ import torch
 
 from mmpc.drive import run_episode
 from mmpc.scenario import load_scenario
-from mmpc.stopped_traffic import stopped_traffic_grid
+from mmpc.stopped_traffic import stopped_traffic_grid, stopped_traffic_scene
 
 DRIVERS = ("mpc", "frenet", "safe_rl_random")
 
@@ -44,26 +44,32 @@ def drive_random_agent(scenario, seed: int) -> dict:
 
 
 def drive(task: tuple) -> dict:
-    """One (driver, scene) episode -> its row."""
+    """One (driver, scene) episode -> its row; an exception becomes a failed row with its message."""
     driver, base_name, layout, speed, ratio = task
     torch.set_num_threads(1)
-    from mmpc.stopped_traffic import stopped_traffic_scene
-
     scene = stopped_traffic_scene(load_scenario(base_name), layout, speed, ratio)
     start = time.perf_counter()
-    if driver == "safe_rl_random":
-        outcome = drive_random_agent(scene.scenario, seed=0)
-    else:
-        from mmpc.drivers import make_driver
-
-        result = run_episode(scene.scenario, 0, driver=make_driver(driver, scene.scenario))
-        last = result.records[-1]
-        outcome = {"collisions": int(result.metrics["collisions"]), "final_speed": last.v, "x": last.x,
-                   "fallback_steps": int(result.metrics["fallback_steps"]), "min_clearance": min(r.clearance for r in result.records)}
-    passed = scene.passed(outcome["collisions"], outcome["final_speed"])
+    try:
+        outcome = _drive(driver, scene)
+    except Exception as error:  # noqa: BLE001 - reported in the table, the other episodes go on
+        outcome = {"collisions": -1, "final_speed": float("nan"), "x": float("nan"), "error": repr(error)}
+    passed = "error" not in outcome and scene.passed(outcome["collisions"], outcome["final_speed"])
     return {"driver": driver, "objective": base_name, "scene": scene.name, "layout": layout, "speed": speed,
             "ratio": ratio, "gap_m": round(scene.gap, 2), "duration_s": scene.scenario.duration, **outcome,
             "passed": passed, "wall_s": round(time.perf_counter() - start, 1)}
+
+
+def _drive(driver: str, scene) -> dict:
+    """One episode of ``driver`` in ``scene``: collisions, final speed and position, and for the
+    planners their fallback steps and smallest normalised ellipse distance."""
+    if driver == "safe_rl_random":
+        return drive_random_agent(scene.scenario, seed=0)
+    from mmpc.drivers import make_driver
+
+    result = run_episode(scene.scenario, 0, driver=make_driver(driver, scene.scenario))
+    last = result.records[-1]
+    return {"collisions": int(result.metrics["collisions"]), "final_speed": last.v, "x": last.x,
+            "fallback_steps": int(result.metrics["fallback_steps"]), "min_clearance": min(r.clearance for r in result.records)}
 
 
 def format_table(rows: list[dict]) -> str:
@@ -107,6 +113,9 @@ def main(argv=None) -> int:
           f"collisions {sum(r['collisions'] for r in rows)}; {time.perf_counter() - start:.0f} s")
     if failed:
         print("failed:", ", ".join(failed))
+    for row in rows:
+        if "error" in row:
+            print(f"error in {row['scene']}/{row['driver']}: {row['error']}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=1) + "\n")
     print(f"wrote {args.out}")

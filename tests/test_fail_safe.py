@@ -143,14 +143,15 @@ def test_grid_scenes_are_what_they_say():
 
 
 @pytest.mark.usefixtures("one_thread")
-@pytest.mark.parametrize("layout, speed, ratio", [("single", 10.0, 1.3), ("wall", 20.0, 1.3), ("cut_in", 14.0, 1.3)])
+@pytest.mark.parametrize("layout, speed, ratio", [("single", 10.0, 1.3), ("wall", 25.0, 1.6), ("cut_in", 14.0, 1.3)])
 def test_the_mpc_stops_for_stopped_traffic_on_highway_env(layout, speed, ratio):
+    """``wall`` 25 m/s x 1.6 is the reported case (stopped cars 130 m ahead in every lane):
+    before the stop goals the fallback accelerated into them at 13.8 m/s."""
     scene = stopped_traffic_scene(load_scenario("cruise"), layout, speed, ratio)
     result = run_episode(scene.scenario, 0)
     assert result.metrics["collisions"] == 0
-    if scene.blocked:
-        assert result.records[-1].v < STOPPED_SPEED
-    assert max(r.command_acceleration for r in result.records if r.fallback) <= 0.0 if any(r.fallback for r in result.records) else True
+    assert scene.passed(result.metrics["collisions"], result.records[-1].v)
+    assert all(r.command_acceleration <= 0.0 for r in result.records if r.fallback)
 
 
 @pytest.mark.usefixtures("one_thread")

@@ -77,7 +77,7 @@ def test_candidates_leaving_the_road_are_flagged(cruise_mpc):
     status = plan.result.status[0]
     assert not status[0] & mmpc.Status.OFF_ROAD
     assert status[1] & mmpc.Status.OFF_ROAD and status[2] & mmpc.Status.OFF_ROAD
-    assert plan.result.feasible[0].tolist() == [True, False, False] and int(plan.selection.index[0]) == 0
+    assert plan.result.feasible[0, :3].tolist() == [True, False, False] and int(plan.selection.index[0]) == 0  # then the stop goals
 
 
 def test_ego_outside_the_margin_may_come_back(cruise_mpc):
@@ -161,7 +161,8 @@ def test_mpc_config_is_validated(kwargs, name):
 
 def test_undrivable_candidates_give_a_lane_keeping_brake(cruise_mpc):
     off_road = lambda ego, road: torch.tensor([[[120.0, 40.0], [120.0, -20.0]]])  # noqa: E731
-    mpc = mmpc.MPC(cruise_mpc.optimizer, off_road, cruise_mpc.meta_cost, cruise_mpc.road)
+    no_stops = mmpc.MPCConfig(stop_lanes=None)  # a stop goal in the lane would be feasible
+    mpc = mmpc.MPC(cruise_mpc.optimizer, off_road, cruise_mpc.meta_cost, cruise_mpc.road, no_stops)
     plan = mpc.plan(mmpc.ego_state(0.0, 8.5, 0.0, 15.0), torch.zeros(1, 0, 4))
     assert not bool(plan.selection.feasible[0])
     assert (plan.result.status[0] & mmpc.mpc.UNDRIVABLE).all()

@@ -58,7 +58,7 @@ def test_the_mpc_keeps_its_lane_when_the_lanes_cost_the_same():
     ego = mmpc.ego_state(0.0, 8.0, 0.0, 15.0)
     plans = {
         margin: mmpc.MPC(optimizer, goals, mmpc.CruiseCost(15.0), mmpc.Road(num_lanes=4),
-                         mmpc.MPCConfig(tie_tolerance=0.0, tie_margin=margin)).plan(ego, torch.zeros(1, 0, 4))
+                         mmpc.MPCConfig(tie_tolerance=0.0, tie_margin=margin, stop_lanes=None)).plan(ego, torch.zeros(1, 0, 4))
         for margin in (0.0, 1.0)
     }
     cost = plans[1.0].cost[0]

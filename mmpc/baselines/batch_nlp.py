@@ -141,8 +141,10 @@ class BatchNLPDriver(Driver):
         results = self.solver.solve(tasks)
         states = np.stack([r[0] for r in results]).reshape(e, b, *results[0][0].shape)
         feasible = torch.tensor([r[1] for r in results]).reshape(e, b)
-        trajectories = resample(states, self.solver.times, mpc.optimizer.times.to(torch.float64))  # (E, B, N)
-        return ranked_decision(mpc, ego, trajectories, feasible, start, goals)
+        times = mpc.optimizer.times.to(torch.float64)
+        trajectories = resample(states, self.solver.times, times)  # (E, B, N)
+        at_samples = obstacles_for(mpc, ego, observation.vehicles.to(torch.float64), observation.vehicle_mask, times)
+        return ranked_decision(mpc, ego, trajectories, feasible, start, goals, obstacles=at_samples)
 
 
 def make_batch_nlp_driver(scenario, argument: Optional[str]) -> Driver:

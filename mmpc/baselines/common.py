@@ -71,9 +71,11 @@ def ranked_decision(
     feasible: torch.Tensor,
     start: float,
     goals: Optional[torch.Tensor] = None,
+    obstacles: Optional[tuple[torch.Tensor, torch.Tensor]] = None,
 ) -> Decision:
-    """Rank C candidates per problem by ``mpc``'s meta cost, execute the best feasible one (the
-    lane-keeping brake where none is), and report it as a :class:`mmpc.drivers.Decision`.
+    """Rank C candidates per problem by ``mpc``'s meta cost, execute the best feasible one (where
+    none is, the MPC's fallback: a lane-keeping brake, at least as hard as a conflict ahead needs),
+    and report it as a :class:`mmpc.drivers.Decision`.
 
     Args:
         mpc: the scenario's MPC (meta cost, road, command extraction, output dtype).
@@ -82,11 +84,14 @@ def ranked_decision(
         feasible: (E, C) bool.
         start: ``time.perf_counter()`` at the start of the decision.
         goals: (E, C, 2) the candidates' goals [m], if they have goals.
+        obstacles: ``(centres (E, M, N, 2), mask (E, M))`` predicted at ``trajectories.times``,
+            for the fallback's braking (:meth:`mmpc.MPC.command`).
     """
     dtype = mpc.optimizer.dtype
     cost = mpc.meta_cost(trajectories, mpc.road)
     ranked = rank(mpc, ego, trajectories, cost, feasible)
-    acceleration, steering, _ = mpc.command(ego, trajectories.select(ranked.index), ranked.feasible)
+    centres, mask = obstacles if obstacles is not None else (None, None)
+    acceleration, steering, _ = mpc.command(ego, trajectories.select(ranked.index), ranked.feasible, obstacles=centres, mask=mask)
     elapsed_ms = (time.perf_counter() - start) * 1e3
     return Decision(
         acceleration=acceleration.to(dtype),

@@ -272,7 +272,7 @@ class FrenetDriver(Driver):
         trajectories = self.planner.candidates(ego)
         obstacles, mask = obstacles_for(mpc, ego, vehicles, observation.vehicle_mask, trajectories.times)
         feasible = self.planner.feasible(ego, trajectories, obstacles, mask)
-        return ranked_decision(mpc, ego, trajectories, feasible, start)
+        return ranked_decision(mpc, ego, trajectories, feasible, start, obstacles=(obstacles, mask))
 
 
 def make_frenet_driver(scenario, argument: Optional[str]) -> Driver:

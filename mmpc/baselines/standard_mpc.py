@@ -78,7 +78,8 @@ class StandardMPCDriver(Driver):
         trajectory = resample(np.stack([s.states for s in solutions]), self.nlp.times, times)  # fields (E, N)
         feasible = torch.tensor([s.feasible for s in solutions])
         cost = mpc.meta_cost(with_goal_axis(trajectory), mpc.road)[:, 0]
-        acceleration, steering, _ = mpc.command(ego, trajectory, feasible)
+        centres, present = obstacles_for(mpc, ego, observation.vehicles.to(torch.float64), observation.vehicle_mask, times)
+        acceleration, steering, _ = mpc.command(ego, trajectory, feasible, obstacles=centres, mask=present)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         count = ego.shape[0]
         return Decision(
