@@ -4,7 +4,7 @@ Every other goal lies a speed times the horizon ahead, so close behind stopped t
 them is reachable. The stop goals below come to rest behind the nearest vehicle ahead in each
 lane around the ego (or, with the lane clear, where a constant deceleration to rest over the
 horizon ends), and :func:`conflict_deceleration` is the braking a fallback needs so that it never
-drives into a predicted conflict ahead of it.
+drives into a vehicle ahead in its lane.
 """
 
 from __future__ import annotations
@@ -88,39 +88,40 @@ def stop_goals(
 
 def conflict_deceleration(
     ego: torch.Tensor,
-    path_y: torch.Tensor,
     obstacles: torch.Tensor,
     mask: torch.Tensor,
     times: torch.Tensor,
-    ellipse: tuple[float, float],
     *,
-    gap: float,
+    half_width: float,
+    standoff: float,
     max_deceleration: float,
 ) -> torch.Tensor:
     """(E,) the constant acceleration [m/s^2] (<= 0) that brings the ego down to the speed of
-    every obstacle ahead in its path before it comes within ``ellipse[0] + gap`` of it.
+    every vehicle ahead in its lane before it comes within ``standoff`` of it (centre to centre).
 
-    An obstacle counts when its predicted centre comes within ``ellipse[1]`` of ``path_y`` at
-    any sample; its speed is its predicted one over the first sample. Already within the
-    distance while still closing: ``-max_deceleration``.
+    A vehicle counts when its predicted centre comes within ``half_width`` of the ego's lateral
+    position at any sample (it is in, or enters, the ego's lane); its speed is its predicted one
+    over the first sample. Already within ``standoff`` while still closing: ``-max_deceleration``.
+    The room is measured to contact, not to the planner's ellipse, so a leader a little inside
+    the ellipse and closing slowly asks for a little braking, not full braking.
 
     Args:
         ego: (E, 6) ego states.
-        path_y: (E, N) the lateral path the ego will follow [m].
         obstacles: (E, M, N, 2) predicted obstacle centres at ``times`` [m].
         mask: (E, M) bool, present obstacles.
         times: (N,) sample times [s].
-        ellipse: (a, b) obstacle ellipse semi-axes [m].
-        gap: distance kept beyond the ellipse [m].
+        half_width: lateral reach of an obstacle [m] (e.g. half a lane width).
+        standoff: centre distance along the road kept to the vehicle ahead [m] (a vehicle length
+            plus a gap).
         max_deceleration: the strongest braking asked for [m/s^2].
     """
-    x0, v0 = ego[:, EGO_X, None], ego[:, EGO_V, None]
+    x0, y0, v0 = ego[:, EGO_X, None], ego[:, EGO_Y, None], ego[:, EGO_V, None]
     dt = (times[1] - times[0]).to(obstacles.dtype)
     speed = (obstacles[:, :, 1, 0] - obstacles[:, :, 0, 0]) / dt  # (E, M)
-    in_path = ((obstacles[..., 1] - path_y[:, None, :]).abs() < ellipse[1]).any(dim=-1)
-    relevant = mask & in_path & (obstacles[:, :, 0, 0] > x0)
+    in_lane = ((obstacles[..., 1] - y0[..., None]).abs() < half_width).any(dim=-1)
+    relevant = mask & in_lane & (obstacles[:, :, 0, 0] > x0)
     closing = (v0 - speed).clamp_min(0.0)
-    room = obstacles[:, :, 0, 0] - x0 - ellipse[0] - gap
+    room = obstacles[:, :, 0, 0] - x0 - standoff
     needed = closing**2 / (2.0 * room.clamp_min(1e-3))
     needed = torch.where(room > 0, needed, torch.where(closing > 0, max_deceleration, 0.0))
     needed = torch.where(relevant, needed, torch.zeros_like(needed))

@@ -22,7 +22,7 @@ import torch
 
 from mmpc.drive import run_episode
 from mmpc.scenario import load_scenario
-from mmpc.stopped_traffic import stopped_traffic_grid, stopped_traffic_scene
+from mmpc.stopped_traffic import LAYOUTS, stopped_traffic_grid, stopped_traffic_scene
 
 DRIVERS = ("mpc", "frenet", "safe_rl_random")
 
@@ -81,6 +81,19 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def format_summary(rows: list[dict]) -> str:
+    """Passed / total and collisions per driver, objective and layout."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["driver"], r["objective"], r["layout"]), []).append(r)
+    lines = ["| driver | objective | layout | passed | collisions |", "|---|---|---|---:|---:|"]
+    for (driver, objective, layout), group in sorted(groups.items(), key=lambda item: (item[0][:2], LAYOUTS.index(item[0][2]))):
+        passed = sum(r["passed"] for r in group)
+        collisions = sum(max(r["collisions"], 0) for r in group)
+        lines.append(f"| {driver} | {objective} | {layout} | {passed} / {len(group)} | {collisions} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--drivers", default=",".join(DRIVERS), help=f"comma-separated, of {DRIVERS}")
@@ -108,6 +121,7 @@ def main(argv=None) -> int:
             print(f"[{len(rows)}/{len(tasks)}] {row['driver']} {row['objective']} {row['scene']}: collisions "
                   f"{row['collisions']}, final v {row['final_speed']:.2f}", file=sys.stderr, flush=True)
     print(format_table(rows))
+    print(format_summary(rows))
     failed = [r["scene"] + "/" + r["driver"] for r in rows if not r["passed"]]
     print(f"{len(rows) - len(failed)} of {len(rows)} episodes passed (no collision; at rest where every lane is blocked); "
           f"collisions {sum(r['collisions'] for r in rows)}; {time.perf_counter() - start:.0f} s")
@@ -117,7 +131,7 @@ def main(argv=None) -> int:
         if "error" in row:
             print(f"error in {row['scene']}/{row['driver']}: {row['error']}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:]}, indent=1) + "\n")
+    Path(args.out).write_text(json.dumps({"rows": rows, "argv": sys.argv[1:], "torch_threads": 1}, indent=1) + "\n")
     print(f"wrote {args.out}")
     return 0
 

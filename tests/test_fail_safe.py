@@ -55,19 +55,21 @@ def test_stop_goals_see_a_vehicle_that_cuts_into_the_lane():
     assert 40.0 - 8.0 - 2.0 < goals[0, 0, 0].item() < 60.0 - 8.0 - 2.0
 
 
-def test_conflict_deceleration_stops_short_of_the_ellipse():
+def test_conflict_deceleration_keeps_a_vehicle_length_to_the_leader_in_the_lane():
     ego = mmpc.ego_state(0.0, 0.0, 0.0, 20.0)
-    path = torch.zeros(1, 100)
-    obstacles, mask = predicted([[60.0, 0.0, 0.0, 0.0], [30.0, 8.0, 0.0, 0.0], [-20.0, 0.0, 30.0, 0.0]])
-    needed = conflict_deceleration(ego, path, obstacles, mask, TIMES, ELLIPSE, gap=2.0, max_deceleration=5.0)
-    assert needed.item() == pytest.approx(-(20.0**2) / (2 * (60.0 - 8.0 - 2.0)), rel=1e-5)
+    kw = dict(half_width=2.0, standoff=7.0, max_deceleration=5.0)
+    # stopped ahead in the lane; beside in the next lane; behind and faster: only the first counts
+    obstacles, mask = predicted([[60.0, 0.0, 0.0, 0.0], [30.0, 4.0, 0.0, 0.0], [-20.0, 0.0, 30.0, 0.0]])
+    assert conflict_deceleration(ego, obstacles, mask, TIMES, **kw).item() == pytest.approx(-(20.0**2) / (2 * 53.0), rel=1e-5)
     slower, _ = predicted([[60.0, 0.0, 15.0, 0.0]])
-    assert conflict_deceleration(ego, path, slower, mask[:, :1], TIMES, ELLIPSE, gap=2.0, max_deceleration=5.0).item() == pytest.approx(
-        -(5.0**2) / (2 * 50.0), rel=1e-4)
-    inside, _ = predicted([[7.0, 0.0, 0.0, 0.0]])
-    assert conflict_deceleration(ego, path, inside, mask[:, :1], TIMES, ELLIPSE, gap=2.0, max_deceleration=5.0).item() == -5.0
-    none = conflict_deceleration(ego, path, obstacles[:, :0], mask[:, :0], TIMES, ELLIPSE, gap=2.0, max_deceleration=5.0)
-    assert none.item() == 0.0
+    assert conflict_deceleration(ego, slower, mask[:, :1], TIMES, **kw).item() == pytest.approx(-(5.0**2) / (2 * 53.0), rel=1e-4)
+    cutting_in, _ = predicted([[30.0, 4.0, 10.0, -1.0]])  # from the next lane into the ego's
+    assert conflict_deceleration(ego, cutting_in, mask[:, :1], TIMES, **kw).item() == pytest.approx(-(10.0**2) / (2 * 23.0), rel=1e-4)
+    beside, _ = predicted([[3.0, 3.3, 10.0, 0.0]])  # inside the planner's ellipse, but not in the lane
+    assert conflict_deceleration(ego, beside, mask[:, :1], TIMES, **kw).item() == 0.0
+    inside, _ = predicted([[6.0, 0.0, 0.0, 0.0]])
+    assert conflict_deceleration(ego, inside, mask[:, :1], TIMES, **kw).item() == -5.0
+    assert conflict_deceleration(ego, obstacles[:, :0], mask[:, :0], TIMES, **kw).item() == 0.0
 
 
 @pytest.mark.parametrize("speed, distance", [(5.0, 25.0), (14.0, 60.0), (25.0, 110.0)])
@@ -79,7 +81,7 @@ def test_in_front_of_a_stopped_wall_the_mpc_never_accelerates(speed, distance):
     wall = torch.tensor([[[distance, 4.0 * lane, 0.0, 0.0] for lane in range(3)]])
     plan = mpc.plan(ego, wall)
     assert plan.acceleration.item() < 0.0
-    assert plan.selection.feasible.item() or plan.acceleration.item() <= -(speed**2) / (2 * (distance - 10.0)) + 1e-6
+    assert plan.selection.feasible.item() or plan.acceleration.item() <= -(speed**2) / (2 * (distance - 7.0)) + 1e-6
     if plan.selection.feasible.item():
         assert plan.trajectory.x[0, -1].item() <= distance - ELLIPSE[0]  # a stop goal, short of the wall
 
@@ -90,7 +92,7 @@ def test_a_fallback_never_accelerates_and_brakes_for_the_conflict_ahead():
     wall = torch.tensor([[[25.0, 4.0 * lane, 0.0, 0.0] for lane in range(3)]])
     plan = mpc.plan(ego, wall)
     assert not plan.selection.feasible.item()
-    assert plan.acceleration.item() <= -(6.0**2) / (2 * (25.0 - 8.0 - 2.0)) + 1e-6
+    assert plan.acceleration.item() <= -(6.0**2) / (2 * (25.0 - 5.0 - 2.0)) + 1e-6
 
 
 def test_mpc_plan_refuses_bad_input():
