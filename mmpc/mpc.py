@@ -428,8 +428,9 @@ class MPC:
         where drivable, else ``-brake_deceleration``; and in both cases at most the
         :func:`mmpc.stopping.conflict_deceleration` for the ``obstacles`` ahead in the ego's
         lane (within half a lane width of its lateral position), which keeps a vehicle length
-        (``wheelbase``, highway-env's) plus ``stop_gap`` to them. A car beside does not count:
-        braking for it (the planner's wider ellipse) slowed cruise seed 10 from 0.44 to 12.6.
+        (``wheelbase``, highway-env's) plus ``stop_gap`` to them. A car beside does not count
+        (braking for the planner's wider ellipse stalled lane changes; see
+        docs/experiments/2026-11-23-fail-safe.md).
 
         Args:
             ego: (E, 6) current states.
