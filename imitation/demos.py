@@ -8,7 +8,7 @@ would (lockstep batches round differently from single solves, so membership matt
 run in parallel worker processes, each with its own torch threads.
 
 One run at a time writes a directory: a run holds the lock file :data:`LOCK` in it (as
-``mmpc evaluate`` does, :func:`mmpc.evaluate.exclusive`) and a second is refused.
+``mmpc evaluate`` does, :func:`mmpc.files.exclusive`) and a second is refused.
 """
 
 from __future__ import annotations
@@ -23,8 +23,7 @@ from typing import Callable, Iterator, NamedTuple, Optional, Sequence
 
 import torch
 
-from mmpc.evaluate import exclusive
-from mmpc.files import TEMPORARY_PREFIX, atomic_write
+from mmpc.files import TEMPORARY_PREFIX, atomic_write, exclusive
 from mmpc.imitation.dataset import (
     MANIFEST,
     DemonstrationsDir,

@@ -36,7 +36,6 @@ their groups.
 from __future__ import annotations
 
 import csv
-import fcntl
 import hashlib
 import io
 import json
@@ -49,7 +48,6 @@ import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, NamedTuple, Optional, Sequence
@@ -59,11 +57,11 @@ import torch
 from mmpc.drive import EpisodeResult, run_episode, run_lockstep, write_outputs
 from mmpc.drivers import DRIVERS, driver_names, make_driver
 from mmpc.evaluate_report import format_table, summarize, write_report
-from mmpc.files import atomic_write_text
+from mmpc.files import atomic_write_text, exclusive
 from mmpc.scenario import ScenarioConfig
 
 __all__ = [
-    "COLUMNS", "Evaluation", "EvaluationConfig", "EvaluationFolderError", "GroupTask", "evaluate", "exclusive",
+    "COLUMNS", "Evaluation", "EvaluationConfig", "EvaluationFolderError", "GroupTask", "evaluate",
     "format_table", "read_episodes", "run_group", "summarize",
 ]
 
@@ -499,24 +497,6 @@ class _EpisodeFile:
         self._handle.close()
 
 
-@contextmanager
-def exclusive(
-    out: Path, lock: str = ".evaluate.lock", holder: str = "another evaluation", error: type[Exception] = RuntimeError,
-) -> Iterator[None]:
-    """Hold the lock file ``out / lock`` while the block runs (released by the OS if this process
-    dies); when another process holds it, raise ``error`` naming ``holder``, the folder and the lock."""
-    with open(out / lock, "w") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError as busy:
-            raise error(f"{holder} is writing to {out} (it holds the lock {out / lock}); wait for it or use another "
-                        "`out`") from busy
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-
-
 #: What to do about a damaged ``scenarios.json``.
 _CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run with the scenarios as they are now; "
                       "otherwise use another `out`")
@@ -604,7 +584,7 @@ def evaluate(
         raise ValueError(f"`scenarios` must be at least one, with distinct names; got {names}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    with exclusive(out):
+    with exclusive(out, ".evaluate.lock", "another evaluation"):
         _check_scenarios(out, scenarios)
         wanted = {(d, s, seed) for d in config.drivers for s in names for seed in config.seeds}
         earlier: dict[Key, dict] = {}
