@@ -112,9 +112,10 @@ class BatchOptimizer(nn.Module):
             its compiled graphs are not differentiated. Like any ``torch.compile`` function, a
             second batch shape recompiles with dynamic dims (torch's default), which serve
             every later shape without compiling again but run slower (~5-15 % at B = 1024 on
-            the CPU): a process that solves one shape gets the fastest, shape-specialised kernels. ``"auto"``: compiled
-            on the CPU in float32 when a C++ compiler is found (inductor needs one), else eager;
-            the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
+            the CPU): a process that solves one shape gets the fastest, shape-specialised
+            kernels. ``"auto"``: compiled on the CPU in float32 when a C++ compiler is found
+            (inductor needs one), else eager; the environment variable ``MMPC_COMPILE=0``
+            makes it eager (``1``: compiled).
             Compiled, the first call of every new call layout (problems, goals, obstacle slots,
             same or mixed obstacle counts; per tile) runs twice: once to compile, once timed as
             a solve; :attr:`last_compile_ms` reports the first.
