@@ -449,7 +449,7 @@ class MPC:
         acceleration, heading_rate = self._command(trajectory)
         drivable = torch.zeros_like(feasible) if drivable is None else drivable
         acceleration, heading_rate = self._fallback(
-            ego, trajectory, feasible, drivable, acceleration, heading_rate, obstacles, mask
+            ego, trajectory.times, feasible, drivable, acceleration, heading_rate, obstacles, mask
         )
         speed = ego[:, EGO_V].clamp_min(1.0)
         steering = torch.atan(self.config.wheelbase * heading_rate / speed)
@@ -495,7 +495,7 @@ class MPC:
     def _fallback(
         self,
         ego: torch.Tensor,
-        trajectory: Trajectories,
+        times: torch.Tensor,
         feasible: torch.Tensor,
         drivable: torch.Tensor,
         acceleration: torch.Tensor,
@@ -511,7 +511,7 @@ class MPC:
         if obstacles is not None and obstacles.shape[1] > 0:
             mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask
             needed = conflict_deceleration(
-                ego, obstacles, mask, trajectory.times, half_width=0.5 * self.road.lane_width,
+                ego, obstacles, mask, times, half_width=0.5 * self.road.lane_width,
                 standoff=self.config.wheelbase + self.config.stop_gap, max_deceleration=self.config.max_deceleration,
             )
             fallback_acceleration = torch.minimum(fallback_acceleration, needed)

@@ -8,6 +8,7 @@ the traffic blocks every lane (:attr:`StoppedTrafficScene.blocked`), ending at r
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -83,7 +84,7 @@ def stopped_traffic_scene(base: ScenarioConfig, layout: str, speed: float, ratio
         duration=float(duration),
         ego=EgoConfig(speed=float(speed), lane=ego_lane),
         traffic=ScriptedTraffic(vehicles=vehicles),
-        optimizer=base.optimizer.__class__(**{**vars(base.optimizer), "v_max": max(base.optimizer.v_max, float(speed))}),
+        optimizer=dataclasses.replace(base.optimizer, v_max=max(base.optimizer.v_max, float(speed))),
     )
     return StoppedTrafficScene(layout, float(speed), float(ratio), gap, scenario)
 
