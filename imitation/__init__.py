@@ -4,7 +4,7 @@
   observation, executed command, reward, episode end, the driver's diagnostics, the road-frame
   ego state and nearest vehicles).
 - :mod:`mmpc.imitation.features`: the policy's road-frame inputs.
-- :mod:`mmpc.imitation.dataset` / :mod:`mmpc.imitation.demos`: ``mmpc demos``, resumable
+- :mod:`mmpc.imitation.dataset` / :mod:`mmpc.imitation.demos`: ``mmpc imitate demos``, resumable
   generation of a Minari dataset.
 - :mod:`mmpc.imitation.policy`: the MLP policy, its checkpoint and the ``bc:PATH`` driver.
 - :mod:`mmpc.imitation.bc` / :mod:`mmpc.imitation.dagger`: behaviour cloning and DAgger (a

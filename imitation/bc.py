@@ -209,7 +209,7 @@ def run_bc(
     *,
     on_epoch: Optional[Callable[[int, float, float], None]] = None,
 ) -> dict:
-    """Behaviour cloning from a demonstrations directory (``mmpc demos --out``).
+    """Behaviour cloning from a demonstrations directory (``mmpc imitate demos --out``).
 
     Writes ``out/policy.pt`` (best validation epoch), ``out/train.json`` (per-epoch losses,
     the config, the dataset) and TensorBoard events under ``out/tb``.

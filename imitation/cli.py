@@ -1,15 +1,16 @@
-"""Command line of :mod:`mmpc.imitation`: ``mmpc demos`` and ``mmpc imitate {bc, dagger,
-evaluate, export, bench}``. Heavy imports (Minari, stable-baselines3, TensorBoard) happen inside
-the commands."""
+"""Command line of :mod:`mmpc.imitation`: ``mmpc imitate {demos, bc, dagger, export}`` (a cloned
+policy is evaluated by ``mmpc evaluate --driver mpc,bc:RUN/policy.pt``). Heavy imports (Minari,
+stable-baselines3, TensorBoard) happen inside the commands."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import torch
+
+from mmpc.cli.arguments import override
 
 
 def _scenario(args: argparse.Namespace):
@@ -30,7 +31,7 @@ def _demos(args: argparse.Namespace) -> int:
     from mmpc.imitation.demos import generate_demonstrations
 
     if args.episodes < 1:
-        print(f"mmpc demos: error: --episodes must be >= 1; got {args.episodes}", file=sys.stderr)
+        print(f"mmpc imitate demos: error: --episodes must be >= 1; got {args.episodes}", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
     scenario = _scenario(args)
@@ -46,11 +47,11 @@ def _demos(args: argparse.Namespace) -> int:
                                          threads=args.threads, on_progress=progress)
     except DemonstrationsError as error:
         bar.close()
-        print(f"mmpc demos: error: {error}", file=sys.stderr)
+        print(f"mmpc imitate demos: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         bar.close()
-        print(f"mmpc demos: interrupted; {bar.n} of {len(seeds)} episodes are kept in {args.out}; "
+        print(f"mmpc imitate demos: interrupted; {bar.n} of {len(seeds)} episodes are kept in {args.out}; "
               "re-run the same command to resume", file=sys.stderr)
         return 130
     bar.close()
@@ -125,29 +126,6 @@ def _dagger(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from mmpc.imitation.compare import compare, format_table
-
-    torch.set_num_threads(args.threads)
-    scenario = _scenario(args)
-    specs = [s for s in args.drivers.split(",") if s]
-    names = dict(zip(specs, args.names.split(","))) if args.names else None
-    with tqdm(total=len(specs) * len(args.seeds), desc="episodes", unit="ep") as bar:
-        rows, summary = compare(scenario, specs, args.seeds, lockstep=args.lockstep, workers=args.workers,
-                                threads=args.threads, on_chunk=lambda chunk: bar.update(len(chunk)))
-    print(format_table(summary, names))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "summary.json").write_text(json.dumps({"scenario": scenario.name, "duration": scenario.duration,
-                                                  "seeds": list(args.seeds), "names": names, "summary": summary,
-                                                  "episodes": rows}, indent=2) + "\n")
-    (out / "table.md").write_text(format_table(summary, names, markdown=True) + "\n")
-    print(f"wrote {out / 'summary.json'} and {out / 'table.md'}")
-    return 0
-
-
 def _export(args: argparse.Namespace) -> int:
     import math
 
@@ -159,35 +137,22 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench(args: argparse.Namespace) -> int:
-    from mmpc.imitation.bench import benchmark_inference, format_report
-
-    torch.set_num_threads(args.threads)
-    scenario = _scenario(args)
-    report = benchmark_inference(scenario, Path(args.policy), seed=args.seed, steps=args.steps, block=args.block)
-    print(format_report(report))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {out}")
-    return 0
-
-
 def _scenario_arguments(parser: argparse.ArgumentParser) -> None:
-    from mmpc.cli import _override
 
     parser.add_argument("--scenario", default="cruise", help="scenario name in configs/scenarios or a YAML path (default cruise)")
     parser.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
-    parser.add_argument("--set", type=_override, action="append", default=[], metavar="KEY=VALUE",
+    parser.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
                         help="override a scenario value (YAML; repeatable)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (per worker) (default 1)")
 
 
 def add_subcommands(sub) -> None:
-    """Add ``demos`` and ``imitate`` to the ``mmpc`` parser's subcommands."""
-    from mmpc.cli import _seed_list
+    """Add ``mmpc imitate {demos, bc, dagger, export}``."""
 
-    demos = sub.add_parser("demos", help="expert (MPC) demonstrations as a Minari dataset; re-run to resume")
+    imitate = sub.add_parser("imitate", help="imitation learning from the MPC: demos, bc, dagger, export")
+    commands = imitate.add_subparsers(dest="imitate_command", required=True)
+
+    demos = commands.add_parser("demos", help="expert (MPC) demonstrations as a Minari dataset; re-run to resume")
     _scenario_arguments(demos)
     demos.add_argument("--episodes", type=int, default=20, help="number of episodes (default 20)")
     demos.add_argument("--seed-start", type=int, default=1000,
@@ -198,11 +163,8 @@ def add_subcommands(sub) -> None:
     demos.add_argument("--out", default="runs/demos", help="demonstrations directory (default runs/demos)")
     demos.set_defaults(func=_demos)
 
-    imitate = sub.add_parser("imitate", help="imitation learning from the MPC: bc, dagger, evaluate, export, bench")
-    commands = imitate.add_subparsers(dest="imitate_command", required=True)
-
     bc = commands.add_parser("bc", help="behaviour cloning of an MLP policy from a demonstrations directory")
-    bc.add_argument("--dataset", required=True, help="an `mmpc demos --out` directory")
+    bc.add_argument("--dataset", required=True, help="an `mmpc imitate demos --out` directory")
     bc.add_argument("--out", default="runs/bc", help="run folder: policy.pt, train.json, tb/ (default runs/bc)")
     bc.add_argument("--config", default="bc", help="configs/imitation/<name>.yaml or a path (default bc)")
     bc.add_argument("--epochs", type=int, default=None, help="override the config's epochs")
@@ -213,33 +175,13 @@ def add_subcommands(sub) -> None:
                                                 "re-run to resume")
     _scenario_arguments(dagger)
     dagger.add_argument("--iterations", type=int, default=None, help="rounds after round 0 (default: the config's)")
-    dagger.add_argument("--dataset", default=None, help="round 0 from this `mmpc demos` directory (default: the expert drives)")
+    dagger.add_argument("--dataset", default=None, help="round 0 from this `mmpc imitate demos` directory (default: the expert drives)")
     dagger.add_argument("--config", default="dagger", help="configs/imitation/<name>.yaml or a path (default dagger)")
     dagger.add_argument("--out", default="runs/dagger", help="run folder (default runs/dagger)")
     dagger.set_defaults(func=_dagger)
-
-    evaluate = commands.add_parser("evaluate", help="closed-loop table of drivers over the same seeds")
-    _scenario_arguments(evaluate)
-    evaluate.add_argument("--drivers", default="mpc", help="comma-separated driver specs, e.g. mpc,bc:runs/bc/policy.pt")
-    evaluate.add_argument("--names", default=None, help="comma-separated column names for the drivers")
-    evaluate.add_argument("--seeds", type=_seed_list, default=tuple(range(50)), help="seeds (default 0-49)")
-    evaluate.add_argument("--lockstep", type=int, default=10, help="episodes per driver call (default 10)")
-    evaluate.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
-    evaluate.add_argument("--out", default="runs/imitation_eval", help="output folder (default runs/imitation_eval)")
-    evaluate.set_defaults(func=_evaluate)
 
     export = commands.add_parser("export", help="a cloned policy as a stable-baselines3 policy (PPO can start from it)")
     export.add_argument("--policy", required=True, help="RUN/policy.pt")
     export.add_argument("--out", required=True, help="output file, e.g. RUN/sb3_policy.zip")
     export.add_argument("--std", type=float, default=0.1, help="initial exploration std of the Gaussian (default 0.1)")
     export.set_defaults(func=_export)
-
-    bench = commands.add_parser("bench", help="inference ms per step: cloned policy vs MPC expert (table + JSON)")
-    _scenario_arguments(bench)
-    bench.add_argument("--policy", required=True, help="RUN/policy.pt")
-    bench.add_argument("--seed", type=int, default=0, help="episode whose states are timed (default 0)")
-    bench.add_argument("--steps", type=int, default=200, help="states timed (default 200)")
-    bench.add_argument("--block", type=int, default=50,
-                       help="consecutive states per driver in the 'consecutive' order (default 50)")
-    bench.add_argument("--out", default="benchmarks/bench_imitation_inference.json", help="JSON output")
-    bench.set_defaults(func=_bench)

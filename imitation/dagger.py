@@ -1,6 +1,6 @@
 """DAgger with the multi-modal MPC as the online expert (``mmpc imitate dagger``).
 
-Round 0 clones the expert's own demonstrations (a Minari dataset from ``mmpc demos``, or
+Round 0 clones the expert's own demonstrations (a Minari dataset from ``mmpc imitate demos``, or
 episodes the expert drives here). Every later round i = 1 ... K:
 
 1. the mixture ``pi_i = beta_i pi* + (1 - beta_i) pi^_i`` drives ``episodes_per_iteration`` new
@@ -57,7 +57,7 @@ import numpy as np
 import torch
 
 from mmpc.config import dataclass_from_dict
-from mmpc.drive import stack_observations
+from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
@@ -339,7 +339,7 @@ def run_dagger(
         scenario: the scenario (``config.duration`` overrides its length).
         out: the run folder.
         config: settings.
-        dataset_dir: an ``mmpc demos`` directory for round 0 (default: the expert drives
+        dataset_dir: an ``mmpc imitate demos`` directory for round 0 (default: the expert drives
             ``config.initial_episodes`` episodes here).
         on_round: called with each round's entry of ``dagger.json`` (also for resumed rounds).
 

@@ -327,7 +327,7 @@ def open_dataset(root: Path, identifier: Optional[str] = None):
     """The Minari dataset in demonstrations directory ``root``.
 
     Args:
-        root: the ``--out`` folder of ``mmpc demos``.
+        root: the ``--out`` folder of ``mmpc imitate demos``.
         identifier: the dataset id (default: the only one there).
 
     Returns:
@@ -339,7 +339,7 @@ def open_dataset(root: Path, identifier: Optional[str] = None):
         found = sorted(p.parent.relative_to(base).as_posix() for p in base.glob("*/*/data")) if base.is_dir() else []
         if len(found) != 1:
             raise DemonstrationsError(f"{root}: expected one Minari dataset under {base}; found {found or 'none'} "
-                                      "(run `mmpc demos --out` to completion first)")
+                                      "(run `mmpc imitate demos --out` to completion first)")
         identifier = found[0]
     with _datasets_path(base):
         return minari.load_dataset(identifier)

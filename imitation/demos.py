@@ -1,5 +1,5 @@
 """Expert demonstrations: the multi-modal MPC drives seeded episodes, each finished episode is
-staged atomically, and a Minari dataset is built from them (``mmpc demos``).
+staged atomically, and a Minari dataset is built from them (``mmpc imitate demos``).
 
 Episodes run in lockstep chunks (one optimizer call per step for the chunk's episodes); chunk
 k holds the requested seeds ``s`` with ``s // lockstep == k``, so a chunk always has the same
@@ -114,7 +114,7 @@ def _locked_directory(root: Path, manifest: Manifest) -> Iterator[Demonstrations
     if root.exists() and (not root.is_dir() or not ours and any(root.iterdir())):
         DemonstrationsDir(root, manifest)  # not a demonstrations directory: refused before a lock file goes in
     root.mkdir(parents=True, exist_ok=True)
-    with exclusive(root, LOCK, "another `mmpc demos` run", DemonstrationsError):
+    with exclusive(root, LOCK, "another `mmpc imitate demos` run", DemonstrationsError):
         entries = list(root.iterdir())
         if not (root / MANIFEST).exists() and all(p.name == LOCK or p.name.startswith(TEMPORARY_PREFIX) for p in entries):
             # new but for the lock, which DemonstrationsDir would take for foreign content: give it the manifest

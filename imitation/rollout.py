@@ -4,7 +4,7 @@ deciding driver's diagnostics, and the road-frame state the cloned policy reads 
 its nearest neighbours, :mod:`mmpc.imitation.features`).
 
 One driver call per control step serves every episode still running (for the MPC expert: one
-optimizer call over all their goal batches), as in :func:`mmpc.drive.run_lockstep`; here each
+optimizer call over all their goal batches), as in :func:`mmpc.highway.runner.run_lockstep`; here each
 finished episode is handed to a callback at once (so a generator can write it to disk before
 the others end) as an :class:`Episode` of numpy arrays.
 
@@ -22,7 +22,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import numpy as np
 import torch
 
-from mmpc.drive import stack_observations
+from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE, HighwayEpisode
 from mmpc.imitation.features import STORED_NEIGHBOURS, nearest_neighbours

@@ -53,3 +53,8 @@ def exclusive(
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def file_slug(text: str) -> str:
+    """``text`` as a file name: characters other than letters, digits and ``.-_`` become ``_``."""
+    return "".join(c if c.isalnum() or c in ".-_" else "_" for c in text)

@@ -29,7 +29,7 @@ import torch
 from gymnasium import spaces
 from highway_env.envs.common.observation import KinematicObservation
 
-from mmpc.drive import stack_observations
+from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Observation
 from mmpc.highway import HighwayEpisode, road_state
 from mmpc.rl.config import RewardConfig, SafeEnvConfig, rl_scenario

@@ -52,7 +52,7 @@ class HighwayBaseline(gym.Wrapper):
     reward and observation as the safe environments, and highway-env's own action at
     ``frequency / decision_frames`` Hz (the agent's decision rate in the safe environments).
 
-    Differences that remain: highway-env's traffic without :mod:`mmpc.traffic`'s initial
+    Differences that remain: highway-env's traffic without :mod:`mmpc.highway.traffic`'s initial
     clearance; the reward is highway-env's one per agent step (the safe environments sum it over
     the step's frames).
 

@@ -1,8 +1,296 @@
-"""Solver benchmark (same as `mmpc bench-solver`); see mmpc/bench_solver.py."""
+"""Solver benchmark: ms per solve vs batch size and obstacle count; table, JSON and plot.
 
+Every timing follows warm-up solves; CUDA timings synchronise before reading the clock. The
+variants (eager, compiled) of one row are timed in turn, one solve of each per round, so that
+a change of machine load hits both alike. The numbers are medians and 90th percentiles over
+``repeats`` rounds, of wall time and (on the CPU) of the solving thread's CPU time, which a
+busy shared machine inflates less; each row records the 1-minute load average.
+"""
+
+from __future__ import annotations
+
+import argparse
 import sys
+import json
+import os
+import platform
+import statistics
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional, Sequence
 
-from mmpc.cli import main
+import torch
+
+from mmpc.cli.arguments import int_list
+from mmpc.config import OptimizerConfig
+from mmpc.optimizer import BatchOptimizer
+from mmpc.plotting import plot_scaling
+from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
+
+
+@dataclass(frozen=True)
+class SolverBenchmark:
+    """What to measure.
+
+    Attributes:
+        batches: batch sizes B (goals of one problem).
+        obstacles: obstacle counts M.
+        devices: "cpu" and/or "cuda" (cuda rows are skipped without a GPU).
+        variants: "eager" (reference) and/or "compiled" (``BatchOptimizer(compile=True)``).
+        threads: CPU threads for the CPU rows.
+        repeats: timed solves per row.
+        warmup: untimed solves per row.
+        max_seconds_per_row: stop timing a row early after this long (at least 3 solves).
+        environments: E for the vectorized comparison (E problems x 11 goals in one call vs E
+            calls of one problem); 0 skips it.
+    """
+
+    batches: tuple[int, ...] = (1, 11, 64, 256, 1024, 4096)
+    obstacles: tuple[int, ...] = (6, 10)
+    devices: tuple[str, ...] = ("cpu", "cuda")
+    variants: tuple[str, ...] = ("eager", "compiled")
+    threads: int = 1
+    repeats: int = 20
+    warmup: int = 3
+    max_seconds_per_row: float = 20.0
+    environments: int = 64
+    config: OptimizerConfig = field(default_factory=OptimizerConfig)
+
+
+def benchmark_problem(batch: int, obstacles: int, times: torch.Tensor) -> ProblemBatch:
+    """One highway problem with ``batch`` goals across 6 lanes and ``obstacles`` cars ahead."""
+    gen = torch.Generator().manual_seed(batch * 100 + obstacles)
+    ego = ego_state(0.0, 8.0, 0.0, 14.0, dtype=times.dtype)
+    lateral = torch.linspace(0.0, 20.0, batch, dtype=times.dtype)
+    ahead = 100.0 + 40.0 * torch.rand(batch, generator=gen, dtype=times.dtype)
+    goals = torch.stack([ahead, lateral], dim=-1)[None]
+    x = 15.0 + 100.0 * torch.rand(obstacles, generator=gen, dtype=times.dtype)
+    y = 4.0 * torch.randint(0, 6, (obstacles,), generator=gen).to(times.dtype)
+    v = 7.0 + 5.0 * torch.rand(obstacles, generator=gen, dtype=times.dtype)
+    states = torch.stack([x, y, v, torch.zeros_like(v)], dim=-1)[None]
+    return ProblemBatch(ego, goals, predict_constant_velocity(states, times))
+
+
+def bytes_per_solve(batch: int, obstacles: int, config: OptimizerConfig, element_size: int = 4) -> float:
+    """Least memory traffic of one solve [bytes]: what an ideal implementation must move.
+
+    Per iteration the samples (3N x 2B) are written by one product and read by the
+    elementwise steps, whose residual (3N x 2B) is written and read by the next product; the
+    heading target and heading (N x B) go the same way; the obstacle predictions (M x N x 2)
+    are read once per problem. Coefficient-sized arrays are negligible.
+    """
+    n = config.num_steps
+    per_iteration = 4 * 3 * n * 2 * batch + 4 * n * batch + 2 * obstacles * n
+    return float(per_iteration * config.iterations * element_size)
+
+
+def memory_bandwidth(device: torch.device, megabytes: int = 256) -> float:
+    """Measured copy bandwidth [bytes/s] (read + write) with the current thread setting."""
+    count = megabytes * 2**20 // 4
+    source = torch.ones(count, device=device)
+    target = torch.empty_like(source)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    best = float("inf")
+    for _ in range(5):
+        sync()
+        start = time.perf_counter()
+        target.copy_(source)
+        sync()
+        best = min(best, time.perf_counter() - start)
+    return 2 * count * 4 / best
+
+
+def time_solver(solve: Callable[[], object], device: torch.device, repeats: int, warmup: int, budget: float) -> list[float]:
+    """Wall times [ms] of ``solve()`` after ``warmup`` calls (:func:`time_interleaved` of one solve)."""
+    wall, _ = time_interleaved({"solve": solve}, device, repeats, warmup, budget)["solve"]
+    return wall
+
+
+def time_interleaved(
+    solves: dict[str, Callable[[], object]], device: torch.device, repeats: int, warmup: int, budget: float
+) -> dict[str, tuple[list[float], list[float]]]:
+    """Wall and thread CPU times [ms] of each ``solves[name]()``, called in turn every round.
+
+    Returns:
+        name -> (wall times, CPU times of the calling thread), one entry per round; at least 3
+        rounds, then up to ``repeats`` while the rounds so far took less than ``budget`` seconds.
+    """
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    for solve in solves.values():
+        for _ in range(warmup):
+            solve()
+    sync()
+    times: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in solves}
+    start = time.perf_counter()
+    rounds = 0
+    while rounds < repeats and (rounds < 3 or time.perf_counter() - start < budget):
+        for name, solve in solves.items():
+            wall, cpu = time.perf_counter(), time.thread_time()
+            solve()
+            sync()
+            times[name][0].append((time.perf_counter() - wall) * 1e3)
+            times[name][1].append((time.thread_time() - cpu) * 1e3)
+        rounds += 1
+    return times
+
+
+def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) -> dict:
+    """Measure every row, print a table, write ``out/bench_solver.json`` and ``out/bench_solver.png``.
+
+    Each row: device, variant, batch, obstacles, ms_median, ms_p90, cpu_ms_median (CPU rows),
+    solves, load_1min, and ``roofline_fraction`` = (least bytes per solve / median time) /
+    measured copy bandwidth; compiled rows also ``speedup_vs_eager`` (wall) and
+    ``cpu_speedup_vs_eager``, from the same interleaved rounds.
+    """
+    rows = []
+    bandwidths = {}
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(spec.threads)
+    try:
+        for device_name in spec.devices:
+            if device_name == "cuda" and not torch.cuda.is_available():
+                log("cuda: no GPU available, skipped")
+                continue
+            device = torch.device(device_name)
+            bandwidths[device_name] = memory_bandwidth(device)
+            log(f"{device_name}: copy bandwidth {bandwidths[device_name] / 1e9:.1f} GB/s")
+            optimizers = {
+                variant: BatchOptimizer(spec.config, device=device, compile=variant == "compiled")
+                for variant in spec.variants
+            }
+            for obstacles in spec.obstacles:
+                for batch in spec.batches:
+                    measured = _measure(spec, optimizers, device, batch, obstacles, bandwidths[device_name])
+                    for row in measured:
+                        cpu = "" if row["cpu_ms_median"] is None else f" (cpu {row['cpu_ms_median']:9.2f})"
+                        log(f"{row['device']:>5} {row['variant']:>9} M={obstacles:<3} B={batch:<6} median "
+                            f"{row['ms_median']:9.2f} ms{cpu}   p90 {row['ms_p90']:9.2f} ms   roofline "
+                            f"{100 * row['roofline_fraction']:5.1f} %   ({row['solves']} solves, load {row['load_1min']:.1f})")
+                    rows.extend(measured)
+    finally:
+        torch.set_num_threads(previous_threads)
+    _log_speedups(rows, log)
+    vectorized = _vectorized_comparison(spec, log) if spec.environments else None
+    device_text = torch.cuda.get_device_name() if torch.cuda.is_available() and "cuda" in spec.devices else platform.processor() or platform.machine()
+    report = {
+        "device": device_text,
+        "torch": torch.__version__,
+        "cpu_threads": spec.threads,
+        "bandwidth_bytes_per_s": bandwidths,
+        "rows": rows,
+        "vectorized": vectorized,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench_solver.json").write_text(json.dumps(report, indent=2))
+    if rows:
+        plot_scaling(out / "bench_solver.png", rows)
+    return report
+
+
+def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], device: torch.device,
+             batch: int, obstacles: int, bandwidth: float) -> list[dict]:
+    """One row per variant, timed in the same interleaved rounds.
+
+    Compiled code is dropped first (``torch.compiler.reset()``), so that every row compiles for
+    its own shape, as a process that solves one batch shape does: otherwise the second shape
+    a compiled function sees makes its dims dynamic, and those kernels are 5-15 % slower.
+    """
+    torch.compiler.reset()
+    first = next(iter(optimizers.values()))
+    problem = benchmark_problem(batch, obstacles, first.times.cpu())
+    problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
+    with torch.inference_mode():
+        solves = {variant: (lambda optimizer=optimizer: optimizer(problem)) for variant, optimizer in optimizers.items()}
+        times = time_interleaved(solves, device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
+    load = os.getloadavg()[0]
+    rows = []
+    for variant, (wall, cpu) in times.items():
+        wall = sorted(wall)
+        median = statistics.median(wall)
+        rows.append({
+            "device": device.type,
+            "variant": variant,
+            "threads": spec.threads if device.type == "cpu" else None,
+            "batch": batch,
+            "obstacles": obstacles,
+            "iterations": spec.config.iterations,
+            "ms_median": median,
+            "ms_p90": wall[min(len(wall) - 1, int(0.9 * len(wall)))],
+            "cpu_ms_median": statistics.median(cpu) if device.type == "cpu" else None,
+            "solves": len(wall),
+            "load_1min": load,
+            "roofline_fraction": bytes_per_solve(batch, obstacles, spec.config) / (median * 1e-3) / bandwidth,
+        })
+    return rows
+
+
+def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
+    """Compiled over eager speed-up, side by side from the same interleaved rounds."""
+    eager = {(r["device"], r["batch"], r["obstacles"]): r for r in rows if r["variant"] == "eager"}
+    for row in rows:
+        key = (row["device"], row["batch"], row["obstacles"])
+        if row["variant"] == "compiled" and key in eager:
+            row["speedup_vs_eager"] = eager[key]["ms_median"] / row["ms_median"]
+            text = f"{row['speedup_vs_eager']:.2f}x"
+            if row["cpu_ms_median"] is not None:
+                row["cpu_speedup_vs_eager"] = eager[key]["cpu_ms_median"] / row["cpu_ms_median"]
+                text += f" (cpu time {row['cpu_speedup_vs_eager']:.2f}x)"
+            log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is {text} faster than eager")
+
+
+def _vectorized_comparison(spec: SolverBenchmark, log: Callable[[str], None]) -> dict:
+    """E environments' problems (11 goals, 6 obstacles each) in one call vs one call each (CPU, eager)."""
+    optimizer = BatchOptimizer(spec.config)
+    single = [benchmark_problem(11, 6, optimizer.times) for _ in range(spec.environments)]
+    single = [ProblemBatch(p.ego + torch.tensor([[3.0 * e, 0, 0, 0, 0, 0]]), p.goals + 3.0 * e, p.obstacles)
+              for e, p in enumerate(single)]
+    batched = ProblemBatch(*(torch.cat(parts) for parts in zip(*(p[:3] for p in single))))
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(spec.threads)
+    try:
+        with torch.inference_mode():
+            one_call = time_solver(lambda: optimizer(batched), torch.device("cpu"), max(3, spec.repeats // 4), 1,
+                                   spec.max_seconds_per_row)
+            per_env = time_solver(lambda: [optimizer(p) for p in single], torch.device("cpu"), 3, 1,
+                                  spec.max_seconds_per_row)
+    finally:
+        torch.set_num_threads(previous_threads)
+    result = {
+        "environments": spec.environments,
+        "goals": 11,
+        "obstacles": 6,
+        "ms_one_batched_call": statistics.median(one_call),
+        "ms_one_call_per_environment": statistics.median(per_env),
+    }
+    result["speedup"] = result["ms_one_call_per_environment"] / result["ms_one_batched_call"]
+    log(f"vectorized: {spec.environments} environments x 11 goals: one call {result['ms_one_batched_call']:.1f} ms, "
+        f"one call per environment {result['ms_one_call_per_environment']:.1f} ms ({result['speedup']:.1f}x)")
+    return result
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    bench = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench.add_argument("--batches", type=int_list, default=(1, 11, 64, 256, 1024, 4096), help="comma-separated batch sizes")
+    bench.add_argument("--obstacles", type=int_list, default=(6, 10), help="comma-separated obstacle counts")
+    bench.add_argument("--devices", default="cpu,cuda", help="cpu and/or cuda (cuda skipped without a GPU)")
+    bench.add_argument("--variants", default="eager,compiled", help="eager and/or compiled (torch.compile)")
+    bench.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
+    bench.add_argument("--repeats", type=int, default=20, help="timed solves per row")
+    bench.add_argument("--max-seconds-per-row", type=float, default=20.0, help="time budget per row")
+    bench.add_argument("--environments", type=int, default=64,
+                       help="E for the one-call-vs-one-call-per-environment comparison (0 skips)")
+    bench.add_argument("--out", default="runs/bench_solver", help="output folder")
+    args = bench.parse_args(argv)
+    spec = SolverBenchmark(
+        batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
+        variants=tuple(args.variants.split(",")), threads=args.threads, repeats=args.repeats,
+        max_seconds_per_row=args.max_seconds_per_row, environments=args.environments,
+    )
+    report = run(spec, Path(args.out))
+    print(f"wrote {Path(args.out) / 'bench_solver.json'} ({len(report['rows'])} rows) and bench_solver.png")
+    return 0
+
 
 if __name__ == "__main__":
-    sys.exit(main(["bench-solver", *sys.argv[1:]]))
+    sys.exit(main())

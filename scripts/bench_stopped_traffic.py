@@ -1,6 +1,6 @@
 """Fail-safe grid: does every driver stop for stopped traffic on highway-env?
 
-Scenes of :mod:`mmpc.stopped_traffic` (a wall of stopped cars across a 3-lane road, one stopped
+Scenes of :mod:`mmpc.highway.stopped_traffic` (a wall of stopped cars across a 3-lane road, one stopped
 car on a 1-lane road, a car that cuts in and brakes hard; ego speeds 10-30 m/s; gaps of 1.3-5x
 the braking distance at the optimizer's acceleration bound), each driven by the MPC, the Frenet
 baseline (whose fallback is the MPC's) and the safe RL layer under a uniformly random agent.
@@ -20,9 +20,9 @@ from pathlib import Path
 
 import torch
 
-from mmpc.drive import run_episode
+from mmpc.highway.runner import run_episode
 from mmpc.scenario import load_scenario
-from mmpc.stopped_traffic import LAYOUTS, stopped_traffic_grid, stopped_traffic_scene
+from mmpc.highway.stopped_traffic import LAYOUTS, stopped_traffic_grid, stopped_traffic_scene
 
 DRIVERS = ("mpc", "frenet", "safe_rl_random")
 

@@ -1,4 +1,6 @@
 import os
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -11,6 +13,9 @@ from mmpc.scenes import synthetic_scenes
 # minute per batch layout, so the tests, subprocesses included, run the eager reference. The
 # compiled path has its own tests (test_compiled.py, test_mpc.py, test_tiling.py).
 os.environ[COMPILE_ENV] = "0"
+
+# The benchmark scripts (outside the installed package) import as top-level modules.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
 
 @pytest.fixture(scope="session")

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from mmpc.baselines.batch_nlp import BatchNLPDriver, BatchNLPSolver, goal_subset
-from mmpc.baselines.common import obstacles_for
-from mmpc.baselines.frenet import FrenetConfig, FrenetPlanner, evaluate_polynomial, quartic_coefficients, quintic_coefficients
-from mmpc.baselines.nlp import SOLVED_STATUSES, NLPConfig, TrajectoryNLP, resample
-from mmpc.drive import run_episode
+from mmpc.drivers.batch_nlp import BatchNLPDriver, BatchNLPSolver, goal_subset
+from mmpc.drivers.common import obstacles_for
+from mmpc.drivers.frenet import FrenetConfig, FrenetPlanner, evaluate_polynomial, quartic_coefficients, quintic_coefficients
+from mmpc.drivers.nlp import SOLVED_STATUSES, NLPConfig, TrajectoryNLP, resample
+from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
 from mmpc.scenario import EgoConfig, ScenarioConfig, ScriptedTraffic, ScriptedVehicle, build_mpc
 

@@ -1,12 +1,11 @@
-"""``mmpc bench``: summaries, tables, the spec's validation and a quick run read back from disk."""
+"""The closed-loop benchmark (scripts/bench_closed_loop.py): summaries, tables, the spec's validation and a quick run read back from disk."""
 
 import json
 import math
 
 import pytest
 
-from mmpc.bench import COLUMNS, BenchSpec, format_tables, step_values, summarize
-from mmpc.cli import main
+from bench_closed_loop import COLUMNS, BenchSpec, format_tables, main, step_values, summarize
 from mmpc.metrics import StepRecord
 
 
@@ -47,19 +46,19 @@ def test_bench_spec_rejects_bad_values(changes, match):
 
 
 def test_bench_cli_rejects_bad_input_before_running(tmp_path, capsys):
-    assert main(["bench", "--quick", "--duration", "-1", "--out", str(tmp_path)]) == 2
+    assert main(["--quick", "--duration", "-1", "--out", str(tmp_path)]) == 2
     captured = capsys.readouterr()
     assert "duration" in captured.out + captured.err
     assert not (tmp_path / "results.json").exists()
-    assert main(["bench", "--quick", "--scenarios", "nowhere", "--methods", "frenet", "--out", str(tmp_path)]) == 2
-    assert "shipped scenarios" in capsys.readouterr().out
+    assert main(["--quick", "--scenarios", "nowhere", "--methods", "frenet", "--out", str(tmp_path)]) == 2
+    assert "shipped scenarios" in capsys.readouterr().err
     assert not (tmp_path / "results.json").exists()
 
 
 @pytest.mark.usefixtures("one_thread")
 def test_quick_bench_writes_tables_json_and_figures(tmp_path):
     methods = ["mpc", "standard-mpc", "batch-nlp:6", "frenet"]
-    code = main(["bench", "--quick", "--scenarios", "cruise", "--methods", ",".join(methods), "--out", str(tmp_path)])
+    code = main(["--quick", "--scenarios", "cruise", "--methods", ",".join(methods), "--out", str(tmp_path)])
     assert code == 0
     report = json.loads((tmp_path / "results.json").read_text())
     entries = report["entries"]

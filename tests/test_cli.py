@@ -2,7 +2,9 @@ import json
 
 import pytest
 
-from mmpc.cli import main
+import bench_solver
+
+from mmpc.cli.main import main
 
 
 def test_solve_writes_table_plot_and_json(tmp_path, capsys):
@@ -27,7 +29,7 @@ def test_solve_high_speed_prefers_the_right_lane(tmp_path, capsys):
 
 
 def test_bench_solver_writes_json_rows(tmp_path):
-    assert main(["bench-solver", "--batches", "1,4", "--obstacles", "0,2", "--repeats", "2",
+    assert bench_solver.main(["--batches", "1,4", "--obstacles", "0,2", "--repeats", "2",
                  "--devices", "cpu", "--variants", "eager", "--environments", "3",
                  "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "bench_solver.json").read_text())
@@ -42,4 +44,4 @@ def test_bench_solver_writes_json_rows(tmp_path):
 
 def test_bad_arguments_exit_with_usage_error():
     with pytest.raises(SystemExit):
-        main(["bench-solver", "--batches", "a,b"])
+        bench_solver.main(["--batches", "a,b"])

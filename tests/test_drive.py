@@ -8,8 +8,9 @@ import math
 import imageio.v2 as imageio
 import pytest
 
-from mmpc.cli import _seed_list, main
-from mmpc.drive import run_episode, write_outputs
+from mmpc.cli.arguments import seed_list
+from mmpc.cli.main import main
+from mmpc.highway.runner import run_episode, write_outputs
 from mmpc.evaluate import format_table, read_episodes, summarize
 from mmpc.metrics import StepRecord, episode_metrics
 from mmpc.scenario import ScenarioConfig, load_scenario
@@ -94,11 +95,11 @@ def test_drive_cli_rejects_bad_arguments(tmp_path, capsys):
 
 
 def test_seed_lists():
-    assert _seed_list("0-3") == (0, 1, 2, 3)
-    assert _seed_list("5,1-2,5") == (5, 1, 2)
+    assert seed_list("0-3") == (0, 1, 2, 3)
+    assert seed_list("5,1-2,5") == (5, 1, 2)
     for bad in ("", "x", "-1", "3-a"):
         with pytest.raises(argparse.ArgumentTypeError):
-            _seed_list(bad)
+            seed_list(bad)
 
 
 def test_summary_table_lists_collisions_by_seed():

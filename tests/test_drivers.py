@@ -4,7 +4,7 @@ per step for several episodes)."""
 import pytest
 import torch
 
-from mmpc.drive import run_episode, run_lockstep
+from mmpc.highway.runner import run_episode, run_lockstep
 from mmpc.drivers import Decision, Driver, MPCDriver, Observation, make_driver
 from mmpc.scenario import ScenarioConfig
 

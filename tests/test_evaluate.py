@@ -17,11 +17,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from mmpc.cli import main
-from mmpc.drive import run_episode
-from mmpc.drivers import DRIVERS, Decision, Driver, Observation
+from mmpc.cli.main import main
+from mmpc.highway.runner import run_episode
+from mmpc.drivers import registry
+from mmpc.drivers import Decision, Driver, Observation
 from mmpc.evaluate import METRIC_COLUMNS, EvaluationConfig, evaluate, read_episodes
-from mmpc.evaluate_report import mean_ci, summarize, t_quantile_975, wilson_ci
+from mmpc.evaluate.report import mean_ci, summarize, t_quantile_975, wilson_ci
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
@@ -63,8 +64,8 @@ class KeepLane(Driver):
 
 @pytest.fixture
 def keep_lane_drivers(monkeypatch):
-    monkeypatch.setitem(DRIVERS, "keep-lane", lambda scenario, argument: KeepLane())
-    monkeypatch.setitem(DRIVERS, "flaky", lambda scenario, argument: KeepLane(fail_below=float(argument)))
+    monkeypatch.setitem(registry._registered, "keep-lane", lambda scenario, argument: KeepLane())
+    monkeypatch.setitem(registry._registered, "flaky", lambda scenario, argument: KeepLane(fail_below=float(argument)))
     KeepLane.episodes_started = 0
 
 
@@ -167,7 +168,7 @@ def test_failing_episodes_are_error_rows_and_a_rerun_retries_only_them(tmp_path)
     assert entry["episodes"] == len(seeds) - len(failing)
     lines_before = (tmp_path / "episodes.csv").read_text().splitlines()
 
-    DRIVERS["flaky"] = lambda scenario, argument: KeepLane()  # the bug fixed: re-run the same call
+    registry._registered["flaky"] = lambda scenario, argument: KeepLane()  # the bug fixed: re-run the same call
     started = KeepLane.episodes_started
     second = evaluate([scenario], tmp_path, config)
     assert KeepLane.episodes_started - started == len(failing)  # only the error episodes ran again
@@ -223,11 +224,13 @@ class Poison:
 
 @pytest.mark.slow
 def test_a_group_that_always_kills_its_worker_becomes_error_rows():
-    from mmpc.evaluate import GroupTask, _process_pool
+    from mmpc.evaluate import Backend, GroupTask, run_group, run_tasks
+    from mmpc.evaluate.tasks import error_rows
 
     good = GroupTask("mpc", short(duration=0.3), (0,), 0)
     poison = GroupTask("mpc", Poison(), (7, 8), 3)
-    rows = [row for batch in _process_pool([poison, good], workers=2, threads=1, retries=1) for row in batch]
+    batches = run_tasks([poison, good], run_group, error_rows, Backend(workers=2, retries=1))
+    rows = [row for _, batch in batches for row in batch]
     assert sorted((r["scenario"], r["seed"], r["status"]) for r in rows) == [
         ("cruise", 0, "ok"), ("poison", 7, "error"), ("poison", 8, "error")]
     assert all("worker process died 2 times" in r["error"] for r in rows if r["status"] == "error")

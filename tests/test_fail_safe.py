@@ -1,5 +1,5 @@
 """Fail-safe: stop goals, a fallback that never accelerates into a conflict, bad MPC input, and
-stopped-traffic scenes driven on highway-env (mmpc.stopped_traffic)."""
+stopped-traffic scenes driven on highway-env (mmpc.highway.stopped_traffic)."""
 
 import math
 
@@ -7,11 +7,11 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.drive import run_episode
+from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
 from mmpc.problem import predict_constant_velocity
 from mmpc.scenario import load_scenario
-from mmpc.stopped_traffic import STOPPED_SPEED, stopped_traffic_grid, stopped_traffic_scene
+from mmpc.highway.stopped_traffic import STOPPED_SPEED, stopped_traffic_grid, stopped_traffic_scene
 from mmpc.stopping import MIN_ADVANCE, conflict_deceleration, stop_goals
 
 ELLIPSE = (8.0, 3.3)

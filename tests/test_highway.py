@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from mmpc.drive import run_episode
+from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
 from mmpc.highway import HighwayEpisode, command_to_action, env_config, vehicle_motion
 from mmpc.mpc import MPCConfig

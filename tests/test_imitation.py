@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from mmpc.drive import run_episode, write_outputs
+from mmpc.highway.runner import run_episode, write_outputs
 from mmpc.drivers import MPCDriver, Observation, make_driver
 from mmpc.imitation.bc import TrainConfig, load_yaml_config, run_bc, train_policy
 from mmpc.imitation.dagger import (
@@ -151,7 +151,7 @@ INTERRUPTED_EPISODES = 8
 def _demos_command(out: Path) -> list[str]:
     # one episode per lockstep chunk: after the first episode is staged, seven chunks (several
     # seconds of solving) remain to be interrupted, even when the test process is slow to wake up
-    return [sys.executable, "-m", "mmpc.cli", "demos", "--scenario", "cruise", "--duration", "1", "--episodes",
+    return [sys.executable, "-m", "mmpc.cli", "imitate", "demos", "--scenario", "cruise", "--duration", "1", "--episodes",
             str(INTERRUPTED_EPISODES), "--lockstep", "1", "--out", str(out)]
 
 
@@ -448,23 +448,26 @@ def test_best_round_has_the_fewest_check_collisions_and_the_most_data_among_ties
 
 
 def test_cli_evaluates_expert_and_policy_side_by_side_and_benchmarks_them(bc_run, tmp_path, capsys):
-    from mmpc.cli import main
+    import bench_imitation_inference
+
+    from mmpc.cli.main import main
+    from mmpc.evaluate import read_episodes
 
     policy = bc_run / "policy.pt"
     out = tmp_path / "eval"
-    code = main(["imitate", "evaluate", "--drivers", f"mpc,bc:{policy}", "--names", "expert,bc", "--seeds", "3,4",
+    code = main(["evaluate", "--driver", f"mpc,bc:{policy}", "--scenarios", "cruise", "--seeds", "3,4",
                  "--duration", "1", "--lockstep", "2", "--out", str(out)])
     assert code == 0
     summary = json.loads((out / "summary.json").read_text())
     assert [e["driver"] for e in summary["summary"]] == ["mpc", f"bc:{policy}"]
-    assert [(r["driver"], r["seed"]) for r in summary["episodes"]] == [
-        ("mpc", 3), ("mpc", 4), (f"bc:{policy}", 3), (f"bc:{policy}", 4)]
-    assert all(r["steps"] == 10 for r in summary["episodes"])
-    assert "| collision rate |" in (out / "table.md").read_text()
-    assert "expert" in capsys.readouterr().out
+    rows = read_episodes(out / "episodes.csv")
+    assert [(r["driver"], r["seed"]) for r in rows] == [("mpc", 3), ("mpc", 4), (f"bc:{policy}", 3), (f"bc:{policy}", 4)]
+    assert all(r["steps"] == 10 and r["status"] == "ok" for r in rows)
+    assert "collision rate" in (out / "summary.md").read_text()
+    assert f"bc:{policy}" in capsys.readouterr().out
 
     bench = tmp_path / "bench.json"
-    assert main(["imitate", "bench", "--policy", str(policy), "--steps", "5", "--out", str(bench)]) == 0
+    assert bench_imitation_inference.main(["--policy", str(policy), "--steps", "5", "--out", str(bench)]) == 0
     report = json.loads(bench.read_text())
     assert report["rows"] == report["modes"]["consecutive"]["rows"]
     for mode, block in (("consecutive", 50), ("interleaved", 1)):

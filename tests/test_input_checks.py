@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from mmpc.cli import main
-from mmpc.drivers import DRIVERS, Decision, Driver, Observation
+from mmpc.cli.main import main
+from mmpc.drivers import registry
+from mmpc.drivers import Decision, Driver, Observation
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
 
@@ -58,12 +59,12 @@ def test_demos_refuses_a_folder_another_run_holds(tmp_path, monkeypatch, capsys,
         (out / MANIFEST).write_text(Manifest(scenario.to_dict(), 4, package_versions()).to_json())
     holder = _hold(out / DEMOS_LOCK)
     try:
-        code = main(["demos", "--scenario", "cruise", "--duration", "0.5", "--episodes", "2", "--out", str(out)])
+        code = main(["imitate", "demos", "--scenario", "cruise", "--duration", "0.5", "--episodes", "2", "--out", str(out)])
     finally:
         holder.close()
     err = capsys.readouterr().err
     assert code == 2, err
-    assert f"another `mmpc demos` run is writing to {out}" in err and str(out / DEMOS_LOCK) in err
+    assert f"another `mmpc imitate demos` run is writing to {out}" in err and str(out / DEMOS_LOCK) in err
 
 
 def test_demos_holds_its_lock_while_driving_and_releases_it_after_a_run_and_after_an_error(tmp_path, monkeypatch):
@@ -132,11 +133,11 @@ def test_a_config_file_that_is_not_a_mapping_is_an_error_naming_it(tmp_path):
 
 @pytest.mark.parametrize("seeds", [None, "0-1"], ids=["one-episode", "seeds"])
 def test_drive_refuses_an_unwritable_out_before_driving(tmp_path, monkeypatch, capsys, seeds):
-    import mmpc.drive
+    import mmpc.highway.runner
     import mmpc.drivers
     import mmpc.evaluate
 
-    for module, name in ((mmpc.drivers, "make_driver"), (mmpc.drive, "run_episode"), (mmpc.evaluate, "evaluate")):
+    for module, name in ((mmpc.drivers, "make_driver"), (mmpc.highway.runner, "run_episode"), (mmpc.evaluate, "evaluate")):
         monkeypatch.setattr(module, name, _no_driving)
     (tmp_path / "file.txt").write_text("a file, not a folder")
     out = tmp_path / "file.txt" / "out"  # fails even as root
@@ -169,7 +170,7 @@ class KeepLane(Driver):
 
 @pytest.fixture
 def keep_lane(monkeypatch, one_thread):
-    monkeypatch.setitem(DRIVERS, "keep-lane", lambda scenario, argument: KeepLane())
+    monkeypatch.setitem(registry._registered, "keep-lane", lambda scenario, argument: KeepLane())
     KeepLane.episodes_started = 0
 
 

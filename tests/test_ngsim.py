@@ -5,12 +5,12 @@ import csv
 import numpy as np
 import pytest
 
-from mmpc.drive import run_episode
+from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
 from mmpc.highway import HighwayEpisode
-from mmpc.ngsim import FOOT, read_ngsim
+from mmpc.highway.ngsim import FOOT, read_ngsim
 from mmpc.scenario import EgoConfig, NGSIMTraffic, ScenarioConfig
-from mmpc.traffic import ReplayVehicle
+from mmpc.highway.traffic import ReplayVehicle
 
 #: The column order of the data.gov release (US-101 and I-80 files).
 COLUMNS = [

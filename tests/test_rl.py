@@ -14,7 +14,7 @@ import torch
 import yaml
 
 import mmpc.rl
-from mmpc.drive import run_episode
+from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import ego_state
@@ -202,7 +202,7 @@ def test_plain_highway_baseline_trains_and_its_meta_actions_drive(smoke, tmp_pat
 
 
 def test_rl_command_lines_reject_bad_arguments(capsys, tmp_path):
-    from mmpc.cli import main
+    from mmpc.cli.main import main
 
     assert main(["train-rl", "--algo", "dqn", "--config", "smoke", "--timesteps", "0", "--out", str(tmp_path)]) == 2
     assert "--timesteps must be >= 1" in capsys.readouterr().err

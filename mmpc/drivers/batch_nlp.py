@@ -2,7 +2,7 @@
 in parallel worker processes (the paper's multi-threaded ACADO baseline), ranked by the same meta
 cost.
 
-Each goal's problem is :class:`mmpc.baselines.nlp.TrajectoryNLP` in ``goal`` mode: smoothness
+Each goal's problem is :class:`mmpc.drivers.nlp.TrajectoryNLP` in ``goal`` mode: smoothness
 objective, end position = goal, end heading and rate 0, same kinematics, bounds and ellipses as
 the batch optimizer. Every solve is cold-started (as the batch optimizer, and the authors'
 ACADO baseline, are). The B goals are an evenly spaced subset of the scenario's goal sampler
@@ -23,10 +23,10 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from mmpc.baselines.common import checked_ego, obstacles_for, ranked_decision
-from mmpc.baselines.nlp import NLPConfig, TrajectoryNLP, resample
+from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
+from mmpc.drivers.nlp import NLPConfig, TrajectoryNLP, resample
 from mmpc.config import OptimizerConfig
-from mmpc.drivers import Decision, Driver, Observation
+from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.road import Road
 

@@ -28,9 +28,9 @@ from typing import Optional
 
 import torch
 
-from mmpc.baselines.common import checked_ego, obstacles_for, ranked_decision
+from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
 from mmpc.config import dataclass_from_dict, require_positive
-from mmpc.drivers import Decision, Driver, Observation
+from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
 from mmpc.result import Trajectories

@@ -7,19 +7,16 @@ import argparse
 import sys
 from pathlib import Path
 
-
-def _drivers(values: list[str]) -> tuple[str, ...]:
-    """``--driver mpc,frenet --driver bc:run/policy.pt`` -> distinct specs in order."""
-    return tuple(dict.fromkeys(spec.strip() for value in values for spec in value.split(",") if spec.strip()))
+from mmpc.cli.arguments import driver_specs, override, seed_list
 
 
-def _evaluate(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table, read_episodes
     from mmpc.scenario import load_scenario
 
-    drivers = _drivers(args.driver or ["mpc"])
+    drivers = driver_specs(args.driver or ["mpc"])
     if not drivers:
         print("mmpc evaluate: error: --driver needs at least one driver spec", file=sys.stderr)
         return 2
@@ -75,25 +72,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_evaluate(args: argparse.Namespace) -> int:
-    from mmpc.bench_evaluate import EvaluateBenchmark, format_report, run
-
-    try:
-        spec = EvaluateBenchmark(scenario=args.scenario, duration=args.duration, driver=args.driver, episodes=args.episodes,
-                                 workers=args.worker_counts, rounds=args.rounds, lockstep=args.lockstep, threads=args.threads)
-    except ValueError as error:
-        print(f"mmpc bench-evaluate: error: {error}", file=sys.stderr)
-        return 2
-    report = run(spec, Path(args.out))
-    print(format_report(report))
-    print(f"wrote {Path(args.out) / 'bench_evaluate.json'}")
-    return 0
-
-
-def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``mmpc evaluate`` and ``mmpc bench-evaluate``."""
-    from mmpc.cli import _int_list, _override, _seed_list
-
+def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``mmpc evaluate``."""
     parser = subparsers.add_parser(
         "evaluate", help="drivers x scenarios x seeds in parallel (local processes or Ray): episodes.csv, summary with 95%% "
                          "intervals, table, plot, TensorBoard; resumable",
@@ -103,7 +83,7 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
                              "bc:RUN/policy.pt, sb3:MODEL.zip; several give a side-by-side table")
     parser.add_argument("--scenarios", default="cruise,high_speed",
                         help="comma-separated names in configs/scenarios or YAML paths (default cruise,high_speed)")
-    parser.add_argument("--seeds", type=_seed_list, default=tuple(range(20)), help="seeds such as 0-999 or 0,3,7 (default 0-19)")
+    parser.add_argument("--seeds", type=seed_list, default=tuple(range(20)), help="seeds such as 0-999 or 0,3,7 (default 0-19)")
     parser.add_argument("--workers", type=int, default=None,
                         help="tasks in flight: local processes (default 1: in this process) or Ray tasks "
                              "(default with --ray: the cluster's CPUs)")
@@ -117,25 +97,11 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--retries", type=int, default=1,
                         help="re-runs of a group whose worker process died before it is recorded as errors (default 1)")
     parser.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
-    parser.add_argument("--set", type=_override, action="append", default=[], metavar="KEY=VALUE",
+    parser.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
                         help="override a scenario value (YAML; repeatable), as in mmpc drive")
     parser.add_argument("--episode-outputs", action="store_true",
                         help="also write metrics.json, steps.csv and topdown.png per episode under OUT/episodes/")
     parser.add_argument("--collision-videos", action="store_true",
                         help="with --episode-outputs: replay episodes that collided with a video")
     parser.add_argument("--out", default="runs/evaluate", help="output folder; an earlier run there is resumed (default runs/evaluate)")
-    parser.set_defaults(func=_evaluate)
-
-    bench = subparsers.add_parser("bench-evaluate", help="episodes/min with 1 vs K workers and lockstep vs one call per "
-                                                         "episode; table + JSON")
-    bench.add_argument("--scenario", default="cruise", help="scenario (default cruise)")
-    bench.add_argument("--duration", type=float, default=5.0, help="episode length [s] (default 5)")
-    bench.add_argument("--driver", default="mpc", help="driver spec (default mpc)")
-    bench.add_argument("--episodes", type=int, default=16, help="episodes per throughput row (default 16)")
-    bench.add_argument("--workers", dest="worker_counts", type=_int_list, default=(1, 2),
-                       help="comma-separated worker counts (default 1,2)")
-    bench.add_argument("--rounds", type=int, default=1, help="throughput rounds, worker counts alternating (default 1)")
-    bench.add_argument("--lockstep", type=int, default=16, help="concurrent episodes of the lockstep comparison (0 skips)")
-    bench.add_argument("--threads", type=int, default=1, help="torch threads per task (default 1)")
-    bench.add_argument("--out", default="runs/bench_evaluate", help="output folder for bench_evaluate.json")
-    bench.set_defaults(func=_bench_evaluate)
+    parser.set_defaults(func=run)

@@ -3,7 +3,7 @@
 No goals, no batch: the single trajectory minimises ``sum_k dt * stage(v_k, y_k)`` (the
 scenario's meta-cost term, e.g. ``(v - v_cruise)^2``) plus the smoothness terms, subject to
 the same kinematics, bounds and obstacle ellipses as the batch optimizer
-(:class:`mmpc.baselines.nlp.TrajectoryNLP` in ``meta`` mode), solved by IPOPT and warm-started
+(:class:`mmpc.drivers.nlp.TrajectoryNLP` in ``meta`` mode), solved by IPOPT and warm-started
 from the previous step's solution shifted by one control period. Being a local method it can
 only improve the trajectory it starts from: it does not jump to another lane's homotopy class
 unless the gradient leads there, which is what the paper's comparison is about.
@@ -17,9 +17,9 @@ from typing import Optional
 import numpy as np
 import torch
 
-from mmpc.baselines.common import checked_ego, obstacles_for, with_goal_axis
-from mmpc.baselines.nlp import NLPConfig, NLPSolution, TrajectoryNLP, resample
-from mmpc.drivers import Candidates, Decision, Driver, Observation
+from mmpc.drivers.common import checked_ego, obstacles_for, with_goal_axis
+from mmpc.drivers.nlp import NLPConfig, NLPSolution, TrajectoryNLP, resample
+from mmpc.drivers.base import Candidates, Decision, Driver, Observation
 from mmpc.mpc import MPC
 
 

@@ -1,5 +1,5 @@
 """Inference cost per control step: the cloned policy vs the MPC expert on the same states
-(``mmpc imitate bench``).
+.
 
 The expert drives one episode to collect states; then both drivers decide those states (E = 1,
 as in a single closed loop), after a warm-up, in two orders measured in the same run:
@@ -17,17 +17,22 @@ road-frame features and the forward pass for the policy).
 
 from __future__ import annotations
 
+import argparse
+import json
+import sys
 import platform
 import statistics
 import time
 from pathlib import Path
+from typing import Optional, Sequence
 
 import torch
 
+from mmpc.cli.arguments import override
 from mmpc.drivers import Driver, MPCDriver, Observation
 from mmpc.imitation.policy import PolicyDriver, load_policy
 from mmpc.imitation.rollout import rollout_lockstep
-from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 
 #: The orders in which the drivers are timed (see the module docstring).
 MODES = ("consecutive", "interleaved")
@@ -105,3 +110,31 @@ def format_report(report: dict) -> str:
                  f"loop), {report['modes']['interleaved']['speedup_mean']:.0f}x right after each expert solve; "
                  f"{report['torch_threads']} torch thread(s)")
     return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    bench = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench.add_argument("--scenario", default="cruise", help="scenario name in configs/scenarios or a YAML path (default cruise)")
+    bench.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
+                       help="override a scenario value (YAML; repeatable)")
+    bench.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    bench.add_argument("--policy", required=True, help="RUN/policy.pt")
+    bench.add_argument("--seed", type=int, default=0, help="episode whose states are timed (default 0)")
+    bench.add_argument("--steps", type=int, default=200, help="states timed (default 200)")
+    bench.add_argument("--block", type=int, default=50,
+                       help="consecutive states per driver in the 'consecutive' order (default 50)")
+    bench.add_argument("--out", default="benchmarks/bench_imitation_inference.json", help="JSON output")
+    args = bench.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    scenario = load_scenario(args.scenario, dict(args.set))
+    report = benchmark_inference(scenario, Path(args.policy), seed=args.seed, steps=args.steps, block=args.block)
+    print(format_report(report))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,4 +1,4 @@
-"""``mmpc bench``: ours against the baselines on the same episodes, the paper's tables and figures.
+"""Ours against the baselines on the same episodes, the paper's tables and figures.
 
 Every method (a driver spec, :func:`mmpc.drivers.make_driver`) drives every (scenario, seed)
 episode of the same duration, one episode at a time (E = 1, so a step's time is one MPC step's).
@@ -25,12 +25,14 @@ import logging
 import math
 import os
 import platform
+import sys
 import statistics
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
+from mmpc.cli.arguments import seed_list
 from mmpc.config import require_positive
 
 logger = logging.getLogger(__name__)
@@ -176,7 +178,7 @@ def run_bench(spec: BenchSpec, out: Path, log: Callable[[str], None] = print,
     ``tables.md``, ``scaling.png`` and ``residuals.png`` into ``out``. Returns the report."""
     import torch
 
-    from mmpc.drive import run_episode
+    from mmpc.highway.runner import run_episode
     from mmpc.drivers import make_driver
     from mmpc.scenario import load_scenario
 
@@ -297,8 +299,8 @@ def batch_scaling(scenario, spec: BenchSpec, path: Path, log: Callable[[str], No
     the batch NLP (B IPOPT solves on ``spec.nlp_workers`` processes, cold-started)."""
     import torch
 
-    from mmpc.baselines.batch_nlp import BatchNLPSolver
-    from mmpc.bench_solver import benchmark_problem, time_solver
+    from mmpc.drivers.batch_nlp import BatchNLPSolver
+    from bench_solver import benchmark_problem, time_solver
     from mmpc.scenario import build_mpc
 
     mpc = build_mpc(scenario)
@@ -379,15 +381,13 @@ def plot_batch_scaling(path: Path, rows: Sequence[dict], workers: int) -> Path:
 def _bench(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from mmpc.cli import _seed_list
-
     values: dict = {}
     if args.quick:
         values.update(QUICK)
     if args.scenarios is not None:
         values["scenarios"] = tuple(s for s in args.scenarios.split(",") if s)
     if args.seeds is not None:
-        values["seeds"] = _seed_list(args.seeds)
+        values["seeds"] = seed_list(args.seeds)
     if args.methods is not None:
         values["methods"] = tuple(m for m in args.methods.split(",") if m)
     if args.duration is not None:
@@ -401,7 +401,7 @@ def _bench(args: argparse.Namespace) -> int:
         for name in spec.scenarios:  # fail before anything runs
             load_scenario(name)
     except (ValueError, FileNotFoundError) as error:
-        print(f"mmpc bench: error: {error}")
+        print(f"bench_closed_loop: error: {error}", file=sys.stderr)
         return 2
     out = Path(args.out)
     total = len(spec.scenarios) * len(spec.methods) * len(spec.seeds)
@@ -416,10 +416,8 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_subcommands(subparsers) -> None:
-    """``mmpc bench``."""
-    bench = subparsers.add_parser(
-        "bench", help="ours vs standard MPC, batch NLP and Frenet sampling on the same episodes: tables, JSON, figures")
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    bench = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     bench.add_argument("--scenarios", default=None, help="comma-separated scenarios (default cruise,high_speed)")
     bench.add_argument("--seeds", default=None, help="seeds, e.g. 0-9 (default 0-9; --quick: 0)")
     bench.add_argument("--methods", default=None,
@@ -428,4 +426,8 @@ def add_subcommands(subparsers) -> None:
     bench.add_argument("--nlp-workers", type=int, default=None, help="batch-NLP processes in the scaling figure (default 2)")
     bench.add_argument("--quick", action="store_true", help="a small run: one seed, 1 s episodes, small scaling figure")
     bench.add_argument("--out", default="runs/bench", help="output folder (default runs/bench)")
-    bench.set_defaults(func=_bench)
+    return _bench(bench.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,31 +1,21 @@
-"""Drivers: anything that turns the state of E environments into E (acceleration, steering)
-commands, behind one interface, so the closed loop, the benchmark and the evaluation run every
-method the same way.
+"""The driver interface: anything that turns the state of E environments into E (acceleration,
+steering) commands, so the episode runner and the evaluation run every method the same way.
 
 A driver sees an :class:`Observation` (the road-frame state the MPC uses, plus highway-env's
 kinematics observation for learned policies) and returns a :class:`Decision`. It is batched:
 one :meth:`Driver.decide` call serves E environments stepped in lockstep, which is what lets
 the multi-modal MPC solve all of their goal batches in one optimizer call.
-
-Drivers are named by a spec string (``mpc``, ``frenet``, ``standard-mpc``, ``batch-nlp``,
-``bc:RUN/policy.pt``, ``sb3:MODEL.zip``); :func:`make_driver` builds one for a scenario. The
-baselines and the learned policies are imported only when asked for.
 """
 
 from __future__ import annotations
 
 import abc
-import importlib
-import time
-from typing import TYPE_CHECKING, Callable, NamedTuple, Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
 
-from mmpc.mpc import MPC, Plan
-
-if TYPE_CHECKING:
-    from mmpc.scenario import ScenarioConfig
+from mmpc.mpc import Plan
 
 
 class Observation(NamedTuple):
@@ -128,85 +118,3 @@ class Driver(abc.ABC):
     @abc.abstractmethod
     def decide(self, observation: Observation) -> Decision:
         """Commands for the E environments of ``observation``."""
-
-
-class MPCDriver(Driver):
-    """The multi-modal MPC (:class:`mmpc.MPC`): one batched optimizer call for all E environments.
-
-    Args:
-        mpc: the MPC (its goal sampler, meta cost and optimizer).
-        name: the driver's name in tables.
-    """
-
-    def __init__(self, mpc: MPC, name: str = "mpc") -> None:
-        self.mpc = mpc
-        self.name = name
-
-    def decide(self, observation: Observation) -> Decision:
-        start = time.perf_counter()
-        plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask)
-        elapsed_ms = (time.perf_counter() - start) * 1e3 - plan.compile_ms
-        trajectories = plan.result.trajectories
-        candidates = Candidates(
-            xy=torch.stack([trajectories.x, trajectories.y], dim=-1),
-            feasible=plan.result.feasible,
-            best=plan.selection.index,
-            goals=plan.problem.goals,
-        )
-        return Decision(
-            acceleration=plan.acceleration,
-            steering=plan.steering,
-            solve_ms=elapsed_ms,
-            goal_index=plan.selection.index,
-            feasible_goals=plan.result.feasible.sum(dim=1),
-            fallback=~plan.selection.feasible,
-            plan_cost=plan.selection.cost,
-            candidates=candidates,
-            plan=plan,
-        )
-
-
-def _mpc_driver(scenario: "ScenarioConfig", argument: Optional[str]) -> Driver:
-    from mmpc.scenario import build_mpc
-
-    if argument is not None:
-        raise ValueError(f"driver 'mpc' takes no argument; got 'mpc:{argument}'")
-    return MPCDriver(build_mpc(scenario))
-
-
-#: Driver factories by spec name: ``(scenario, argument) -> Driver`` where ``argument`` is the
-#: text after ``:`` in the spec (a path for learned policies) or ``None``. Values are
-#: ``"module:function"`` strings, imported on use, so optional dependencies (CasADi,
-#: stable-baselines3) load only for the drivers that need them.
-DRIVERS: dict[str, str | Callable[["ScenarioConfig", Optional[str]], Driver]] = {
-    "mpc": _mpc_driver,
-    "frenet": "mmpc.baselines.frenet:make_frenet_driver",
-    "standard-mpc": "mmpc.baselines.standard_mpc:make_standard_mpc_driver",
-    "batch-nlp": "mmpc.baselines.batch_nlp:make_batch_nlp_driver",
-    "bc": "mmpc.imitation.policy:make_policy_driver",
-    "sb3": "mmpc.rl.driver:make_sb3_driver",
-}
-
-
-def driver_names() -> list[str]:
-    return sorted(DRIVERS)
-
-
-def make_driver(spec: str, scenario: "ScenarioConfig") -> Driver:
-    """Build the driver named by ``spec`` for ``scenario``.
-
-    Args:
-        spec: ``NAME`` or ``NAME:ARGUMENT`` with NAME one of :data:`DRIVERS`
-            (e.g. ``frenet``, ``bc:runs/bc/policy.pt``).
-        scenario: the scenario it will drive (objective, road, optimizer settings).
-    """
-    if not isinstance(spec, str) or not spec:
-        raise ValueError(f"driver spec must be a non-empty string such as 'mpc'; got {spec!r}")
-    name, sep, argument = spec.partition(":")
-    if name not in DRIVERS:
-        raise ValueError(f"unknown driver {name!r} in {spec!r}; expected one of {driver_names()}")
-    factory = DRIVERS[name]
-    if isinstance(factory, str):
-        module, _, function = factory.partition(":")
-        factory = getattr(importlib.import_module(module), function)
-    return factory(scenario, argument if sep else None)

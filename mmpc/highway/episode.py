@@ -1,7 +1,7 @@
 """highway-env adapter: build the environment of a scenario, read its true state in the road
 frame, turn an MPC command into highway-env's continuous action.
 
-This module and :mod:`mmpc.traffic` are the only ones in :mod:`mmpc` that import highway-env.
+This module and :mod:`mmpc.highway.traffic` are the only ones in :mod:`mmpc` that import highway-env.
 
 Frames. highway-env's straight road has lane k's centre at ``y = 4 k`` along +x; the road frame
 used by the optimizer is lane 0's frame (x along the lane from its start, y to the right-hand
@@ -30,7 +30,7 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.scenario import IDMTraffic, ScenarioConfig
-from mmpc.traffic import TrafficController, make_traffic, resize
+from mmpc.highway.traffic import TrafficController, make_traffic, resize
 
 #: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.
 ACCELERATION_RANGE = (-5.0, 5.0)

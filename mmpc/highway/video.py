@@ -15,7 +15,7 @@ import numpy as np
 import pygame
 
 from mmpc.drivers import Candidates
-from mmpc.highway import HighwayEpisode
+from mmpc.highway.episode import HighwayEpisode
 
 FEASIBLE = (70, 150, 255)
 INFEASIBLE = (165, 165, 165)

@@ -16,7 +16,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from mmpc.drivers import Candidates, Decision, Observation
+from mmpc.drivers.base import Candidates, Decision, Observation
 from mmpc.mpc import MPC
 from mmpc.ranking import lowest_feasible
 from mmpc.result import Trajectories

@@ -17,7 +17,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from mmpc.ngsim import Recording, Track, read_ngsim
+from mmpc.highway.ngsim import Recording, Track, read_ngsim
 from mmpc.scenario import IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic
 
 #: Smallest distance along the road to any vehicle in a lane where a vehicle is (re)placed [m].
@@ -220,7 +220,7 @@ class ManoeuvreVehicle(ControlledVehicle):
 
 
 class ReplayVehicle(Vehicle):
-    """A vehicle that follows a recorded :class:`mmpc.ngsim.Track` (it does not react).
+    """A vehicle that follows a recorded :class:`mmpc.highway.ngsim.Track` (it does not react).
 
     Args:
         road: the highway-env road.

@@ -19,6 +19,8 @@ from pathlib import Path
 from statistics import NormalDist
 from typing import Optional, Sequence
 
+from mmpc.files import file_slug
+
 #: Metrics averaged over episodes, with a confidence interval (``<key>_ci``).
 MEAN_METRICS = (
     "mean_speed", "meta_cost_mean", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean",
@@ -116,7 +118,7 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
     """One entry per (driver, scenario), in order of first appearance.
 
     Args:
-        rows: episode rows (:data:`mmpc.evaluate.COLUMNS`); rows without ``status`` count as
+        rows: episode rows (:data:`mmpc.evaluate.store.COLUMNS`); rows without ``status`` count as
             finished, rows without ``driver`` are grouped under ``driver = None``.
 
     Returns:
@@ -248,13 +250,12 @@ def write_tensorboard(rows: Sequence[dict], summary: Sequence[dict], logdir: str
     call (written aside, then swapped in), so a resumed evaluation holds each episode once."""
     from torch.utils.tensorboard import SummaryWriter
 
-    from mmpc.evaluate import driver_slug
 
     logdir = Path(logdir)
     staging = logdir.with_name(f".{logdir.name}.tmp-{os.getpid()}")
     shutil.rmtree(staging, ignore_errors=True)
     for driver in dict.fromkeys(row["driver"] for row in rows):
-        writer = SummaryWriter(log_dir=str(staging / driver_slug(str(driver))))
+        writer = SummaryWriter(log_dir=str(staging / file_slug(str(driver))))
         try:
             for row in rows:
                 if row["driver"] != driver or row.get("status", "ok") != "ok":

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Decision, Driver, Observation, make_driver
-from mmpc.highway import HighwayEpisode
+from mmpc.highway.episode import HighwayEpisode
 from mmpc.metrics import StepRecord, episode_metrics
 from mmpc.plotting import plot_episode
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
@@ -158,7 +158,7 @@ def run_lockstep(
     records: list[list[StepRecord]] = [[] for _ in seeds]
     writer = None
     if video is not None:
-        from mmpc.video import VideoWriter, render_candidates  # pygame and imageio only when asked for
+        from mmpc.highway.video import VideoWriter, render_candidates  # pygame and imageio only when asked for
 
         writer = VideoWriter(video, fps=scenario.frequency)
     try:

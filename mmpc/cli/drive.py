@@ -1,0 +1,98 @@
+"""``mmpc drive``: one closed-loop highway-env episode (metrics, steps.csv, video, top-down plot), or
+with ``--seeds`` an evaluation over seeds with one folder per episode."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+from mmpc.cli.arguments import override, seed_list, unwritable
+
+
+def run(args: argparse.Namespace) -> int:
+    """One episode (video, table, outputs) or, with --seeds, an evaluation over seeds."""
+    from tqdm import tqdm
+
+    from mmpc.scenario import load_scenario
+
+    if args.seed is not None and args.seeds is not None:
+        print("mmpc drive: error: give --seed (one episode) or --seeds (an evaluation), not both", file=sys.stderr)
+        return 2
+    torch.set_num_threads(args.threads)
+    scenarios = []
+    for name in args.scenario.split(","):
+        scenario = load_scenario(name, dict(args.set))
+        if args.duration is not None:
+            scenario = scenario.replace(duration=args.duration)
+        scenarios.append(scenario)
+    out = Path(args.out)
+    problem = unwritable(out)  # before driving: an episode's outputs are written at its end
+    if problem is not None:
+        print(f"mmpc drive: error: --out {out} must be a folder this process can create and write to; got {problem}",
+              file=sys.stderr)
+        return 2
+    if args.seeds is not None:
+        from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table
+
+        episodes = len(scenarios) * len(args.seeds)
+        config = EvaluationConfig(drivers=(args.driver,), seeds=args.seeds, workers=args.workers, threads=args.threads,
+                                  episode_layout="{scenario}/seed_{seed}", collision_videos=True, report=False)
+        with tqdm(total=episodes, desc="episodes", unit="ep") as bar:
+            def progress(row: dict) -> None:
+                bar.update(1)
+                bar.set_postfix_str(f"{row['scenario']} seed {row['seed']}: {row['status']}, collisions {row['collisions']}")
+
+            try:
+                _, summary = evaluate(scenarios, out, config, on_episode=progress)
+            except EvaluationFolderError as error:  # an earlier evaluation's files, damaged or of other scenarios
+                bar.close()
+                print(f"mmpc drive: error: {error}", file=sys.stderr)
+                return 2
+        print(format_table(summary))
+        print(f"wrote {out / 'summary.json'}, {out / 'episodes.csv'} and one folder per episode under {out}")
+        return 0
+    if len(scenarios) != 1:
+        print("mmpc drive: error: several scenarios need --seeds", file=sys.stderr)
+        return 2
+    from mmpc.highway.runner import run_episode, write_outputs
+    from mmpc.drivers import make_driver
+
+    scenario = scenarios[0]
+    driver = make_driver(args.driver, scenario)
+    seed = scenario.seeds[0] if args.seed is None else args.seed
+    video = None if args.no_video else out / "episode.mp4"
+    steps = round(scenario.duration * scenario.frequency)
+    with tqdm(total=steps, desc=f"{scenario.name} seed {seed}", unit="step") as bar:
+        result = run_episode(scenario, seed, driver=driver, video=video, on_step=lambda record: bar.update(1))
+    paths = write_outputs(result, out)
+    width = max(map(len, result.metrics))
+    for key, value in result.metrics.items():
+        print(f"{key:<{width}}  {value:.3f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+    print("wrote " + ", ".join(str(p) for p in paths + ([video] if video else [])))
+    return 0
+
+
+def add_subcommand(sub: argparse._SubParsersAction) -> None:
+    """Add ``mmpc drive``."""
+    drive = sub.add_parser("drive", help="closed-loop highway-env episode: metrics, steps.csv, video, top-down plot")
+    drive.add_argument("--scenario", default="cruise",
+                       help="name in configs/scenarios (cruise, high_speed, ...) or a YAML path; "
+                            "comma-separated with --seeds (default cruise)")
+    drive.add_argument("--driver", default="mpc",
+                       help="who drives: mpc (default), frenet, standard-mpc, batch-nlp, bc:RUN/policy.pt, sb3:MODEL.zip")
+    drive.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's first seed)")
+    drive.add_argument("--seeds", type=seed_list, default=None,
+                       help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "
+                            "a video only for episodes with a collision")
+    drive.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
+    drive.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
+                       help="override a scenario value (YAML; repeatable), e.g. highway-env's own faster traffic: "
+                            "--set traffic.target_speeds=null --set name=cruise_default_traffic")
+    drive.add_argument("--no-video", action="store_true", help="skip episode.mp4 (single episode)")
+    drive.add_argument("--workers", type=int, default=1, help="parallel episodes with --seeds (default 1)")
+    drive.add_argument("--threads", type=int, default=1, help="torch threads per episode (default 1)")
+    drive.add_argument("--out", default="runs/drive", help="output folder (default runs/drive)")
+    drive.set_defaults(func=run)

@@ -1,0 +1,48 @@
+"""The ``mmpc`` command: ``solve``, ``drive``, ``evaluate``, ``rl ...`` and ``imitate ...``.
+
+Each verb's module adds its subcommand and keeps its heavy imports (CasADi, Ray,
+stable-baselines3, Minari) inside the command function.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from typing import Optional, Sequence
+
+from mmpc.cli import drive, evaluate, solve
+from mmpc.imitation import cli as imitation_cli
+from mmpc.rl import cli as rl_cli
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mmpc", description="Multi-modal MPC by batch non-holonomic trajectory optimization.")
+    parser.add_argument("--log-level", default="WARNING", help="logging level of the library (default WARNING)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    solve.add_subcommand(sub)
+    drive.add_subcommand(sub)
+    evaluate.add_subcommand(sub)
+    rl_cli.add_subcommands(sub)
+    imitation_cli.add_subcommands(sub)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
+    if getattr(args, "goals", 1) < 1:
+        print("mmpc: error: --goals must be >= 1", file=sys.stderr)
+        return 2
+    for name in ("workers", "threads"):
+        if getattr(args, name, None) is not None and getattr(args, name) < 1:
+            print(f"mmpc: error: --{name} must be >= 1", file=sys.stderr)
+            return 2
+    if getattr(args, "duration", None) is not None and not args.duration > 0:
+        print("mmpc: error: --duration must be > 0 s", file=sys.stderr)
+        return 2
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

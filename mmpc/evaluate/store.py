@@ -1,0 +1,183 @@
+"""The evaluation's files: ``episodes.csv`` (one row per episode, :data:`COLUMNS`) and
+``scenarios.json`` (the settings hash of every scenario whose episodes the folder holds).
+
+``episodes.csv`` is written by the coordinating process only: rewritten atomically at the start
+of a run, then appended to and fsync'ed as each group finishes, so a killed run loses no
+finished episode. A last line without its newline (a write cut short) is dropped on reading;
+any other damage is refused with the file and the line.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Sequence
+
+from mmpc.files import atomic_write_text
+from mmpc.scenario import ScenarioConfig
+
+logger = logging.getLogger(__name__)
+
+#: An episode's identity.
+KEY_COLUMNS = ("driver", "scenario", "seed")
+#: How it ran: ``status`` ok/error, ``error`` the exception, ``group`` (= seed // lockstep) and
+#: ``group_size`` (episodes driven together), ``worker`` (host:pid), ``wall_s`` (the group's
+#: wall time [s]).
+RUN_COLUMNS = ("status", "error", "group", "group_size", "worker", "wall_s")
+#: The episode metrics (:func:`mmpc.metrics.episode_metrics`; empty where a scenario has none),
+#: plus ``solve_ms_per_episode_mean``: each decision's time divided by the episodes it served.
+METRIC_COLUMNS = (
+    "steps", "duration", "collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
+    "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
+    "solve_ms_max", "solve_ms_per_episode_mean", "lane_changes", "fallback_steps", "min_clearance",
+)
+COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
+_INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "offroad", "lane_changes", "fallback_steps"})
+_TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker"})
+
+Key = tuple[str, str, int]
+
+
+def new_row(**values: object) -> dict:
+    """A row with every one of :data:`COLUMNS`, in order (``None`` where not given)."""
+    return {column: values.get(column) for column in COLUMNS}
+
+
+def row_key(row: dict) -> Key:
+    """``(driver, scenario, seed)`` of a row."""
+    return row["driver"], row["scenario"], row["seed"]
+
+
+class EvaluationFolderError(ValueError):
+    """An evaluation folder whose ``episodes.csv`` or ``scenarios.json`` cannot be resumed from
+    (another format, a damaged line, episodes of another scenario of the same name)."""
+
+
+#: What to do about a damaged line of ``episodes.csv``.
+_DAMAGED_LINE = "fix or delete the line (a deleted episode is run again) or use another `out`"
+
+
+def _parse(column: str, text: str, where: str) -> object:
+    if column in _TEXT_COLUMNS:
+        return text
+    if text == "":
+        return None
+    try:
+        return int(text) if column in _INT_COLUMNS else float(text)
+    except ValueError:
+        expected = "an integer" if column in _INT_COLUMNS else "a number"
+        raise EvaluationFolderError(f"{where}: `{column}` is {text!r}, expected {expected}; {_DAMAGED_LINE}") from None
+
+
+def read_episodes(path: Path) -> list[dict]:
+    """The rows of an ``episodes.csv``, typed (ints, floats, ``None`` for empty cells).
+
+    A last line without its newline (a write cut short by a killed process) is dropped.
+
+    Raises:
+        EvaluationFolderError: the header lacks a key column, or a line has another number of
+            fields than the header, an empty key, a status other than ok/error or a value that
+            does not parse; the message names the file and the line.
+    """
+    path = Path(path)
+    if not path.exists():
+        return []
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        line = data[:error.start].count(b"\n") + 1
+        raise EvaluationFolderError(f"{path}, line {line}: not UTF-8 text ({error}); {_DAMAGED_LINE}") from error
+    if text and not text.endswith("\n"):
+        logger.warning("%s: dropping an incomplete last line (an interrupted write)", path)
+        text = text[: text.rfind("\n") + 1]
+    reader = csv.reader(io.StringIO(text))
+    rows = []
+    try:
+        header = next(reader, [])
+        missing = [c for c in KEY_COLUMNS + ("status",) if c not in header]
+        if text and missing:
+            raise EvaluationFolderError(f"{path} is not an evaluation's episodes.csv: columns {missing} missing; "
+                                        "use another `out`")
+        for fields in reader:
+            if not fields:  # a blank line
+                continue
+            where = f"{path}, line {reader.line_num}"
+            if len(fields) != len(header):
+                raise EvaluationFolderError(f"{where}: {len(fields)} fields, expected {len(header)} (the header's); "
+                                            f"{_DAMAGED_LINE}")
+            values = dict(zip(header, fields))
+            row = {column: _parse(column, values.get(column, ""), where) for column in COLUMNS}
+            if not row["driver"] or not row["scenario"] or row["seed"] is None or row["status"] not in ("ok", "error"):
+                raise EvaluationFolderError(
+                    f"{where}: expected a driver, a scenario, a seed and status ok or error; got "
+                    f"driver={row['driver']!r}, scenario={row['scenario']!r}, seed={row['seed']!r}, "
+                    f"status={row['status']!r}; {_DAMAGED_LINE}")
+            rows.append(row)
+    except csv.Error as error:  # e.g. a NUL byte, as a crash can leave
+        raise EvaluationFolderError(f"{path}, line {reader.line_num}: {error}; {_DAMAGED_LINE}") from error
+    return rows
+
+
+def _csv_lines(rows: Sequence[dict]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, extrasaction="ignore", lineterminator="\n")
+    for row in rows:
+        writer.writerow({column: "" if row.get(column) is None else row[column] for column in COLUMNS})
+    return buffer.getvalue()
+
+
+class EpisodeFile:
+    """``episodes.csv``, written by the coordinating process only: rewritten atomically at the
+    start of a run, then appended to (one write + fsync per finished group)."""
+
+    def __init__(self, path: Path, rows: Sequence[dict]) -> None:
+        self.path = path
+        atomic_write_text(path, ",".join(COLUMNS) + "\n" + _csv_lines(rows))
+        self._handle = open(path, "a", encoding="utf-8", newline="")
+
+    def append(self, rows: Sequence[dict]) -> None:
+        self._handle.write(_csv_lines(rows))
+        self._handle.flush()
+        os.fsync(self._handle.fileno())
+
+    def close(self) -> None:
+        self._handle.close()
+
+
+#: What to do about a damaged ``scenarios.json``.
+_CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run with the scenarios as they are now; "
+                      "otherwise use another `out`")
+
+
+def scenario_fingerprint(scenario: ScenarioConfig) -> str:
+    """A short hash of every setting of a scenario (:meth:`ScenarioConfig.to_dict`)."""
+    return hashlib.sha256(json.dumps(scenario.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
+    """Refuse to mix episodes of two different scenarios under one name in ``out``."""
+    path = out / "scenarios.json"
+    known: dict[str, str] = {}
+    if path.exists():
+        try:
+            known = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError as error:  # JSONDecodeError names the line and column; UnicodeDecodeError the byte
+            raise EvaluationFolderError(f"{path} is corrupt ({error}); expected the JSON object of scenario name -> "
+                                        f"settings hash this folder's episodes were run with; {_CORRUPT_SCENARIOS}") from error
+        if not isinstance(known, dict) or not all(isinstance(v, str) for v in known.values()):
+            raise EvaluationFolderError(f"{path} is corrupt: expected a JSON object of scenario name -> settings hash; "
+                                        f"got {str(known)[:100]}; {_CORRUPT_SCENARIOS}")
+    for scenario in scenarios:
+        fingerprint = scenario_fingerprint(scenario)
+        if known.setdefault(scenario.name, fingerprint) != fingerprint:
+            raise EvaluationFolderError(
+                f"{out} holds episodes of another scenario named {scenario.name!r} (settings changed, e.g. --duration or "
+                f"--set); use another `out` or rename the scenario (--set name=...)"
+            )
+    atomic_write_text(path, json.dumps(known, indent=2) + "\n")

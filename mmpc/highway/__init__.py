@@ -1,0 +1,27 @@
+"""highway-env as the world the drivers drive in: the only package of mmpc that imports
+highway-env or pygame.
+
+:mod:`~mmpc.highway.episode` turns a scenario into a highway-env episode seen in the road frame;
+:mod:`~mmpc.highway.traffic` drives the other vehicles (IDM/MOBIL, scripted, NGSIM replay);
+:mod:`~mmpc.highway.runner` is the one episode loop (lockstep, with observers);
+:mod:`~mmpc.highway.video` draws the driver's candidates into the rendered frames.
+"""
+
+from mmpc.highway.episode import (
+    ACCELERATION_RANGE,
+    STEERING_RANGE,
+    HighwayEpisode,
+    RoadFrame,
+    RoadState,
+    command_to_action,
+    env_config,
+    road_state,
+    vehicle_motion,
+)
+from mmpc.highway.runner import EpisodeResult, run_episode, run_lockstep, stack_observations, write_outputs
+
+__all__ = [
+    "ACCELERATION_RANGE", "STEERING_RANGE", "EpisodeResult", "HighwayEpisode", "RoadFrame", "RoadState",
+    "command_to_action", "env_config", "road_state", "run_episode", "run_lockstep", "stack_observations",
+    "vehicle_motion", "write_outputs",
+]
