@@ -51,7 +51,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional, Sequence
+from typing import Any, Callable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 import torch
@@ -59,6 +59,8 @@ import torch
 from mmpc.config import dataclass_from_dict
 from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
+from mmpc.evaluate import Backend, run_tasks
+from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
 from mmpc.imitation.dataset import Transitions
@@ -237,11 +239,33 @@ def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> n
     return labels
 
 
+class _DriveTask(NamedTuple):
+    """A lockstep group of DAgger's episodes."""
+
+    scenario: ScenarioConfig
+    seeds: tuple[int, ...]
+    driver: Driver
+    keep_states: bool
+
+    @property
+    def label(self) -> str:
+        return f"DAgger {self.driver.name} seeds {self.seeds[0]}-{self.seeds[-1]}"
+
+
+def _drive_group(task: _DriveTask) -> list[Rollout]:
+    return rollout_lockstep(task.scenario, task.seeds, task.driver, keep_states=task.keep_states)
+
+
+def _raise(task: _DriveTask, error: BaseException | str) -> list[Rollout]:
+    raise error if isinstance(error, BaseException) else RuntimeError(f"{task.label}: {error}")
+
+
 def _drive(scenario: ScenarioConfig, seeds: Sequence[int], driver: Driver, lockstep: int, keep_states: bool) -> list[Rollout]:
-    rollouts: list[Rollout] = []
-    for start in range(0, len(seeds), lockstep):
-        rollouts += rollout_lockstep(scenario, seeds[start:start + lockstep], driver, keep_states=keep_states)
-    return rollouts
+    """Episodes of ``seeds`` in lockstep groups (``seed // lockstep``), in this process: the
+    mixture's random stream runs through the groups in order."""
+    tasks = [_DriveTask(scenario, tuple(group), driver, keep_states) for group in lockstep_groups(seeds, lockstep).values()]
+    backend = Backend(workers=1, threads=torch.get_num_threads())
+    return [rollout for _, rollouts in run_tasks(tasks, _drive_group, _raise, backend) for rollout in rollouts]
 
 
 def _rollout_stats(rollouts: Sequence[Rollout]) -> dict:

@@ -1,11 +1,11 @@
 """Expert demonstrations: the multi-modal MPC drives seeded episodes, each finished episode is
 staged atomically, and a Minari dataset is built from them (``mmpc imitate demos``).
 
-Episodes run in lockstep chunks (one optimizer call per step for the chunk's episodes); chunk
-k holds the requested seeds ``s`` with ``s // lockstep == k``, so a chunk always has the same
-members and a resumed run recomputes an unfinished chunk exactly as an uninterrupted run
-would (lockstep batches round differently from single solves, so membership matters). Chunks
-run in parallel worker processes, each with its own torch threads.
+Episodes run in lockstep groups (one optimizer call per step for the group's episodes), mmpc's
+one grouping rule (:func:`mmpc.evaluate.tasks.lockstep_groups`: seed // lockstep), so a resumed
+run recomputes an unfinished group exactly as an uninterrupted run would. Groups are tasks of
+mmpc's one worker pool (:func:`mmpc.evaluate.run_tasks`: in this process or in worker
+processes, each with its own torch threads).
 
 One run at a time writes a directory: a run holds the lock file :data:`LOCK` in it (as
 ``mmpc evaluate`` does, :func:`mmpc.files.exclusive`) and a second is refused.
@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import multiprocessing
 import signal
-import time
 from pathlib import Path
 from typing import Callable, Iterator, NamedTuple, Optional, Sequence
 
 import torch
 
+from mmpc.drivers import MPCDriver
+from mmpc.evaluate import Backend, run_tasks
+from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import TEMPORARY_PREFIX, atomic_write, exclusive
 from mmpc.imitation.dataset import (
     MANIFEST,
@@ -36,7 +37,8 @@ from mmpc.imitation.dataset import (
     package_versions,
     save_episode,
 )
-from mmpc.scenario import ScenarioConfig
+from mmpc.imitation.rollout import Rollout, rollout_lockstep
+from mmpc.scenario import ScenarioConfig, build_mpc
 
 logger = logging.getLogger(__name__)
 
@@ -64,46 +66,46 @@ class DemosReport(NamedTuple):
     rebuilt: bool
 
 
-def chunks(seeds: Sequence[int], lockstep: int) -> list[list[int]]:
-    """Group ``seeds`` by ``seed // lockstep`` (in order of first appearance)."""
-    groups: dict[int, list[int]] = {}
-    for seed in seeds:
-        groups.setdefault(seed // lockstep, []).append(seed)
-    return list(groups.values())
+class DemoTask(NamedTuple):
+    """One lockstep group of the expert's episodes (a task of :func:`mmpc.evaluate.run_tasks`).
 
-
-def _worker_init(threads: int) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles interrupts and terminates the pool
-    torch.set_num_threads(threads)
-
-
-def drive_chunk(scenario: ScenarioConfig, seeds: Sequence[int], missing: Sequence[int], episodes_dir: Path) -> list[int]:
-    """Drive one lockstep chunk with the scenario's MPC and stage the episodes of ``missing``.
-
-    Args:
+    Fields:
         scenario: the scenario.
-        seeds: every seed of the chunk (all are driven: they share the optimizer batches).
+        seeds: every seed of the group (all are driven: they share the optimizer batches).
         missing: the seeds to write (the others are staged already).
         episodes_dir: the staging folder.
-
-    Returns:
-        The seeds written.
     """
-    from mmpc.drivers import MPCDriver
-    from mmpc.imitation.rollout import rollout_lockstep
-    from mmpc.scenario import build_mpc
 
-    wanted = set(missing)
+    scenario: ScenarioConfig
+    seeds: tuple[int, ...]
+    missing: tuple[int, ...]
+    episodes_dir: Path
+
+    @property
+    def label(self) -> str:
+        return f"demonstrations {self.scenario.name} seeds {self.seeds[0]}-{self.seeds[-1]}"
+
+
+def drive_group(task: DemoTask) -> list[int]:
+    """Drive one group with the scenario's MPC and stage the episodes of ``task.missing``;
+    returns the seeds written."""
+    wanted = set(task.missing)
     written: list[int] = []
 
-    def stage(rollout) -> None:
+    def stage(rollout: Rollout) -> None:
         if rollout.episode.seed in wanted:
-            save_episode(episodes_dir / f"seed_{rollout.episode.seed:06d}.npz", rollout.episode)
+            save_episode(task.episodes_dir / f"seed_{rollout.episode.seed:06d}.npz", rollout.episode)
             written.append(rollout.episode.seed)
 
     with torch.inference_mode():
-        rollout_lockstep(scenario, seeds, MPCDriver(build_mpc(scenario)), on_finished=stage)
+        rollout_lockstep(task.scenario, task.seeds, MPCDriver(build_mpc(task.scenario)), on_finished=stage)
     return written
+
+
+def _group_failed(task: DemoTask, error: BaseException | str) -> list[int]:
+    if isinstance(error, BaseException):
+        raise error
+    raise RuntimeError(f"{task.label}: {error}")
 
 
 @contextlib.contextmanager
@@ -154,7 +156,7 @@ def generate_demonstrations(
     """Drive the expert over ``seeds``, stage every episode, build the Minari dataset.
 
     Re-running with the same arguments after an interruption keeps the staged episodes and
-    drives only the unfinished chunks; the dataset is rebuilt to hold each requested episode
+    drives only the unfinished groups; the dataset is rebuilt to hold each requested episode
     once, in the order of ``seeds``.
 
     Args:
@@ -162,7 +164,7 @@ def generate_demonstrations(
         seeds: the episodes' seeds (distinct).
         out: the demonstrations directory (see :mod:`mmpc.imitation.dataset`).
         workers: parallel processes (1: in this process).
-        lockstep: episodes per lockstep chunk (part of the directory's identity).
+        lockstep: the grouping of the episodes (part of the directory's identity).
         threads: torch threads per worker.
         on_progress: called as ``on_progress(finished, total)`` while episodes get staged.
 
@@ -182,8 +184,9 @@ def generate_demonstrations(
     with _locked_directory(Path(out), Manifest(scenario.to_dict(), lockstep, package_versions())) as directory:
         staged = directory.finished_seeds()
         reused = [s for s in seeds if s in staged]
-        jobs = [(chunk, [s for s in chunk if s not in staged]) for chunk in chunks(seeds, lockstep)]
-        jobs = [(chunk, missing) for chunk, missing in jobs if missing]
+        tasks = [DemoTask(scenario, tuple(group), tuple(s for s in group if s not in staged), directory.episodes_dir)
+                 for group in lockstep_groups(seeds, lockstep).values()]
+        tasks = [task for task in tasks if task.missing]
         total = len(seeds)
 
         def progress() -> None:
@@ -193,27 +196,9 @@ def generate_demonstrations(
         progress()
         generated: list[int] = []
         with _sigterm_as_interrupt():
-            if workers == 1 or len(jobs) <= 1:
-                for chunk, missing in jobs:
-                    generated += drive_chunk(scenario, chunk, missing, directory.episodes_dir)
-                    progress()
-            elif jobs:
-                pool = multiprocessing.get_context("spawn").Pool(min(workers, len(jobs)), _worker_init, (threads,))
-                try:
-                    pending = [pool.apply_async(drive_chunk, (scenario, chunk, missing, directory.episodes_dir))
-                               for chunk, missing in jobs]
-                    while pending:
-                        time.sleep(0.5)
-                        progress()
-                        for result in [r for r in pending if r.ready()]:
-                            generated += result.get()
-                            pending.remove(result)
-                    pool.close()
-                except BaseException:
-                    pool.terminate()  # workers may be mid-episode; their partial files never got renamed
-                    raise
-                finally:
-                    pool.join()
+            for _, written in run_tasks(tasks, drive_group, _group_failed, Backend(min(workers, max(len(tasks), 1)), threads)):
+                generated += written
+                progress()
         progress()
         identifier = dataset_id(scenario)
         rebuilt = built_seeds(directory.root, identifier) != seeds

@@ -3,10 +3,10 @@ observation, the executed (acceleration, steering) command, the reward, the epis
 deciding driver's diagnostics, and the road-frame state the cloned policy reads (the ego and
 its nearest neighbours, :mod:`mmpc.imitation.features`).
 
-One driver call per control step serves every episode still running (for the MPC expert: one
-optimizer call over all their goal batches), as in :func:`mmpc.highway.runner.run_lockstep`; here each
-finished episode is handed to a callback at once (so a generator can write it to disk before
-the others end) as an :class:`Episode` of numpy arrays.
+The episodes run through mmpc's one episode loop, :func:`mmpc.highway.run_lockstep` (one
+driver call per control step for every episode still running); :class:`RolloutRecorder` is its
+observer, and hands each finished episode to a callback at once (so a generator can write it to
+disk before the others end) as an :class:`Episode` of numpy arrays.
 
 Alignment (Minari's): ``observations`` has T + 1 rows (the state after the last command
 included), ``actions``, ``rewards``, ``terminations`` and ``truncations`` T rows; the info
@@ -22,9 +22,8 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import numpy as np
 import torch
 
-from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE, HighwayEpisode
+from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE, HighwayEpisode, Observer, Step, run_lockstep
 from mmpc.imitation.features import STORED_NEIGHBOURS, nearest_neighbours
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import ScenarioConfig
@@ -116,18 +115,56 @@ def decision_infos(decision: Decision, observation: Observation, scenario: Scena
     return infos
 
 
-class _Recorder:
+class RolloutRecorder(Observer):
+    """Records :class:`Rollout` s from :func:`mmpc.highway.run_lockstep` (an observer).
+
+    Args:
+        scenario: the scenario driven.
+        seeds: the seeds given to the runner, in its order.
+        keep_states: also keep the driver's input of every step (:attr:`Rollout.states`).
+        on_finished: called with each episode as soon as it ends.
+    """
+
+    def __init__(self, scenario: ScenarioConfig, seeds: Sequence[int], *, keep_states: bool = False,
+                 on_finished: Optional[Callable[[Rollout], None]] = None) -> None:
+        self.scenario = scenario
+        self.seeds = list(seeds)
+        self.keep_states = keep_states
+        self.on_finished = on_finished
+        self.rollouts: list[Optional[Rollout]] = [None] * len(self.seeds)
+        self._rows = [_Rows(keep_states) for _ in self.seeds]
+        self._infos: dict[str, np.ndarray] = {}
+
+    def decided(self, observation: Observation, decision: Decision, active: Sequence[int]) -> None:
+        self._infos = decision_infos(decision, observation, self.scenario)
+
+    def applied(self, step: Step) -> None:
+        rows = self._rows[step.index]
+        rows.observations.append(step.batch.kinematics[step.row])
+        rows.infos.append({name: values[step.row] for name, values in self._infos.items()})
+        if rows.states is not None:
+            rows.states.append(step.observation)
+        rows.actions.append(executed_command(float(step.decision.acceleration[step.row]),
+                                             float(step.decision.steering[step.row])))
+        rows.rewards.append(step.episode.reward)
+
+    def finished(self, index: int, episode: HighwayEpisode) -> None:
+        self.rollouts[index] = self._rows[index].finish(self.seeds[index], episode)
+        if self.on_finished is not None:
+            self.on_finished(self.rollouts[index])
+
+
+class _Rows:
     """Rows of one episode while it runs."""
 
-    def __init__(self, seed: int, keep_states: bool) -> None:
-        self.seed = seed
+    def __init__(self, keep_states: bool) -> None:
         self.observations: list[np.ndarray] = []
         self.actions: list[tuple[float, float]] = []
         self.rewards: list[float] = []
         self.infos: list[dict[str, np.ndarray]] = []
         self.states: Optional[list[Observation]] = [] if keep_states else None
 
-    def finish(self, episode: HighwayEpisode) -> Rollout:
+    def finish(self, seed: int, episode: HighwayEpisode) -> Rollout:
         final = episode.observe()
         self.observations.append(final.kinematics[0])
         steps = len(self.actions)
@@ -148,7 +185,7 @@ class _Recorder:
             terminations[-1] = crashed
             truncations[-1] = not crashed
         recorded = Episode(
-            seed=self.seed,
+            seed=seed,
             observations=np.stack(self.observations).astype(np.float32),
             actions=np.asarray(self.actions, dtype=np.float32).reshape(steps, 2),
             rewards=np.asarray(self.rewards, dtype=np.float64),
@@ -167,7 +204,8 @@ def rollout_lockstep(
     keep_states: bool = False,
     on_finished: Optional[Callable[[Rollout], None]] = None,
 ) -> list[Rollout]:
-    """Drive one episode per seed in lockstep with ``driver`` and record every step.
+    """Drive one episode per seed in lockstep with ``driver`` (:func:`mmpc.highway.run_lockstep`)
+    and record every step (:class:`RolloutRecorder`).
 
     Args:
         scenario: the scenario (its ``duration`` sets the length; an episode ends early at a
@@ -180,38 +218,6 @@ def rollout_lockstep(
     Returns:
         One :class:`Rollout` per seed, in the order of ``seeds``.
     """
-    seeds = list(seeds)
-    if not seeds or len(set(seeds)) != len(seeds):
-        raise ValueError(f"`seeds` must be distinct and at least one; got {seeds}")
-    episodes = [HighwayEpisode(scenario, seed) for seed in seeds]
-    recorders = [_Recorder(seed, keep_states) for seed in seeds]
-    finished: list[Optional[Rollout]] = [None] * len(seeds)
-    try:
-        driver.reset(len(episodes))
-        while True:
-            active = [i for i, episode in enumerate(episodes) if not episode.done and finished[i] is None]
-            for i, episode in enumerate(episodes):
-                if episode.done and finished[i] is None:
-                    finished[i] = recorders[i].finish(episode)
-                    if on_finished is not None:
-                        on_finished(finished[i])
-            if not active:
-                break
-            singles = [episodes[i].observe() for i in active]
-            observation = stack_observations(singles, active)
-            decision = driver.decide(observation)
-            infos = decision_infos(decision, observation, scenario)
-            for row, i in enumerate(active):
-                command = executed_command(float(decision.acceleration[row]), float(decision.steering[row]))
-                recorder = recorders[i]
-                recorder.observations.append(observation.kinematics[row])
-                recorder.infos.append({name: values[row] for name, values in infos.items()})
-                if recorder.states is not None:
-                    recorder.states.append(singles[row])
-                episodes[i].apply(*command)
-                recorder.actions.append(command)
-                recorder.rewards.append(episodes[i].reward)
-    finally:
-        for episode in episodes:
-            episode.close()
-    return [rollout for rollout in finished if rollout is not None]
+    recorder = RolloutRecorder(scenario, seeds, keep_states=keep_states, on_finished=on_finished)
+    run_lockstep(scenario, seeds, driver=driver, observers=[recorder])
+    return [rollout for rollout in recorder.rollouts if rollout is not None]

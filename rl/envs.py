@@ -27,38 +27,17 @@ import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium import spaces
-from highway_env.envs.common.observation import KinematicObservation
 
 from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Observation
 from mmpc.highway import HighwayEpisode, road_state
 from mmpc.rl.config import RewardConfig, SafeEnvConfig, rl_scenario
+from mmpc.highway.kinematics import DeferredKinematics
 from mmpc.rl.safety import FEATURES_PER_GOAL, SafetyLayer
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 
 #: Features per row of highway-env's Kinematics observation (its defaults).
 KINEMATICS_FEATURES = ("presence", "x", "y", "vx", "vy")
-
-
-class DeferredKinematics(KinematicObservation):
-    """highway-env's ``Kinematics`` observation, computed only when asked for.
-
-    highway-env builds its observation (a pandas frame, ~14 ms here) on every ``env.step``; the
-    safe environments step it once per simulation frame but observe once per agent step. This
-    observation type answers highway-env's per-frame call with a constant placeholder of the
-    right shape and computes the real observation in :meth:`compute`.
-    """
-
-    def __init__(self, env, vehicles_count: int) -> None:
-        super().__init__(env, vehicles_count=vehicles_count)
-        self._placeholder = np.zeros(self.space().shape, dtype=np.float32)
-
-    def observe(self) -> np.ndarray:
-        return self._placeholder.copy()
-
-    def compute(self) -> np.ndarray:
-        """The current ``Kinematics`` observation, (vehicles_count, 5) float32."""
-        return np.asarray(super().observe(), dtype=np.float32)
 
 
 def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:

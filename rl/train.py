@@ -142,7 +142,8 @@ def evaluate(
         env_kind: ``safe`` or ``highway``.
         continuous: Box actions.
         seeds: one episode per seed.
-        lockstep: safe environments: episodes run together, one batched solve per frame.
+        lockstep: safe environments: episodes run together, one batched solve per frame, in
+            groups ``seed // lockstep`` (mmpc's one grouping rule).
         on_episode: called with every finished episode.
     """
     if env_kind not in ENV_KINDS:
@@ -152,6 +153,7 @@ def evaluate(
         raise ValueError("`seeds` must not be empty")
     rows: list[EpisodeRow] = []
     if env_kind == "safe":
+        from mmpc.evaluate.tasks import lockstep_groups
         from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
         from mmpc.rl.safety import SafetyLayer
         from mmpc.scenario import build_mpc
@@ -160,8 +162,7 @@ def evaluate(
         envs = [SafeHighwayEnv(config.scenario, config.env, config.reward, continuous=continuous, layer=layer)
                 for _ in range(min(lockstep, len(seeds)))]
         try:
-            for start in range(0, len(seeds), len(envs)):
-                chunk = seeds[start:start + len(envs)]
+            for chunk in lockstep_groups(seeds, lockstep).values():
                 running = envs[:len(chunk)]
                 observations = [obs for obs, _ in reset_many(running, chunk)]
                 stats = [_EpisodeStats(seed) for seed in chunk]

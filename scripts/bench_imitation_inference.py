@@ -1,5 +1,4 @@
-"""Inference cost per control step: the cloned policy vs the MPC expert on the same states
-.
+"""Inference cost per control step: the cloned policy vs the MPC expert on the same states.
 
 The expert drives one episode to collect states; then both drivers decide those states (E = 1,
 as in a single closed loop), after a warm-up, in two orders measured in the same run:

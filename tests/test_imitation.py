@@ -37,7 +37,8 @@ from mmpc.imitation.dataset import (
     load_episode,
     open_dataset,
 )
-from mmpc.imitation.demos import chunks, generate_demonstrations
+from mmpc.evaluate.tasks import lockstep_groups
+from mmpc.imitation.demos import generate_demonstrations
 from mmpc.imitation.features import FeatureConfig, nearest_neighbours, road_features
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import rollout_lockstep
@@ -142,7 +143,7 @@ def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refus
     (corrupt / "manifest.json").write_text('{"format": "mmpc-demonstrations", "version": 1, "sce')
     with pytest.raises(DemonstrationsError, match="manifest.json is corrupt"):
         generate_demonstrations(short_cruise(), SEEDS, corrupt)
-    assert chunks([1000, 1001, 1002, 1005], 4) == [[1000, 1001, 1002], [1005]]
+    assert list(lockstep_groups([1000, 1001, 1002, 1005], 4).values()) == [[1000, 1001, 1002], [1005]]
 
 
 INTERRUPTED_EPISODES = 8

@@ -51,7 +51,7 @@ def test_demos_refuses_a_folder_another_run_holds(tmp_path, monkeypatch, capsys,
     import mmpc.imitation.demos as demos
     from mmpc.imitation.dataset import MANIFEST, Manifest, package_versions
 
-    monkeypatch.setattr(demos, "drive_chunk", _no_driving)
+    monkeypatch.setattr(demos, "drive_group", _no_driving)
     out = tmp_path / "demos"
     out.mkdir()
     scenario = load_scenario("cruise").replace(duration=0.5)
@@ -74,21 +74,21 @@ def test_demos_holds_its_lock_while_driving_and_releases_it_after_a_run_and_afte
     scenario = load_scenario("cruise").replace(duration=0.5)
     held_while_driving = []
 
-    def fake_chunk(scenario, seeds, missing, episodes_dir):
+    def fake_group(task):
         held_while_driving.append(not _lock_is_free(out / DEMOS_LOCK))
-        return list(missing)  # nothing staged: the dataset step is faked below
+        return list(task.missing)  # nothing staged: the dataset step is faked below
 
-    monkeypatch.setattr(demos, "drive_chunk", fake_chunk)
+    monkeypatch.setattr(demos, "drive_group", fake_group)
     monkeypatch.setattr(demos, "built_seeds", lambda root, identifier: [0, 1])  # "already built"
     report = demos.generate_demonstrations(scenario, [0, 1], out, lockstep=2)
     assert report.generated == [0, 1] and not report.rebuilt
     assert held_while_driving == [True]
     assert (out / DEMOS_LOCK).exists() and _lock_is_free(out / DEMOS_LOCK)
 
-    def failing_chunk(scenario, seeds, missing, episodes_dir):
+    def failing_group(task):
         raise RuntimeError("solver exploded")
 
-    monkeypatch.setattr(demos, "drive_chunk", failing_chunk)
+    monkeypatch.setattr(demos, "drive_group", failing_group)
     with pytest.raises(RuntimeError, match="solver exploded"):
         demos.generate_demonstrations(scenario, [0, 1], out, lockstep=2)
     assert _lock_is_free(out / DEMOS_LOCK)

@@ -57,8 +57,12 @@ def run(args: argparse.Namespace) -> int:
     if len(scenarios) != 1:
         print("mmpc drive: error: several scenarios need --seeds", file=sys.stderr)
         return 2
-    from mmpc.highway.runner import run_episode, write_outputs
     from mmpc.drivers import make_driver
+    from mmpc.highway.runner import Observer, run_episode, write_outputs
+
+    class Progress(Observer):
+        def applied(self, step) -> None:
+            bar.update(1)
 
     scenario = scenarios[0]
     driver = make_driver(args.driver, scenario)
@@ -66,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     video = None if args.no_video else out / "episode.mp4"
     steps = round(scenario.duration * scenario.frequency)
     with tqdm(total=steps, desc=f"{scenario.name} seed {seed}", unit="step") as bar:
-        result = run_episode(scenario, seed, driver=driver, video=video, on_step=lambda record: bar.update(1))
+        result = run_episode(scenario, seed, driver=driver, video=video, observers=[Progress()])
     paths = write_outputs(result, out)
     width = max(map(len, result.metrics))
     for key, value in result.metrics.items():

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import socket
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -85,6 +86,11 @@ def _label(task: object) -> str:
     return str(getattr(task, "label", task))
 
 
+def _ignore_interrupts() -> None:
+    """Worker processes leave Ctrl-C to the coordinating process, which terminates them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _run_with_threads(run: Callable[[Task], Result], threads: int, task: Task) -> Result:
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
@@ -136,7 +142,7 @@ def _process_pool(tasks, run, failed, backend: Backend) -> Iterator[tuple]:
     deaths: dict[int, int] = {}  # id(task) -> deaths of its worker while it ran alone
     context = multiprocessing.get_context("spawn")
     while normal or suspects:
-        pool = ProcessPoolExecutor(backend.workers, mp_context=context)
+        pool = ProcessPoolExecutor(backend.workers, mp_context=context, initializer=_ignore_interrupts)
         running: dict[Future, object] = {}
         isolated = False  # the one task in flight is a suspect running alone
         try:
@@ -163,6 +169,7 @@ def _process_pool(tasks, run, failed, backend: Backend) -> Iterator[tuple]:
                 if broken:
                     raise BrokenProcessPool("a worker process died")
         except BrokenProcessPool:
+            pool.shutdown(wait=True, cancel_futures=True)
             for task in running.values():
                 if isolated:
                     deaths[id(task)] = deaths.get(id(task), 0) + 1
@@ -172,8 +179,13 @@ def _process_pool(tasks, run, failed, backend: Backend) -> Iterator[tuple]:
                         continue
                 logger.warning("%s: a worker process died; running the task again, alone", _label(task))
                 suspects.append(task)
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:  # interrupted (Ctrl-C, SIGTERM as KeyboardInterrupt): do not wait for the tasks
+            for process in list(getattr(pool, "_processes", {}).values()):
+                process.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        else:
+            pool.shutdown(wait=True)
 
 
 def _ray(tasks, run, failed, backend: Backend) -> Iterator[tuple]:

@@ -190,6 +190,19 @@ def run_group(task: GroupTask) -> list[dict]:
     return rows
 
 
+def lockstep_groups(seeds: Sequence[int], lockstep: int) -> dict[int, list[int]]:
+    """mmpc's one seed-grouping rule: group ``seed // lockstep`` -> its seeds (groups in order of
+    their first seed in ``seeds``). A group always has the same members, so a resumed run drives
+    an unfinished group exactly as an uninterrupted run would (lockstep batches round
+    differently from single solves, so membership matters)."""
+    if not isinstance(lockstep, int) or isinstance(lockstep, bool) or lockstep < 1:
+        raise ValueError(f"`lockstep` must be an int >= 1; got {lockstep!r}")
+    groups: dict[int, list[int]] = {}
+    for seed in seeds:
+        groups.setdefault(seed // lockstep, []).append(seed)
+    return groups
+
+
 def plan_tasks(
     scenarios: Sequence[ScenarioConfig], config: EvaluationConfig, finished: set[Key], out: Optional[Path] = None,
 ) -> list[GroupTask]:
@@ -198,11 +211,8 @@ def plan_tasks(
     tasks = []
     for driver in config.drivers:
         for scenario in scenarios:
-            groups: dict[int, list[int]] = {}
-            for seed in config.seeds:
-                if (driver, scenario.name, seed) not in finished:
-                    groups.setdefault(seed // config.lockstep, []).append(seed)
-            for group, seeds in groups.items():
+            unfinished = [seed for seed in config.seeds if (driver, scenario.name, seed) not in finished]
+            for group, seeds in lockstep_groups(unfinished, config.lockstep).items():
                 tasks.append(GroupTask(driver, scenario, tuple(seeds), group, config.threads,
                                        None if config.episode_layout is None else str(out), config.episode_layout,
                                        config.collision_videos))

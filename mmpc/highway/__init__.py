@@ -18,10 +18,18 @@ from mmpc.highway.episode import (
     road_state,
     vehicle_motion,
 )
-from mmpc.highway.runner import EpisodeResult, run_episode, run_lockstep, stack_observations, write_outputs
+from mmpc.highway.runner import (
+    EpisodeResult,
+    Observer,
+    Step,
+    run_episode,
+    run_lockstep,
+    stack_observations,
+    write_outputs,
+)
 
 __all__ = [
-    "ACCELERATION_RANGE", "STEERING_RANGE", "EpisodeResult", "HighwayEpisode", "RoadFrame", "RoadState",
-    "command_to_action", "env_config", "road_state", "run_episode", "run_lockstep", "stack_observations",
+    "ACCELERATION_RANGE", "STEERING_RANGE", "EpisodeResult", "HighwayEpisode", "Observer", "RoadFrame", "RoadState",
+    "command_to_action", "env_config", "road_state", "run_episode", "Step", "run_lockstep", "stack_observations",
     "vehicle_motion", "write_outputs",
 ]

@@ -1,9 +1,10 @@
 """Run closed-loop episodes of a scenario with a driver and write their outputs.
 
-``run_episode`` drives highway-env with a driver (default: the multi-modal MPC) for the
-scenario's duration (or until the first collision) and returns the per-step records and the
-episode metrics; ``run_lockstep`` drives several seeds at once with one driver call per step;
-``write_outputs`` writes ``metrics.json``, ``steps.csv`` and the top-down plot ``topdown.png``
+:func:`run_lockstep` is mmpc's one episode loop: it drives one highway-env episode per seed
+with a driver (default: the multi-modal MPC), one driver call per control step for all of them,
+for the scenario's duration (or until the first collision), calls its :class:`Observer` hooks
+and returns the per-step records and the episode metrics; :func:`run_episode` is one seed of it;
+:func:`write_outputs` writes ``metrics.json``, ``steps.csv`` and the top-down plot ``topdown.png``
 (the video is written while driving, when asked for).
 """
 
@@ -13,7 +14,7 @@ import csv
 import json
 import logging
 from pathlib import Path
-from typing import Callable, NamedTuple, Optional, Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 import torch
@@ -99,27 +100,95 @@ def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord]) -> E
     return EpisodeResult(scenario, seed, records, {"scenario": scenario.name, "seed": seed, **metrics})
 
 
+class Step(NamedTuple):
+    """One environment's control step, as :meth:`Observer.applied` sees it.
+
+    Fields:
+        index: the environment's position in the runner's ``seeds``.
+        episode: its episode, after the command was applied.
+        observation: what it observed before the command (E = 1, as :meth:`HighwayEpisode.observe`
+            returned it).
+        batch: the lockstep observation the driver decided from (one row per running environment).
+        decision: the driver's decision for ``batch``.
+        row: this environment's row in ``batch`` and ``decision``.
+        record: the step's :class:`mmpc.metrics.StepRecord`.
+    """
+
+    index: int
+    episode: HighwayEpisode
+    observation: Observation
+    batch: Observation
+    decision: Decision
+    row: int
+    record: StepRecord
+
+
+class Observer:
+    """Per-step hooks of :func:`run_lockstep`: what a caller records beyond the step records
+    (demonstrations, DAgger's states, a video, a progress bar). Every hook is optional.
+
+    Environments are numbered by their position ``index`` in the ``seeds`` given; at a control
+    step, ``observation`` and ``decision`` hold one row per environment still running (``active``).
+    """
+
+    def start(self, episodes: Sequence[HighwayEpisode]) -> None:
+        """The episodes were reset and are about to be driven."""
+
+    def decided(self, observation: Observation, decision: Decision, active: Sequence[int]) -> None:
+        """One driver call decided for the environments ``active`` (before the commands are applied)."""
+
+    def applied(self, step: Step) -> None:
+        """An environment applied its command."""
+
+    def finished(self, index: int, episode: HighwayEpisode) -> None:
+        """Environment ``index``'s episode ended (duration reached or collision)."""
+
+    def close(self) -> None:
+        """The run ends (also when it raised)."""
+
+
+class _VideoObserver(Observer):
+    """Writes the (single) episode's frames with the driver's candidates drawn."""
+
+    def __init__(self, path: Path, fps: float) -> None:
+        from mmpc.highway.video import VideoWriter  # pygame and imageio only when asked for
+
+        self.writer = VideoWriter(path, fps=fps)
+        self.episode: Optional[HighwayEpisode] = None
+
+    def start(self, episodes: Sequence[HighwayEpisode]) -> None:
+        self.episode = episodes[0]
+
+    def decided(self, observation: Observation, decision: Decision, active: Sequence[int]) -> None:
+        from mmpc.highway.video import render_candidates
+
+        self.writer.add(render_candidates(self.episode, decision.candidates))
+
+    def close(self) -> None:
+        self.writer.close()
+
+
 def run_episode(
     scenario: ScenarioConfig,
     seed: int,
     *,
     driver: Optional[Driver] = None,
     video: Optional[Path] = None,
-    on_step: Optional[Callable[[StepRecord], None]] = None,
+    observers: Sequence[Observer] = (),
 ) -> EpisodeResult:
-    """Drive one episode.
+    """Drive one episode (:func:`run_lockstep` with one seed).
 
     Args:
         scenario: the scenario (its ``duration`` sets the length).
         seed: the episode's seed (highway-env and the traffic controller).
         driver: who drives (default: the scenario's multi-modal MPC, ``make_driver("mpc")``).
         video: write the episode, with the driver's candidates drawn, to this ``.mp4`` / ``.gif``.
-        on_step: called with every record (e.g. a progress bar).
+        observers: per-step hooks (:class:`Observer`).
 
     Returns:
         An :class:`EpisodeResult`; the episode ends early at the first collision.
     """
-    return run_lockstep(scenario, [seed], driver=driver, video=video, on_step=on_step)[0]
+    return run_lockstep(scenario, [seed], driver=driver, video=video, observers=observers)[0]
 
 
 def run_lockstep(
@@ -128,10 +197,13 @@ def run_lockstep(
     *,
     driver: Optional[Driver] = None,
     video: Optional[Path] = None,
-    on_step: Optional[Callable[[StepRecord], None]] = None,
+    observers: Sequence[Observer] = (),
 ) -> list[EpisodeResult]:
     """Drive one episode per seed in lockstep: every control step, ONE driver call decides for
     all episodes still running (for the MPC: one optimizer call over all their goal batches).
+
+    This is mmpc's one episode loop: the evaluation, the demonstrations, DAgger and the
+    benchmarks drive through it and record what they need with :class:`Observer` hooks.
 
     A driver's decision for one environment does not depend on the others in the batch, so each
     episode is the one it would be alone, up to floating-point rounding (batched matrix
@@ -142,7 +214,7 @@ def run_lockstep(
         seeds: one episode per seed (distinct, at least one).
         driver: who drives (default: the scenario's multi-modal MPC).
         video: with a single seed only: write the episode's video here.
-        on_step: called with every record of every episode.
+        observers: per-step hooks, called in order.
 
     Returns:
         One :class:`EpisodeResult` per seed, in the order of ``seeds``.
@@ -154,31 +226,39 @@ def run_lockstep(
         raise ValueError(f"a video needs a single seed; got {len(seeds)} seeds")
     if driver is None:
         driver = make_driver("mpc", scenario)
-    episodes = [HighwayEpisode(scenario, seed, render=video is not None) for seed in seeds]
+    observers = list(observers)
+    episodes: list[HighwayEpisode] = []
     records: list[list[StepRecord]] = [[] for _ in seeds]
-    writer = None
-    if video is not None:
-        from mmpc.highway.video import VideoWriter, render_candidates  # pygame and imageio only when asked for
-
-        writer = VideoWriter(video, fps=scenario.frequency)
     try:
+        if video is not None:
+            observers.insert(0, _VideoObserver(video, scenario.frequency))
+        episodes = [HighwayEpisode(scenario, seed, render=video is not None) for seed in seeds]
+        for observer in observers:
+            observer.start(episodes)
         driver.reset(len(episodes))
-        while True:
-            active = [i for i, episode in enumerate(episodes) if not episode.done]
-            if not active:
-                break
-            observation = stack_observations([episodes[i].observe() for i in active], active)
+        active = [i for i, episode in enumerate(episodes) if not episode.done]
+        for i in sorted(set(range(len(episodes))) - set(active)):  # ended at reset (e.g. a crash on spawning)
+            for observer in observers:
+                observer.finished(i, episodes[i])
+        while active:
+            singles = [episodes[i].observe() for i in active]
+            observation = stack_observations(singles, active)
             decision = driver.decide(observation)
-            if writer is not None:
-                writer.add(render_candidates(episodes[0], decision.candidates))
+            for observer in observers:
+                observer.decided(observation, decision, active)
             for row, i in enumerate(active):
                 episodes[i].apply(float(decision.acceleration[row]), float(decision.steering[row]))
                 records[i].append(_record(len(records[i]), episodes[i], observation, decision, row))
-                if on_step is not None:
-                    on_step(records[i][-1])
+                step = Step(i, episodes[i], singles[row], observation, decision, row, records[i][-1])
+                for observer in observers:
+                    observer.applied(step)
+                if episodes[i].done:
+                    for observer in observers:
+                        observer.finished(i, episodes[i])
+            active = [i for i in active if not episodes[i].done]
     finally:
-        if writer is not None:
-            writer.close()
+        for observer in observers:
+            observer.close()
         for episode in episodes:
             episode.close()
     return [_result(scenario, seed, rows) for seed, rows in zip(seeds, records)]
