@@ -18,27 +18,24 @@ import logging
 import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
 import torch
 
-from mmpc.config import dataclass_from_dict, read_config_yaml
-from mmpc.configs import shipped_config_dir
 from mmpc.imitation.dataset import Transitions
-from mmpc.imitation.features import road_features
+from mmpc.config import from_dict
+from mmpc.imitation.features import SceneGeometry, road_features, scene_geometry
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
 from mmpc.road import Road
+from mmpc.scenario import ScenarioConfig
 
 logger = logging.getLogger(__name__)
-
-CONFIG_DIR = shipped_config_dir("imitation")
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Supervised training of :class:`MLPPolicy`. The defaults are ``configs/imitation/bc.yaml``'s
-    (a test keeps them equal).
+    """Supervised training of :class:`MLPPolicy` (``mmpc imitate bc``; ``mmpc config show bc``).
 
     Attributes:
         epochs: passes over the training set [-].
@@ -69,21 +66,6 @@ class TrainConfig:
             raise ValueError(f"`weight_decay` must be >= 0; got {self.weight_decay}")
         if not 0 <= self.validation_fraction < 1:
             raise ValueError(f"`validation_fraction` must be in [0, 1); got {self.validation_fraction}")
-
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any], *, where: str = "training config") -> "TrainConfig":
-        values = dict(values)
-        if "policy" in values:
-            values["policy"] = PolicyConfig.from_dict(values["policy"] or {})
-        return dataclass_from_dict(cls, values, where=where)
-
-
-def load_yaml_config(cls, name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None):
-    """Load ``configs/imitation/<name>.yaml`` (or a path) into ``cls`` (a config with ``from_dict``);
-    ``overrides`` replace top-level keys."""
-    path, values = read_config_yaml(name_or_path, CONFIG_DIR, "imitation config", "configs")
-    values.update(overrides or {})
-    return cls.from_dict(values, where=f"imitation config {path}")
 
 
 class History(NamedTuple):
@@ -121,6 +103,7 @@ def train_policy(
     road: Road,
     config: TrainConfig = TrainConfig(),
     *,
+    scene: Optional[SceneGeometry] = None,
     writer=None,
     tag: str = "",
     on_epoch: Optional[Callable[[int, float, float], None]] = None,
@@ -131,6 +114,9 @@ def train_policy(
         data: (state, expert command) pairs with their episode ids.
         road: the road the states refer to.
         config: training settings.
+        scene: the vehicle length and ellipse of the scenario the states come from
+            (:func:`mmpc.imitation.features.scene_geometry`); ``None``: the default scenario's
+            (:class:`mmpc.scenario.ScenarioConfig`, cruise).
         writer: a ``torch.utils.tensorboard.SummaryWriter`` (optional).
         tag: prefix of the scalar names (e.g. ``"round_2/"`` in DAgger).
         on_epoch: called as ``on_epoch(epoch, train_loss, val_loss)``.
@@ -146,12 +132,13 @@ def train_policy(
                          f"got {data.ego.shape}, {data.neighbours.shape}, {data.actions.shape}, {data.episodes.shape}")
     if not (np.isfinite(data.ego).all() and np.isfinite(data.actions).all()):
         raise ValueError("`data` holds NaN or inf ego states or actions")
-    inputs = torch.as_tensor(road_features(data.ego, data.neighbours, road, config.policy.features))
+    scene = scene_geometry(ScenarioConfig()) if scene is None else scene
+    inputs = torch.as_tensor(road_features(data.ego, data.neighbours, road, config.policy.feature_config(scene)))
     actions = torch.as_tensor(data.actions, dtype=torch.float32)
     train_mask, val_mask = split_by_episode(data.episodes, config.validation_fraction, config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
-    policy = MLPPolicy(road, config.policy)
+    policy = MLPPolicy(road, config.policy, scene=scene)
     train, val = torch.as_tensor(train_mask), torch.as_tensor(val_mask)
     train_in, train_act = inputs[train], actions[train]
     val_in, val_act = inputs[val], actions[val]
@@ -219,16 +206,17 @@ def run_bc(
     """
     from torch.utils.tensorboard import SummaryWriter
 
-    from mmpc.imitation.dataset import dataset_road, dataset_transitions, open_dataset
+    from mmpc.imitation.dataset import dataset_transitions, open_dataset
 
     dataset = open_dataset(Path(dataset_dir))
     data = dataset_transitions(dataset)
-    scenario = dataset.storage.metadata.get("mmpc_scenario", {}).get("name")
+    scenario = from_dict(ScenarioConfig, dataset.storage.metadata["mmpc_scenario"], where=f"{dataset_dir}: mmpc_scenario")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with SummaryWriter(str(out / "tb")) as writer:
         writer.add_text("hyperparameters", hyperparameters_text(config))
-        policy, history = train_policy(data, dataset_road(dataset), config, writer=writer, on_epoch=on_epoch)
+        policy, history = train_policy(data, scenario.road, config, scene=scene_geometry(scenario), writer=writer,
+                                       on_epoch=on_epoch)
     report = {
         "dataset": str(dataset_dir),
         "dataset_id": dataset.spec.dataset_id,
@@ -242,6 +230,6 @@ def run_bc(
         "train_loss": history.train_loss,
         "val_loss_per_epoch": history.val_loss,
     }
-    save_policy(out / "policy.pt", policy, scenario=scenario, info={k: report[k] for k in ("dataset_id", "samples", "best_epoch", "val_loss")})
+    save_policy(out / "policy.pt", policy, scenario=scenario.name, info={k: report[k] for k in ("dataset_id", "samples", "best_epoch", "val_loss")})
     (out / "train.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     return report

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import override
+from mmpc.cli.arguments import add_compile, add_config, add_set, apply_compile, split_overrides
 
 
-def _scenario(args: argparse.Namespace):
+def _scenario(args: argparse.Namespace, overrides: dict):
     from mmpc.scenario import load_scenario
 
-    scenario = load_scenario(args.scenario, dict(args.set))
+    apply_compile(args.compile)
+    scenario = load_scenario(args.scenario, overrides)
     if args.duration is not None:
         if not args.duration > 0:
             raise ValueError(f"--duration must be > 0 s; got {args.duration}")
@@ -34,7 +35,7 @@ def _demos(args: argparse.Namespace) -> int:
         print(f"mmpc imitate demos: error: --episodes must be >= 1; got {args.episodes}", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
-    scenario = _scenario(args)
+    scenario = _scenario(args, dict(args.set))
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
     bar = tqdm(total=len(seeds), desc=f"demos {scenario.name}", unit="ep")
 
@@ -65,11 +66,14 @@ def _demos(args: argparse.Namespace) -> int:
 def _bc(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from mmpc.imitation.bc import TrainConfig, load_yaml_config, run_bc
+    from mmpc.config import load_config
+    from mmpc.imitation.bc import TrainConfig, run_bc
 
     torch.set_num_threads(args.threads)
-    overrides = {"epochs": args.epochs} if args.epochs is not None else {}
-    config = load_yaml_config(TrainConfig, args.config, overrides)
+    overrides = dict(args.set)
+    if args.epochs is not None:
+        overrides["epochs"] = args.epochs
+    config = load_config(TrainConfig, args.config, overrides)
     with tqdm(total=config.epochs, desc="bc", unit="epoch") as bar:
         def on_epoch(epoch: int, train_loss: float, val_loss: float) -> None:
             bar.update(1)
@@ -86,16 +90,18 @@ def _bc(args: argparse.Namespace) -> int:
 def _dagger(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from mmpc.imitation.bc import load_yaml_config
+    from mmpc.config import load_config
     from mmpc.imitation.dagger import DaggerConfig, run_dagger
 
     torch.set_num_threads(args.threads)
-    overrides = {"iterations": args.iterations} if args.iterations is not None else {}
+    overrides, scenario_overrides = split_overrides(args.set, "scenario")
+    if args.iterations is not None:
+        overrides["iterations"] = args.iterations
     if args.duration is not None:
         overrides["duration"] = args.duration
-    config = load_yaml_config(DaggerConfig, args.config, overrides)
+    config = load_config(DaggerConfig, args.config, overrides)
     args.duration = None  # the config carries it
-    scenario = _scenario(args)
+    scenario = _scenario(args, scenario_overrides)
     with tqdm(total=config.iterations + 1, desc="dagger", unit="round") as bar:
         def on_round(entry: dict) -> None:
             bar.update(1)
@@ -141,9 +147,8 @@ def _scenario_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--scenario", default="cruise", help="scenario name in configs/scenarios or a YAML path (default cruise)")
     parser.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
-    parser.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
-                        help="override a scenario value (YAML; repeatable)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (per worker) (default 1)")
+    add_compile(parser)
 
 
 def add_subcommands(sub) -> None:
@@ -154,6 +159,7 @@ def add_subcommands(sub) -> None:
 
     demos = commands.add_parser("demos", help="expert (MPC) demonstrations as a Minari dataset; re-run to resume")
     _scenario_arguments(demos)
+    add_set(demos, "scenario")
     demos.add_argument("--episodes", type=int, default=20, help="number of episodes (default 20)")
     demos.add_argument("--seed-start", type=int, default=1000,
                        help="first seed; episodes use consecutive seeds (default 1000, apart from evaluation seeds)")
@@ -166,7 +172,7 @@ def add_subcommands(sub) -> None:
     bc = commands.add_parser("bc", help="behaviour cloning of an MLP policy from a demonstrations directory")
     bc.add_argument("--dataset", required=True, help="an `mmpc imitate demos --out` directory")
     bc.add_argument("--out", default="runs/bc", help="run folder: policy.pt, train.json, tb/ (default runs/bc)")
-    bc.add_argument("--config", default="bc", help="configs/imitation/<name>.yaml or a path (default bc)")
+    add_config(bc, "training config (mmpc.imitation.bc.TrainConfig)")
     bc.add_argument("--epochs", type=int, default=None, help="override the config's epochs")
     bc.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     bc.set_defaults(func=_bc)
@@ -176,7 +182,8 @@ def add_subcommands(sub) -> None:
     _scenario_arguments(dagger)
     dagger.add_argument("--iterations", type=int, default=None, help="rounds after round 0 (default: the config's)")
     dagger.add_argument("--dataset", default=None, help="round 0 from this `mmpc imitate demos` directory (default: the expert drives)")
-    dagger.add_argument("--config", default="dagger", help="configs/imitation/<name>.yaml or a path (default dagger)")
+    add_config(dagger, "DAgger config (mmpc.imitation.dagger.DaggerConfig); the scenario's as scenario.KEY, "
+                       "e.g. --set train.epochs=10 --set scenario.traffic.lane_changes=false")
     dagger.add_argument("--out", default="runs/dagger", help="run folder (default runs/dagger)")
     dagger.set_defaults(func=_dagger)
 

@@ -78,11 +78,12 @@ DAGGER_POLICY = PolicyConfig(hidden=(128, 128), activation="relu")
 
 @dataclass(frozen=True)
 class DaggerConfig:
-    """Settings of :func:`run_dagger`. The defaults are ``configs/imitation/dagger.yaml``'s (a
-    test keeps them equal), the recipe of the README's results.
+    """Settings of :func:`run_dagger`. The defaults are the recipe of the README's results
+    (``mmpc imitate dagger`` without ``--config``; ``mmpc config show dagger``).
 
     Attributes:
-        iterations: DAgger rounds after round 0 [-].
+        iterations: DAgger rounds after round 0 (check collisions / 20 in rounds 8-12 with the
+            expert of then: 2, 2, 2, 2, 7) [-].
         initial_episodes: expert-driven episodes of round 0 when no dataset is given [-].
         episodes_per_iteration: episodes driven by the mixture per round [-].
         beta: probability that the expert drives a step in round 1, in [0, 1] [-].
@@ -90,9 +91,11 @@ class DaggerConfig:
         noise: standard deviations of the Gaussian noise on the executed acceleration [m/s^2]
             and steering [rad] in rounds >= 1 (0: none).
         label_window: command window of the expert that drives and labels here [s] (see the
-            module docstring); ``None``: the scenario's ``mpc.command_window``.
+            module docstring; the shipped scenarios' is 0.3 s); ``None``: the scenario's
+            ``mpc.command_window``.
         seed_start: first seed of the episodes driven here (round 0 and every round draw
-            consecutive, disjoint seeds from it; keep them apart from evaluation seeds).
+            consecutive, disjoint seeds from it; keep them apart from evaluation seeds, 0-49,
+            and demonstrations, 1000+).
         lockstep: episodes driven together (one driver call per step) [-].
         label_batch: visited states per expert call when labelling [-].
         duration: episode length [s]; ``None``: the scenario's.

@@ -34,6 +34,7 @@ from typing import Iterator, NamedTuple, Optional, Sequence
 
 import numpy as np
 
+from mmpc.config import from_dict, to_dict
 from mmpc.files import TEMPORARY_PREFIX, atomic_write
 from mmpc.imitation.rollout import INFO_FIELDS, Episode
 from mmpc.road import Road
@@ -77,8 +78,10 @@ class Manifest:
     (lockstep batches round differently from single solves) and the file format.
 
     Attributes:
-        scenario: :meth:`ScenarioConfig.to_dict` of the scenario (its ``seeds`` are not part of it; the
-            episodes' seeds are chosen on the command line).
+        scenario: :func:`mmpc.config.to_dict` of the scenario (its ``seeds`` are not part of it; the
+            episodes' seeds are chosen on the command line). :meth:`read` returns it as this mmpc
+            writes it, so that a manifest written before a scenario setting was retired (e.g.
+            ``mpc.compile``, ``mpc.wheelbase``) names the same scenario.
         lockstep: episodes per lockstep chunk (chunk k holds seeds ``k * lockstep ...``).
         packages: package versions of the run that created the directory (informative only).
     """
@@ -112,7 +115,12 @@ class Manifest:
         if values.get("identity") != manifest.identity():
             raise DemonstrationsError(f"{path} is corrupt: its identity hash does not match its contents; "
                                       "remove the directory or choose another --out")
-        return manifest
+        try:
+            scenario = from_dict(ScenarioConfig, manifest.scenario, where=f"{path}: scenario")
+        except (ValueError, TypeError) as error:
+            raise DemonstrationsError(f"this mmpc cannot read the scenario of {path} ({error}); drive these "
+                                      "demonstrations again in another --out") from error
+        return dataclasses.replace(manifest, scenario=to_dict(scenario))
 
 
 def save_episode(path: Path, episode: Episode) -> None:
@@ -298,7 +306,7 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
             requirements=[f"mmpc=={package_versions()['mmpc']}"],
         )
         dataset.storage.update_metadata({
-            "mmpc_scenario": scenario.to_dict(),
+            "mmpc_scenario": to_dict(scenario),
             "mmpc_seeds": [int(s) for s in seeds],
             "mmpc_lockstep": directory.manifest.lockstep,
             "mmpc_packages": package_versions(),
@@ -383,4 +391,4 @@ def dataset_transitions(dataset) -> Transitions:
 
 def dataset_road(dataset) -> Road:
     """The road of the scenario a dataset was driven in (its ``mmpc_scenario`` metadata)."""
-    return ScenarioConfig.from_dict(dataset.storage.metadata["mmpc_scenario"]).road
+    return from_dict(ScenarioConfig, dataset.storage.metadata["mmpc_scenario"], where="dataset metadata: mmpc_scenario").road

@@ -21,6 +21,7 @@ from typing import Callable, Iterator, NamedTuple, Optional, Sequence
 
 import torch
 
+from mmpc.config import to_dict
 from mmpc.drivers import MPCDriver
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
@@ -181,7 +182,7 @@ def generate_demonstrations(
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     if workers < 1 or lockstep < 1 or threads < 1:
         raise ValueError(f"`workers`, `lockstep` and `threads` must be >= 1; got {workers}, {lockstep}, {threads}")
-    with _locked_directory(Path(out), Manifest(scenario.to_dict(), lockstep, package_versions())) as directory:
+    with _locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions())) as directory:
         staged = directory.finished_seeds()
         reused = [s for s in seeds if s in staged]
         tasks = [DemoTask(scenario, tuple(group), tuple(s for s in group if s not in staged), directory.episodes_dir)

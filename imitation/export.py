@@ -43,7 +43,7 @@ class RoadFeatureObservation(gym.ObservationWrapper):
     Args:
         env: a highway-env environment on a straight road.
         road: the road the features refer to (the policy's).
-        config: which features (the policy's ``config.features``).
+        config: which features (the policy's ``feature_config``).
     """
 
     def __init__(self, env: gym.Env, road: Road, config: FeatureConfig) -> None:
@@ -56,7 +56,7 @@ class RoadFeatureObservation(gym.ObservationWrapper):
 
         state = road_state(self.env.unwrapped, RoadFrame.of(self.env.unwrapped))
         ego = state.ego.numpy()
-        neighbours = nearest_neighbours(ego, state.vehicles.numpy())  # all stored ones, as in training
+        neighbours = nearest_neighbours(ego, state.vehicles.numpy(), ellipse=self.config.scene.ellipse)  # all stored ones
         return road_features(ego, neighbours, self.road, self.config)[0]
 
 
@@ -138,7 +138,7 @@ def ppo_from_policy(checkpoint: Path, env: gym.Env, log_std: float = math.log(0.
 
     policy = load_policy(Path(checkpoint))
     if env.observation_space.shape != (policy.input_size,):
-        env = RoadFeatureObservation(env, policy.road, policy.config.features)
+        env = RoadFeatureObservation(env, policy.road, policy.feature_config)
     model = PPO("MlpPolicy", env, policy_kwargs=policy_kwargs(policy, log_std), **ppo_kwargs)
     copy_actor(policy, model.policy)
     return model

@@ -6,11 +6,12 @@ the policy's step, far cheaper than dozens of small numpy calls; a training set 
 takes a fraction of a second):
 
 1. :func:`nearest_neighbours` picks the :data:`STORED_NEIGHBOURS` other vehicles nearest to the
-   ego in the scaled distance ``r = sqrt((dx / 8 m)^2 + (dy / 3 m)^2)`` (the expert's obstacle
-   ranking, with the same ellipse, but vehicles behind the ego are kept), sorted by ``r``, as
-   (x, y, vx, vy) rows with NaN in empty slots. The demonstrations store exactly these rows
-   (``infos["neighbours"]``), so a policy trained from a dataset and the policy driving see
-   the same selection.
+   ego in the scaled distance ``r = sqrt((dx / a)^2 + (dy / b)^2)`` with the scenario's obstacle
+   ellipse (a, b) (the expert's obstacle ranking, but vehicles behind the ego are kept), sorted
+   by ``r``, as (x, y, vx, vy) rows with NaN in empty slots. The demonstrations store these
+   rows (``infos["neighbours"]``); :func:`road_features` sorts them again with the policy's
+   ellipse (:class:`SceneGeometry`), so a policy trained from a dataset and the policy driving
+   see the same order.
 2. :func:`road_features` turns the ego state and the first K neighbours into the flat vector
    ``[ e ; n_1 ; ... ; n_K ]`` with
 
@@ -22,7 +23,8 @@ takes a fraction of a second):
    - optionally (``lane_slots``) ``[ l_1 ; ... ; l_6 ]``: for the ego's lane and the lanes left and
      right of it, the nearest neighbour ahead and the nearest behind (a vehicle belongs to the
      lane whose centre is nearest), each ``l = (1, dx, dy, dvx, c)`` with the inverse time to
-     collision ``c = max(0, -dvx sign(dx)) / max(|dx| - 5 m, 1 m)`` [1/s], all zero when the
+     collision ``c = max(0, -dvx sign(dx)) / max(|dx| - L, 1 m)`` [1/s] (L the scenario's vehicle
+     length), all zero when the
      slot is empty or the lane is off the road. These make "the car ahead in my lane is close
      and slower" a few inputs instead of a pattern spread over the sorted list.
 
@@ -38,22 +40,50 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from mmpc.config import dataclass_from_dict
+from mmpc.config import from_dict
 from mmpc.problem import EGO_X, EGO_Y
 from mmpc.road import Road
+from mmpc.scenario import ScenarioConfig
 
 #: Neighbours recorded per step (``infos["neighbours"]``) and the most a policy may read.
 STORED_NEIGHBOURS = 8
-#: Longitudinal and lateral distance units of the neighbour ranking [m] (the expert's ellipse).
-NEIGHBOUR_SCALE = (8.0, 3.0)
 #: Per-neighbour features.
 NEIGHBOUR_FIELDS = ("present", "dx", "dy", "dvx", "dvy")
 #: Lane slots: (lane offset from the ego's lane, ahead) in feature order, and their features.
 LANE_SLOTS = tuple((lane, ahead) for lane in (-1, 0, 1) for ahead in (True, False))
 LANE_SLOT_FIELDS = ("present", "dx", "dy", "dvx", "inverse_ttc")
-#: Length [m] subtracted from the gap in the inverse time to collision (a car length).
-CAR_LENGTH = 5.0
 _SLOT_KEYS = frozenset(LANE_SLOTS)
+
+
+@dataclass(frozen=True)
+class SceneGeometry:
+    """What the features take from the scenario besides the road (:func:`scene_geometry`).
+
+    Attributes:
+        vehicle_length: length of every vehicle, subtracted from the gap in the inverse time to
+            collision [m].
+        ellipse: the obstacle ellipse's semi-axes (a, b), the units of the neighbour ranking [m].
+    """
+
+    vehicle_length: float
+    ellipse: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.vehicle_length, (int, float)) and 0 < self.vehicle_length < math.inf):
+            raise ValueError(f"`vehicle_length` must be a finite length > 0 m; got {self.vehicle_length!r}")
+        if not (isinstance(self.ellipse, tuple) and len(self.ellipse) == 2 and all(0 < v < math.inf for v in self.ellipse)):
+            raise ValueError(f"`ellipse` must be two finite semi-axes > 0 m (a, b); got {self.ellipse!r}")
+
+
+def scene_geometry(scenario: ScenarioConfig) -> SceneGeometry:
+    """The scenario's vehicle length and obstacle ellipse."""
+    return SceneGeometry(scenario.vehicle[0], scenario.optimizer.ellipse)
+
+
+#: The geometry of the policies trained before the features read the scenario (highway-env's
+#: 5 m cars and the (8, 3) m ellipse every feature used then); a checkpoint without a ``scene``
+#: has it (:func:`mmpc.imitation.policy.policy_from_checkpoint`).
+LEGACY_SCENE = SceneGeometry(5.0, (8.0, 3.0))
 
 
 @dataclass(frozen=True)
@@ -61,26 +91,26 @@ class FeatureConfig:
     """Which road-frame features the policy reads (see the module docstring).
 
     Attributes:
+        scene: the scenario's vehicle length and ellipse.
         neighbours: K nearest other vehicles read, 0 <= K <= :data:`STORED_NEIGHBOURS` [-].
         ego_command: also read the command the ego is executing (a [m/s^2], psidot [rad/s]).
         lane_slots: also read the nearest neighbour ahead and behind in the ego's and the
             adjacent lanes.
     """
 
+    scene: SceneGeometry
     neighbours: int = STORED_NEIGHBOURS
     ego_command: bool = False
     lane_slots: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.scene, SceneGeometry):
+            raise ValueError(f"`scene` must be a SceneGeometry; got {type(self.scene).__name__}")
         if not isinstance(self.neighbours, int) or isinstance(self.neighbours, bool) or not 0 <= self.neighbours <= STORED_NEIGHBOURS:
             raise ValueError(f"`neighbours` must be an int in [0, {STORED_NEIGHBOURS}]; got {self.neighbours!r}")
         for name in ("ego_command", "lane_slots"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"`{name}` must be true or false; got {getattr(self, name)!r}")
-
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any], *, where: str = "feature config") -> "FeatureConfig":
-        return dataclass_from_dict(cls, values, where=where)
 
     @property
     def size(self) -> int:
@@ -97,7 +127,7 @@ class FeatureConfig:
 
 
 def nearest_neighbours(ego: np.ndarray, vehicles: np.ndarray, mask: Optional[np.ndarray] = None,
-                       count: int = STORED_NEIGHBOURS) -> np.ndarray:
+                       count: int = STORED_NEIGHBOURS, *, ellipse: tuple[float, float]) -> np.ndarray:
     """The ``count`` other vehicles nearest to the ego (scaled distance, see the module docstring).
 
     Args:
@@ -105,6 +135,7 @@ def nearest_neighbours(ego: np.ndarray, vehicles: np.ndarray, mask: Optional[np.
         vehicles: (E, V, 4) other vehicles' x, y [m], vx, vy [m/s] in the road frame.
         mask: (E, V) bool, True for real vehicles; ``None``: all real.
         count: slots to fill.
+        ellipse: the scenario's obstacle ellipse (a, b), the distance units [m].
 
     Returns:
         (E, count, 4) float32, nearest first (ties: in the order of ``vehicles``); NaN rows where
@@ -114,7 +145,7 @@ def nearest_neighbours(ego: np.ndarray, vehicles: np.ndarray, mask: Optional[np.
     if ego.ndim != 2 or ego.shape[1] != 6 or vehicles.ndim != 3 or vehicles.shape[0] != ego.shape[0] or vehicles.shape[2] != 4:
         raise ValueError(f"`ego` must be (E, 6) and `vehicles` (E, V, 4); got {ego.shape} and {vehicles.shape}")
     masks = [None] * ego.shape[0] if mask is None else np.asarray(mask, dtype=bool).tolist()
-    scale_x, scale_y = NEIGHBOUR_SCALE
+    scale_x, scale_y = ellipse
     empty = [math.nan] * 4
     rows = []
     for state, others, real in zip(ego.tolist(), vehicles.tolist(), masks):
@@ -132,9 +163,10 @@ def road_features(ego: np.ndarray, neighbours: np.ndarray, road: Road, config: F
     Args:
         ego: (E, 6) ego states as :data:`mmpc.EGO_FIELDS`.
         neighbours: (E, K', 4) from :func:`nearest_neighbours` (NaN rows: empty slots), K' >=
-            ``config.neighbours`` (the lane slots search all K').
+            ``config.neighbours`` (the lane slots search all K'); read nearest first in
+            ``config.scene.ellipse``, whatever ellipse ranked them.
         road: the road (lane centres and edges).
-        config: which features.
+        config: which features, and the scene geometry.
 
     Returns:
         (E, D) float32 with D = ``config.size``.
@@ -162,6 +194,9 @@ def _row_features(state: list[float], near: list[list[float]], road: Road, confi
     features = [y - lane * width, y - left, right - y, psi, v]
     if config.ego_command:
         features += [a, psidot]
+    scale_x, scale_y = config.scene.ellipse
+    near = sorted(near, key=lambda n: ((n[0] - x) / scale_x) ** 2 + ((n[1] - y) / scale_y) ** 2
+                  if all(math.isfinite(value) for value in n) else math.inf)
     present = [all(math.isfinite(value) for value in n) for n in near]
     for (nx, ny, nvx, nvy), here in zip(near[:config.neighbours], present):
         features += [1.0, nx - x, ny - y, nvx - vx, nvy - vy] if here else [0.0] * len(NEIGHBOUR_FIELDS)
@@ -178,7 +213,7 @@ def _row_features(state: list[float], near: list[list[float]], road: Road, confi
             if key in nearest:
                 dx, dy, dvx = nearest[key]
                 sign = (dx > 0) - (dx < 0)
-                features += [1.0, dx, dy, dvx, max(0.0, -dvx * sign) / max(abs(dx) - CAR_LENGTH, 1.0)]
+                features += [1.0, dx, dy, dvx, max(0.0, -dvx * sign) / max(abs(dx) - config.scene.vehicle_length, 1.0)]
             else:
                 features += [0.0] * len(LANE_SLOT_FIELDS)
     return features
@@ -186,7 +221,7 @@ def _row_features(state: list[float], near: list[list[float]], road: Road, confi
 
 def road_of(values: Mapping[str, Any]) -> Road:
     """A :class:`Road` from its checkpoint form ``{"num_lanes": ..., "lane_width": ...}``."""
-    return dataclass_from_dict(Road, values, where="road")
+    return from_dict(Road, values, where="road")
 
 
 def road_dict(road: Road) -> dict:

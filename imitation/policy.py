@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
@@ -26,12 +26,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from mmpc.config import dataclass_from_dict
+from mmpc.config import from_dict, to_dict
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.files import atomic_write
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE
-from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, road_dict, road_features, road_of
-from mmpc.imitation.rollout import observation_neighbours
+from mmpc.imitation.features import (
+    LEGACY_SCENE, STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, nearest_neighbours, road_dict, road_features, road_of,
+)
 from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
@@ -49,7 +50,9 @@ class PolicyConfig:
         hidden: widths of the hidden layers [-].
         activation: ``tanh`` or ``relu``.
         neighbours: nearest other vehicles read (:class:`mmpc.imitation.features.FeatureConfig`) [-].
-        ego_command: also read the ego's executing (a [m/s^2], psidot [rad/s]).
+        ego_command: also read the ego's executing (a [m/s^2], psidot [rad/s]). Off by default:
+            held-out loss 0.066 with it against 0.67 without, but the policy then copies the
+            executing command in closed loop (causal confusion); DAgger leaves it off too.
         lane_slots: also read the nearest neighbour ahead and behind in the ego's and the
             adjacent lanes.
     """
@@ -67,15 +70,11 @@ class PolicyConfig:
             raise ValueError(f"`hidden` must be a non-empty list of positive ints; got {self.hidden!r}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"`activation` must be one of {sorted(ACTIVATIONS)}; got {self.activation!r}")
-        self.features  # validates the feature settings
+        self.feature_config(LEGACY_SCENE)  # validates the feature settings
 
-    @property
-    def features(self) -> FeatureConfig:
-        return FeatureConfig(self.neighbours, self.ego_command, self.lane_slots)
-
-    @classmethod
-    def from_dict(cls, values: dict) -> "PolicyConfig":
-        return dataclass_from_dict(cls, values, where="policy config")
+    def feature_config(self, scene: SceneGeometry) -> FeatureConfig:
+        """The features this policy reads in a scene (the scenario's vehicle length and ellipse)."""
+        return FeatureConfig(scene, self.neighbours, self.ego_command, self.lane_slots)
 
 
 class MLPPolicy(nn.Module):
@@ -84,23 +83,28 @@ class MLPPolicy(nn.Module):
     Args:
         road: the road the features refer to (lane centres, edges).
         config: the architecture and inputs.
+        scene: the vehicle length and ellipse the features use
+            (:func:`mmpc.imitation.features.scene_geometry` of the training scenario).
 
     Shapes:
         forward: features (B, D) (:meth:`features`) -> (B, 2).
 
     Example:
-        >>> policy = MLPPolicy(Road(), PolicyConfig(hidden=(32,), neighbours=2))
+        >>> from mmpc.imitation.features import SceneGeometry
+        >>> policy = MLPPolicy(Road(), PolicyConfig(hidden=(32,), neighbours=2), scene=SceneGeometry(5.0, (8.0, 3.3)))
         >>> ego = np.array([[0.0, 8.0, 0.0, 14.0, 0.0, 0.0]])
         >>> neighbours = np.array([[[30.0, 8.0, 10.0, 0.0], [np.nan] * 4]])
         >>> policy(torch.as_tensor(policy.features(ego, neighbours))).shape
         torch.Size([1, 2])
     """
 
-    def __init__(self, road: Road, config: PolicyConfig = PolicyConfig()) -> None:
+    def __init__(self, road: Road, config: PolicyConfig = PolicyConfig(), *, scene: SceneGeometry) -> None:
         super().__init__()
         self.road = road
         self.config = config
-        width = config.features.size
+        self.scene = scene
+        self.feature_config = config.feature_config(scene)
+        width = self.feature_config.size
         self.register_buffer("in_mean", torch.zeros(width))
         self.register_buffer("in_std", torch.ones(width))
         self.register_buffer("act_mean", torch.zeros(2))
@@ -117,11 +121,11 @@ class MLPPolicy(nn.Module):
     @property
     def input_size(self) -> int:
         """D, the number of features."""
-        return self.config.features.size
+        return self.feature_config.size
 
     def features(self, ego: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
         """(B, 6) ego states and (B, K', 4) nearest neighbours -> (B, D) float32 features."""
-        return road_features(ego, neighbours, self.road, self.config.features)
+        return road_features(ego, neighbours, self.road, self.feature_config)
 
     def fit_normalization(self, inputs: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> None:
         """Set the input and output statistics from training data ((S, D), (S, 2))."""
@@ -189,16 +193,16 @@ def fold(policy: MLPPolicy) -> nn.Sequential:
 
 
 def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None, info: Optional[dict] = None) -> Path:
-    """Write a checkpoint (architecture, road, weights and statistics, plus JSON-able ``info``)."""
+    """Write a checkpoint (architecture, road, scene geometry, weights and statistics, plus
+    JSON-able ``info``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    config = asdict(policy.config)
-    config["hidden"] = list(config["hidden"])
     checkpoint = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
-        "config": config,
+        "config": to_dict(policy.config),
         "road": road_dict(policy.road),
+        "scene": to_dict(policy.scene),
         "state_dict": policy.state_dict(),
         "scenario": scenario,
         "info": info or {},
@@ -230,8 +234,12 @@ def load_policy(path: Path) -> MLPPolicy:
 
 
 def policy_from_checkpoint(checkpoint: dict) -> MLPPolicy:
-    """The :class:`MLPPolicy` of a checkpoint read by :func:`load_checkpoint`, in eval mode."""
-    policy = MLPPolicy(road_of(checkpoint["road"]), PolicyConfig.from_dict(checkpoint["config"]))
+    """The :class:`MLPPolicy` of a checkpoint read by :func:`load_checkpoint`, in eval mode. A
+    checkpoint written before the features read the scenario has no ``scene``: its policy keeps
+    the geometry it was trained with, :data:`mmpc.imitation.features.LEGACY_SCENE`."""
+    config = from_dict(PolicyConfig, checkpoint["config"], where="policy checkpoint: config")
+    scene = from_dict(SceneGeometry, checkpoint["scene"], where="policy checkpoint: scene") if "scene" in checkpoint else LEGACY_SCENE
+    policy = MLPPolicy(road_of(checkpoint["road"]), config, scene=scene)
     policy.load_state_dict(checkpoint["state_dict"])
     return policy.eval()
 
@@ -266,7 +274,9 @@ class PolicyDriver(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
-        neighbours = observation_neighbours(observation)  # all stored ones, as in training
+        mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
+        neighbours = nearest_neighbours(observation.ego.numpy(), observation.vehicles.numpy(), mask,  # all stored ones
+                                        ellipse=self.policy.scene.ellipse)
         command = self.commands(self.policy.features(observation.ego.numpy(), neighbours))
         elapsed_ms = (time.perf_counter() - start) * 1e3
         return Decision.command_only(torch.from_numpy(command[:, 0].copy()), torch.from_numpy(command[:, 1].copy()), elapsed_ms)

@@ -86,10 +86,11 @@ def executed_command(acceleration: float, steering: float) -> tuple[float, float
             min(max(steering, STEERING_RANGE[0]), STEERING_RANGE[1]))
 
 
-def observation_neighbours(observation: Observation) -> np.ndarray:
-    """(E, :data:`STORED_NEIGHBOURS`, 4) nearest other vehicles of each row (:func:`nearest_neighbours`)."""
+def observation_neighbours(observation: Observation, ellipse: tuple[float, float]) -> np.ndarray:
+    """(E, :data:`STORED_NEIGHBOURS`, 4) nearest other vehicles of each row (:func:`nearest_neighbours`
+    in the scenario's obstacle ``ellipse``)."""
     mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
-    return nearest_neighbours(observation.ego.numpy(), observation.vehicles.numpy(), mask)
+    return nearest_neighbours(observation.ego.numpy(), observation.vehicles.numpy(), mask, ellipse=ellipse)
 
 
 def decision_infos(decision: Decision, observation: Observation, scenario: ScenarioConfig) -> dict[str, np.ndarray]:
@@ -104,7 +105,7 @@ def decision_infos(decision: Decision, observation: Observation, scenario: Scena
                                for e in observation.ego], dtype=np.float64),
         "solve_ms": np.full(count, decision.solve_ms, dtype=np.float64),
         "ego": observation.ego.float().numpy(),
-        "neighbours": observation_neighbours(observation),
+        "neighbours": observation_neighbours(observation, scenario.optimizer.ellipse),
     }
     for name in ("residual_obstacle", "residual_nonholonomic", "residual_acceleration"):
         if decision.plan is None:
@@ -175,7 +176,7 @@ class _Rows:
                 column[t] = row[name]
             infos[name] = column
         infos["ego"][steps] = final.ego[0].float().numpy()
-        infos["neighbours"][steps] = observation_neighbours(final)[0]
+        infos["neighbours"][steps] = observation_neighbours(final, episode.scenario.optimizer.ellipse)[0]
         infos["meta_cost"][steps] = episode.scenario.objective.stage_cost(
             float(final.ego[0, EGO_V]), float(final.ego[0, EGO_Y]), episode.scenario.road)
         terminations = np.zeros(steps, dtype=np.bool_)

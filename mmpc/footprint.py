@@ -53,3 +53,45 @@ def ellipse_coverage(
     return max(((x1 + x2) / a) ** 2 + ((y1 + y2) / b) ** 2
                for (x1, y1), (x2, y2) in itertools.product(_corners(length, width, ego_heading_deg),
                                                            _corners(length, width, other_heading_deg)))
+
+
+def smallest_covering_axis(
+    semi_axis: float,
+    given: str,
+    ego_headings_deg: tuple[float, ...],
+    vehicle: tuple[float, float] = HIGHWAY_VEHICLE,
+) -> float:
+    """The smallest other semi-axis that makes the ellipse cover two vehicles at every heading.
+
+    With ``given="a"``, the smallest b such that ``ellipse_coverage((a, b), h, 0, vehicle) <= 1``
+    for every ego heading ``h`` in ``ego_headings_deg`` (the other vehicle along the road); with
+    ``given="b"``, the smallest a for the given b. Per corner (x, y) of the Minkowski sum,
+    ``(x / a)^2 + (y / b)^2 <= 1`` gives ``b >= |y| / sqrt(1 - (x / a)^2)``.
+
+    Args:
+        semi_axis: the given semi-axis [m].
+        given: ``"a"`` (along the road) or ``"b"`` (across).
+        ego_headings_deg: the ego's headings relative to the road [deg].
+        vehicle: both vehicles' (length, width) [m].
+
+    Returns:
+        The other semi-axis [m]; ``inf`` when none covers (the given one is too short).
+
+    Example:
+        >>> round(smallest_covering_axis(8.0, "a", (-13.0, 13.0)), 2)
+        3.14
+    """
+    if given not in ("a", "b"):
+        raise ValueError(f"`given` must be 'a' or 'b'; got {given!r}")
+    if not semi_axis > 0:
+        raise ValueError(f"`semi_axis` must be a length > 0 m; got {semi_axis}")
+    length, width = vehicle
+    needed = 0.0
+    for heading in ego_headings_deg:
+        for (x1, y1), (x2, y2) in itertools.product(_corners(length, width, heading), _corners(length, width, 0.0)):
+            along, across = abs(x1 + x2), abs(y1 + y2)
+            known, other = (along, across) if given == "a" else (across, along)
+            if known >= semi_axis:
+                return math.inf
+            needed = max(needed, other / math.sqrt(1.0 - (known / semi_axis) ** 2))
+    return needed

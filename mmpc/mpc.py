@@ -15,7 +15,8 @@ from typing import Callable, NamedTuple, Optional
 
 import torch
 
-from mmpc.config import dataclass_from_dict, require, require_non_negative, require_positive
+from mmpc.config import require, require_non_negative, require_positive
+from mmpc.footprint import HIGHWAY_VEHICLE
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
@@ -65,9 +66,6 @@ class MPCConfig:
             unbounded). Measured in highway-env cruise traffic: a vehicle changing lanes at
             2-3 m/s of vy, extrapolated straight, crossed every lane within the horizon and left
             no feasible candidate, and the fallback braked the ego from 14.5 to 6.3 m/s.
-        wheelbase: L of ``steering = atan(L psidot / v)`` [m]; highway-env's kinematic bicycle
-            turns at ``v tan(delta) / L`` with L its vehicle length (5 m; a scenario with
-            another ``vehicle_size`` must set it to that length).
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
@@ -94,17 +92,12 @@ class MPCConfig:
         max_steering: steering saturation [rad].
         road_margin: a candidate whose centre comes closer than this to a road edge is
             infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].
-        compile: how :func:`mmpc.scenario.build_mpc` builds the optimizer: ``"auto"`` (compiled
-            on the CPU in float32 when a C++ compiler is found, ~4x faster per solve after a
-            one-off compile of ~10-60 s, cached on disk; else eager), ``true`` or ``false``
-            (eager, the reference). See :class:`mmpc.BatchOptimizer`.
     """
 
     num_obstacles: int = 6
     ignore_behind: float = 20.0
     obstacle_lookahead: float = 3.0
     prediction: str = "lanes"
-    wheelbase: float = 5.0
     command_window: float = 0.3
     tie_tolerance: float = 0.01
     tie_margin: float = 1.0
@@ -114,16 +107,13 @@ class MPCConfig:
     stop_gap: float = 2.0
     max_steering: float = math.pi / 4
     road_margin: float = 1.0
-    compile: bool | str = "auto"
 
     def __post_init__(self) -> None:
         require(self.prediction in PREDICTIONS,
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
-        require(self.compile == "auto" or isinstance(self.compile, bool),
-                f"`compile` must be true, false or 'auto'; got {self.compile!r}")
         if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
             raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
-        names = ("ignore_behind", "wheelbase", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
+        names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
                              tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
@@ -132,10 +122,6 @@ class MPCConfig:
                 f"`stop_lanes` must be null (no stop goals) or an int >= 0; got {self.stop_lanes!r}")
         require(self.max_deceleration >= self.brake_deceleration,
                 f"`max_deceleration` ({self.max_deceleration}) must be >= `brake_deceleration` ({self.brake_deceleration})")
-
-    @classmethod
-    def from_dict(cls, values) -> "MPCConfig":
-        return dataclass_from_dict(cls, values, where="mpc config")
 
 
 class Plan(NamedTuple):
@@ -263,6 +249,10 @@ class MPC:
         meta_cost: ``f(trajectories, road) -> (E, G)``.
         road: the road (lanes) the goals and costs refer to.
         config: loop settings.
+        wheelbase: L of ``steering = atan(L psidot / v)`` [m]; highway-env's kinematic bicycle
+            turns at ``v tan(delta) / L`` with L its vehicle length (a scenario's
+            ``ScenarioConfig.vehicle`` length, :func:`mmpc.scenario.build_mpc`). Also the
+            vehicle length the fallback keeps to the vehicle ahead.
 
     Example:
         >>> import torch, mmpc
@@ -281,7 +271,11 @@ class MPC:
         meta_cost: MetaCost,
         road: Road,
         config: Optional[MPCConfig] = None,
+        *,
+        wheelbase: float = HIGHWAY_VEHICLE[0],
     ) -> None:
+        require_positive("MPC", wheelbase=wheelbase)
+        self.wheelbase = wheelbase
         self.optimizer = optimizer
         self.goal_sampler = goal_sampler
         self.meta_cost = meta_cost
@@ -452,7 +446,7 @@ class MPC:
             ego, trajectory.times, feasible, drivable, acceleration, heading_rate, obstacles, mask
         )
         speed = ego[:, EGO_V].clamp_min(1.0)
-        steering = torch.atan(self.config.wheelbase * heading_rate / speed)
+        steering = torch.atan(self.wheelbase * heading_rate / speed)
         steering = steering.clamp(-self.config.max_steering, self.config.max_steering)
         return acceleration, steering, heading_rate
 
@@ -512,7 +506,7 @@ class MPC:
             mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask
             needed = conflict_deceleration(
                 ego, obstacles, mask, times, half_width=0.5 * self.road.lane_width,
-                standoff=self.config.wheelbase + self.config.stop_gap, max_deceleration=self.config.max_deceleration,
+                standoff=self.wheelbase + self.config.stop_gap, max_deceleration=self.config.max_deceleration,
             )
             fallback_acceleration = torch.minimum(fallback_acceleration, needed)
         # Near rest, brake only as much as stops within the command window (never into reverse).

@@ -49,7 +49,11 @@ _PARKED_DISTANCE = 1.0e5
 _EPS_SQUARED = 1.0e-12
 #: Iterations per compiled graph in the ``compile=True`` path.
 _COMPILED_CHUNK = 10
-#: Environment variable that overrides ``compile="auto"``: 0 eager, 1 compiled.
+#: Environment variable that decides ``compile="auto"`` (what :func:`mmpc.scenario.build_mpc`
+#: passes): ``0`` eager, ``1`` compiled, unset: compiled on the CPU in float32 when a C++
+#: compiler is found. Read in one place, :func:`_auto_compile`; the command line's
+#: ``--compile auto|on|off`` sets it (:func:`mmpc.cli.arguments.apply_compile`), so that worker
+#: processes inherit the choice. Compiling is a run option, not part of a scenario.
 COMPILE_ENV = "MMPC_COMPILE"
 #: Widest SIMD register the compiled CPU kernels use (AVX-512) [bytes].
 _SIMD_BYTES = 64

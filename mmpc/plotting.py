@@ -34,8 +34,8 @@ def plot_candidates(
     result: SolveResult,
     road: Road,
     *,
+    ellipse: tuple[float, float],
     best: Optional[int] = None,
-    ellipse: tuple[float, float] = (5.6, 3.0),
     vehicle: tuple[float, float] = HIGHWAY_VEHICLE,
     problem_index: int = 0,
     title: str = "",
@@ -43,7 +43,8 @@ def plot_candidates(
     """Top-down plot of the G candidate trajectories of problem ``problem_index``.
 
     Feasible candidates are solid, infeasible ones dotted grey, the ``best`` one thick red;
-    obstacles are drawn as their ellipses (semi-axes ``ellipse`` [m]) at t = 0 with their
+    obstacles are drawn as their ellipses (semi-axes ``ellipse`` [m], the optimizer's
+    :attr:`mmpc.OptimizerConfig.ellipse`) at t = 0 with their
     predicted paths, the ego as a ``vehicle`` = (length, width) [m] rectangle (a scenario's
     ``ScenarioConfig.vehicle``; highway-env's by default).
     """

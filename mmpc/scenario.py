@@ -14,21 +14,23 @@ environment.
 from __future__ import annotations
 
 import dataclasses
-import json
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
 
-from mmpc.config import OptimizerConfig, dataclass_from_dict, read_config_yaml, require, require_positive
+from mmpc.config import OptimizerConfig, load_config, require, require_positive
 from mmpc.configs import shipped_config_dir
-from mmpc.footprint import HIGHWAY_VEHICLE
+from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig
-from mmpc.optimizer import BatchOptimizer
+from mmpc.optimizer import COMPILE_ENV, BatchOptimizer
 from mmpc.road import Road
+
+logger = logging.getLogger(__name__)
 
 #: Obstacle ellipse semi-axes for highway-env [m] (the default cruise scenario's). Its collision
 #: check intersects 5 m x 2 m rectangles, so a covering ellipse must hold their Minkowski sum
@@ -50,7 +52,7 @@ HIGHWAY_MAX_HEADING_DEG = 13.0
 #: failures 1886 -> 833), and over 20 seeds x 40 s the cruise meta cost from 3.65 to 2.15 and
 #: high speed from 67.1 to 44.4.
 HIGHWAY_HEADING_TARGET_DEG = 11.7
-#: Folder of the scenarios that ship with the repository.
+#: Folder of the scenarios that ship with mmpc (:attr:`ScenarioConfig.config_folder`).
 SCENARIO_DIR = shipped_config_dir("scenarios")
 
 
@@ -373,13 +375,20 @@ class ScenarioConfig:
         traffic: the other vehicles.
         vehicle_size: (length, width) of every vehicle, the ego included [m]; ``None`` keeps
             highway-env's 5 m x 2 m (:data:`mmpc.footprint.HIGHWAY_VEHICLE`). highway-env's
-            bicycle model turns with the length as wheelbase, so ``mpc.wheelbase`` must equal
-            it. Not with NGSIM traffic (recorded vehicles keep their recorded size).
+            bicycle model turns with the length as wheelbase, and so does the MPC's steering
+            (:func:`build_mpc`). Not with NGSIM traffic (recorded vehicles keep their recorded size).
         optimizer: batch optimizer settings (default: the authors' with :data:`HIGHWAY_ELLIPSE`,
-            :data:`HIGHWAY_MAX_HEADING_DEG` and :data:`HIGHWAY_HEADING_TARGET_DEG`).
+            :data:`HIGHWAY_MAX_HEADING_DEG` and :data:`HIGHWAY_HEADING_TARGET_DEG`). Its obstacle
+            ellipse must cover two of the scenario's vehicles with the ego anywhere in the
+            heading band and the other along the road (:func:`mmpc.footprint.ellipse_coverage`
+            <= 1), else the scenario is refused: the ego could touch a car it plans to clear.
         mpc: receding-horizon settings.
+
+    Scenarios written before mmpc derived the wheelbase and made compiling a run option may
+    hold ``mpc.wheelbase`` and ``mpc.compile``; :meth:`upgrade` reads them.
     """
 
+    config_folder: ClassVar[str] = "scenarios"
     name: str = "cruise"
     objective: Objective = field(default_factory=CruiseObjective)
     lanes: int = 6
@@ -420,11 +429,7 @@ class ScenarioConfig:
             require_positive(where, vehicle_length=self.vehicle_size[0], vehicle_width=self.vehicle_size[1])
             require(not isinstance(self.traffic, NGSIMTraffic),
                      f"{where}: `vehicle_size` does not apply to NGSIM traffic (recorded vehicles keep their size)")
-        require(
-            self.mpc.wheelbase == self.vehicle[0],
-            f"{where}: `mpc.wheelbase` ({self.mpc.wheelbase} m) must equal the vehicle length ({self.vehicle[0]} m): "
-            f"highway-env's bicycle model turns with the length as wheelbase",
-        )
+        self._check_ellipse(where)
         require(
             self.optimizer.v_max >= self.objective.top_speed,
             f"{where}: `optimizer.v_max` ({self.optimizer.v_max} m/s) must be >= the objective's speed "
@@ -435,6 +440,54 @@ class ScenarioConfig:
             f"{where}: `mpc.num_obstacles` ({self.mpc.num_obstacles}) must be <= `optimizer.max_obstacles` "
             f"({self.optimizer.max_obstacles})",
         )
+
+    def _check_ellipse(self, where: str) -> None:
+        """Refuse an obstacle ellipse that does not cover two vehicles over the heading band."""
+        axes, band, vehicle = self.optimizer.ellipse, self.optimizer.max_heading_deg, self.vehicle
+        coverage = max(ellipse_coverage(axes, heading, vehicle=vehicle) for heading in (-band, band))
+        if coverage <= 1.0:
+            return
+        smallest_b = smallest_covering_axis(axes[0], "a", (-band, band), vehicle)
+        smallest_a = smallest_covering_axis(axes[1], "b", (-band, band), vehicle)
+        options = [f"`optimizer.ellipse_b` >= {math.ceil(smallest_b * 100) / 100} m with a = {axes[0]} m"
+                   if math.isfinite(smallest_b) else f"no b covers them with a = {axes[0]} m"]
+        if math.isfinite(smallest_a):
+            options.append(f"`optimizer.ellipse_a` >= {math.ceil(smallest_a * 100) / 100} m with b = {axes[1]} m")
+        raise ValueError(
+            f"{where}: the obstacle ellipse (a = {axes[0]} m, b = {axes[1]} m) does not cover two {vehicle[0]} m x "
+            f"{vehicle[1]} m vehicles with the ego turned up to `optimizer.max_heading_deg` = {band} deg "
+            f"(mmpc.footprint.ellipse_coverage {coverage:.3f} > 1): the ego could touch a car it plans to clear. "
+            f"The smallest covering ellipse: {' or '.join(options)} (or a narrower heading band)"
+        )
+
+    @classmethod
+    def upgrade(cls, values: dict, where: str) -> dict:
+        """Read a scenario mapping written before the wheelbase was derived and compiling became
+        a run option (:func:`mmpc.config.from_dict` calls this first).
+
+        ``mpc.compile`` is dropped with a warning: compiling is chosen per run (``--compile``,
+        :data:`mmpc.optimizer.COMPILE_ENV`). ``mpc.wheelbase`` equal to the vehicle length is
+        dropped with a warning; another value is refused, as the MPC now steers with the length.
+        """
+        mpc = values.get("mpc")
+        if not isinstance(mpc, Mapping) or not {"compile", "wheelbase"} & set(mpc):
+            return values
+        mpc = dict(mpc)
+        if "compile" in mpc:
+            logger.warning("%s: `mpc.compile: %s` is ignored: compiling is a run option now (--compile auto|on|off, "
+                           "or the environment variable %s=0/1); remove the key", where, mpc.pop("compile"), COMPILE_ENV)
+        if "wheelbase" in mpc:
+            wheelbase = mpc.pop("wheelbase")
+            size = values.get("vehicle_size")
+            length = size[0] if isinstance(size, (list, tuple)) and size else HIGHWAY_VEHICLE[0]
+            if wheelbase != length:
+                raise ValueError(
+                    f"{where}: `mpc.wheelbase` is {wheelbase} m but the vehicles are {length} m long; the MPC steers with "
+                    f"the vehicle length now (highway-env's bicycle turns with it): remove `mpc.wheelbase`, and set "
+                    f"`vehicle_size: [{wheelbase}, WIDTH]` if the cars are {wheelbase} m long")
+            logger.warning("%s: `mpc.wheelbase` is ignored: the MPC takes the vehicle length (%s m); remove the key",
+                           where, length)
+        return {**values, "mpc": mpc}
 
     @property
     def vehicle(self) -> tuple[float, float]:
@@ -450,89 +503,32 @@ class ScenarioConfig:
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
 
-    def to_dict(self) -> dict:
-        """Plain JSON data that :meth:`from_dict` reads back: tuples become lists, the objective
-        and traffic keep their ``type``, and top-level settings left at ``None`` (e.g.
-        ``vehicle_size``) are omitted, so that a setting added later leaves the records of
-        earlier runs (dataset identities, fingerprints) unchanged."""
-        values = {key: value for key, value in dataclasses.asdict(self).items() if value is not None}
-        values["objective"] = {"type": self.objective.kind, **values["objective"]}
-        values["traffic"] = {"type": self.traffic.kind, **values["traffic"]}
-        return json.loads(json.dumps(values))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any], *, where: str = "scenario") -> "ScenarioConfig":
-        """Build from parsed YAML; unknown keys in any section raise ``ValueError``."""
-        if not isinstance(values, Mapping):
-            raise TypeError(f"{where} must be a mapping; got {type(values).__name__}")
-        values = dict(values)
-        if "objective" in values:
-            values["objective"] = _variant(OBJECTIVES, values["objective"], f"{where}: objective")
-        if "traffic" in values:
-            values["traffic"] = _variant(TRAFFIC, values["traffic"], f"{where}: traffic")
-        if "ego" in values:
-            values["ego"] = dataclass_from_dict(EgoConfig, values["ego"] or {}, where=f"{where}: ego")
-        if "optimizer" in values:
-            values["optimizer"] = dataclass_from_dict(OptimizerConfig, values["optimizer"] or {}, where=f"{where}: optimizer")
-        if "mpc" in values:
-            values["mpc"] = dataclass_from_dict(MPCConfig, values["mpc"] or {}, where=f"{where}: mpc")
-        for key in ("seeds", "vehicle_size"):
-            if key in values:
-                values[key] = _as_tuple(values[key])
-        return dataclass_from_dict(cls, values, where=where)
+def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto") -> MPC:
+    """The scenario's MPC (float32, CPU): its optimizer, goals, meta cost and loop settings, and
+    the vehicle length as wheelbase.
 
-
-def build_mpc(scenario: ScenarioConfig) -> MPC:
-    """The scenario's MPC (float32, CPU): its optimizer (compiled per ``scenario.mpc.compile``),
-    goals on the lane centres and meta cost."""
+    Args:
+        scenario: the scenario.
+        compile: ``"auto"`` (default): compiled on the CPU when a C++ compiler is found, unless
+            the environment variable :data:`mmpc.optimizer.COMPILE_ENV` (``MMPC_COMPILE``) says
+            0 (eager) or 1 (compiled); the command line's ``--compile auto|on|off`` sets that
+            variable, so worker processes inherit it. ``True`` / ``False`` decide here. See
+            :class:`mmpc.BatchOptimizer`.
+    """
     road = scenario.road
     goals = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
-    optimizer = BatchOptimizer(scenario.optimizer, compile=scenario.mpc.compile)
-    return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc)
-
-
-def _as_tuple(value: Any) -> Any:
-    return tuple(value) if isinstance(value, list) else value
-
-
-def _variant(registry: Mapping[str, type], values: Any, where: str) -> Any:
-    """Build the dataclass named by ``values['type']`` from the other keys."""
-    if not isinstance(values, Mapping) or "type" not in values:
-        raise ValueError(f"{where} must be a mapping with a `type` key, one of {sorted(registry)}; got {values!r}")
-    values = dict(values)
-    kind = values.pop("type")
-    if kind not in registry:
-        raise ValueError(f"{where}: unknown type {kind!r}; expected one of {sorted(registry)}")
-    cls = registry[kind]
-    if cls is ScriptedTraffic and "vehicles" in values:
-        values["vehicles"] = tuple(
-            dataclass_from_dict(ScriptedVehicle, v, where=f"{where}: vehicles[{i}]") for i, v in enumerate(values["vehicles"] or [])
-        )
-    values = {key: _as_tuple(value) for key, value in values.items()}
-    return dataclass_from_dict(cls, values, where=f"{where} {kind}")
+    optimizer = BatchOptimizer(scenario.optimizer, compile=compile)
+    return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0])
 
 
 def load_scenario(name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None) -> ScenarioConfig:
-    """Load ``configs/scenarios/<name>.yaml`` or a YAML file at a path.
+    """:func:`mmpc.config.load_config` for scenarios: ``configs/scenarios/<name>.yaml`` or a YAML path.
 
     Args:
         name_or_path: a shipped scenario's name or a path.
         overrides: ``{"section.key": value}`` replacing values of the file before validation
             (e.g. ``{"traffic.lane_changes": True, "name": "cruise_mobil"}``); a key the
             scenario does not know is an error, as in the file.
-
-    Raises:
-        FileNotFoundError: neither a shipped scenario nor an existing file; the message lists
-            the shipped names.
-        ValueError: an invalid or unknown key.
     """
-    path, values = read_config_yaml(name_or_path, SCENARIO_DIR, "scenario", "scenarios")
-    for dotted, value in (overrides or {}).items():
-        *sections, key = dotted.split(".")
-        target = values
-        for section in sections:
-            target = target.setdefault(section, {})
-            if not isinstance(target, dict):
-                raise ValueError(f"override {dotted!r}: {section!r} is not a section of scenario {path}")
-        target[key] = value
-    return ScenarioConfig.from_dict(values, where=f"scenario {path}")
+    return load_config(ScenarioConfig, name_or_path, overrides)

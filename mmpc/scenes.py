@@ -7,8 +7,12 @@ from typing import NamedTuple
 
 import torch
 
+from mmpc.config import OptimizerConfig
 from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
 from mmpc.road import Road
+
+#: The obstacle ellipse the scenes are made for: the default (the paper authors') optimizer's [m].
+SCENE_ELLIPSE = OptimizerConfig().ellipse
 
 
 class Scene(NamedTuple):
@@ -71,7 +75,7 @@ def demo_scene(num_steps: int = 100, horizon: float = 8.0) -> Scene:
     obstacles = predict_constant_velocity(states, times)
     lateral = torch.linspace(0.0, road.right_lane_y, 11)
     goals = torch.stack([torch.full_like(lateral, 120.0), lateral], dim=-1)[None]
-    reachable = _certify_reachable(ego, goals, obstacles, times, horizon, road, (5.6, 3.0))
+    reachable = _certify_reachable(ego, goals, obstacles, times, horizon, road, SCENE_ELLIPSE)
     problem = ProblemBatch(ego, goals, obstacles)
     return Scene("demo: six slower cars, 11 cruise goals", road, problem, states, reachable)
 
@@ -115,7 +119,7 @@ def synthetic_scenes(
             lane = integer(road.num_lanes)
             x = ego_x + (uniform(25.0, 130.0) if integer(4) else uniform(-30.0, -12.0))
             y = float(lanes[lane])
-            if math.hypot((x - ego_x) / 5.6, (y - float(ego[0, 1])) / 3.0) < 1.5:
+            if math.hypot((x - ego_x) / SCENE_ELLIPSE[0], (y - float(ego[0, 1])) / SCENE_ELLIPSE[1]) < 1.5:
                 continue
             if any(py == y and abs(px - x) < 14.0 for px, py, _ in placed):
                 continue
@@ -125,7 +129,7 @@ def synthetic_scenes(
         goal_x = [ego_x + 15.0 * horizon] * road.num_lanes + [ego_x + 10.0 * horizon, ego_x + 20.0 * horizon]
         goal_y = lanes.tolist() + [float(lanes[ego_lane])] * 2
         goals = torch.tensor([list(zip(goal_x, goal_y))], dtype=torch.float64)
-        reachable = _certify_reachable(ego, goals, obstacles, times, horizon, road, (5.6, 3.0))
+        reachable = _certify_reachable(ego, goals, obstacles, times, horizon, road, SCENE_ELLIPSE)
         problem = ProblemBatch(ego.to(dtype), goals.to(dtype), obstacles.to(dtype))
         name = f"scene {i}: {road.num_lanes} lanes, {len(placed)} obstacles"
         scenes.append(Scene(name, road, problem, states.to(dtype), reachable))

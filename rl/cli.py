@@ -10,13 +10,14 @@ from pathlib import Path
 
 
 def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
+    from mmpc.cli.arguments import add_compile, add_config, add_set
     from mmpc.rl.config import ALGORITHMS
 
     train = subparsers.add_parser(
         "train-rl", help="train an SB3 agent on the safe layer (or plain highway-env): TensorBoard, checkpoints, eval.json")
     train.add_argument("--algo", choices=sorted(ALGORITHMS), required=True, help="dqn, ppo or sac")
-    train.add_argument("--config", default=None,
-                       help="RL config: name in configs/rl (e.g. safe_highway) or a YAML path (default: built-in defaults)")
+    add_config(train, "RL config (mmpc.rl.config.RLConfig; scenario keys as scenario.KEY)")
+    add_compile(train)
     train.add_argument("--timesteps", type=int, required=True, help="agent steps, summed over the vectorized environments")
     train.add_argument("--out", required=True, help="run directory (config.yaml, tb/, checkpoints/, model.zip, eval.json)")
     train.add_argument("--env", choices=("safe", "highway"), default="safe",
@@ -31,6 +32,8 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     evaluate.add_argument("--model", required=True, help="MODEL.zip written by train-rl (or a checkpoint)")
     evaluate.add_argument("--episodes", type=int, default=None, help="override train.eval_episodes of the run's config")
     evaluate.add_argument("--out", default=None, help="write the summary here (default: print only)")
+    add_set(evaluate, "run's RL config", example=", e.g. --set scenario.traffic.vehicles_count=30")
+    add_compile(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
     report = subparsers.add_parser("rl-report", help="TensorBoard curves (PNG) and evaluation table (markdown, JSON) of runs")
@@ -40,13 +43,16 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from mmpc.rl.config import load_rl_config
+    from mmpc.cli.arguments import apply_compile
+    from mmpc.config import load_config
+    from mmpc.rl.config import RLConfig
     from mmpc.rl.train import train
 
     if args.timesteps < 1:
         print("mmpc train-rl: error: --timesteps must be >= 1", file=sys.stderr)
         return 2
-    config = load_rl_config(args.config)
+    apply_compile(args.compile)
+    config = load_config(RLConfig, args.config, dict(args.set))
     if args.eval_episodes is not None:
         if args.eval_episodes < 1:
             print("mmpc train-rl: error: --eval-episodes must be >= 1", file=sys.stderr)
@@ -63,10 +69,14 @@ def _train(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from mmpc.cli.arguments import apply_compile
+    from mmpc.config import with_overrides
     from mmpc.rl.train import evaluate_run, load_run
 
+    apply_compile(args.compile)
     run = load_run(args.model)
-    config = run.config if args.episodes is None else _with_episodes(run.config, args.episodes)
+    config = with_overrides(run.config, dict(args.set))
+    config = config if args.episodes is None else _with_episodes(config, args.episodes)
     with tqdm(total=config.train.eval_episodes, desc="episodes", unit="ep") as bar:
         summary = evaluate_run(run.model, config, env_kind=run.env_kind, continuous=run.continuous,
                                on_episode=lambda row: bar.update(1))

@@ -1,31 +1,26 @@
 """Settings of the safe action layer and of RL training runs, as frozen, validated dataclasses.
 
-A training run is described by one YAML file (``configs/rl/<name>.yaml``) read by
-:func:`load_rl_config`; every section rejects unknown keys::
+:class:`RLConfig` defaults are the documented training run (README, "Safe RL"); a YAML file
+(``configs/rl/<name>.yaml`` or a path, :func:`mmpc.config.load_config`) changes some of them,
+and every section rejects unknown keys::
 
-    scenario: {...}          # a full mmpc scenario (or the name / path of one)
-    env: {decision_frames: 5, lane_offsets: [-1, 0, 1], speeds: [16, 20, 24, 28], ...}
+    scenario: rl_highway_fast    # a scenario's name or path; or {from: NAME, duration: 2.0, ...}
+    env: {decision_frames: 5, lane_offsets: [-1, 0, 1], speeds: [15, 20, 25, 28], ...}
     reward: {collision_reward: -1.0, right_lane_reward: 0.1, high_speed_reward: 0.4, ...}
-    train: {n_envs: 4, log_every: 500, ...}
+    train: {n_envs: 8, log_every: 400, ...}
     algorithms: {dqn: {learning_rate: 5.0e-4, ...}, ppo: {...}, sac: {...}}
 
-This module imports neither highway-env nor stable-baselines3.
+``mmpc config show rl`` prints the defaults. This module imports neither highway-env nor
+stable-baselines3.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, ClassVar, Mapping, Optional
 
-
-from mmpc.config import (
-    OptimizerConfig, dataclass_from_dict, is_finite_number, read_config_yaml, require, require_non_negative,
-    require_positive,
-)
-from mmpc.configs import shipped_config_dir
-from mmpc.scenario import CruiseObjective, EgoConfig, IDMTraffic, ScenarioConfig, load_scenario
+from mmpc.config import is_finite_number, require, require_non_negative, require_positive
+from mmpc.scenario import ScenarioConfig, load_scenario
 
 #: Algorithms ``mmpc train-rl`` knows, with the action space each trains on by default.
 ALGORITHMS: dict[str, str] = {"dqn": "discrete", "ppo": "discrete", "sac": "continuous"}
@@ -33,29 +28,24 @@ ALGORITHMS: dict[str, str] = {"dqn": "discrete", "ppo": "discrete", "sac": "cont
 SUPPORTED_ACTIONS: dict[str, tuple[str, ...]] = {"dqn": ("discrete",), "ppo": ("discrete", "continuous"), "sac": ("continuous",)}
 
 
-def rl_scenario() -> ScenarioConfig:
-    """The default scenario of the RL environments: highway-env's ``highway-fast-v0`` traffic
-    (3 lanes, 20 IDM/MOBIL vehicles at highway-env's 21-24 m/s, density 1, ego at 25 m/s),
-    30 s episodes, simulated and planned at 10 Hz. The MPC's standard goals cruise at 25 m/s
-    with car-following goals on the ego's and the neighbouring lanes.
+#: The scenario of the RL environments (``configs/scenarios/rl_highway_fast.yaml``): highway-env's
+#: ``highway-fast-v0`` traffic, 30 s episodes at 10 Hz, the high-speed scenario's ellipse and band.
+RL_SCENARIO = "rl_highway_fast"
 
-    Traffic is highway-env's own (no re-spawning window) so that the plain highway-env
-    baseline (:func:`mmpc.rl.train.make_highway_env`) drives the same traffic; only vehicles
-    closer than 10 m ahead of the ego in its lane at the start are moved away.
-    """
-    return ScenarioConfig(
-        name="rl_highway_fast",
-        objective=CruiseObjective(v_cruise=25.0, near_lane_speeds=(10.0, 15.0, 20.0, 25.0), near_lanes=1),
-        lanes=3,
-        duration=30.0,
-        frequency=10.0,
-        env_id="highway-fast-v0",
-        ego=EgoConfig(speed=25.0, lane=None),
-        traffic=IDMTraffic(vehicles_count=20, vehicles_density=1.0, target_speeds=None, window=None,
-                           initial_clearance=10.0, lane_changes=True),
-        # fast traffic: the high-speed scenario's ellipse and 8-degree band, not cruise's 13 degrees
-        optimizer=OptimizerConfig(ellipse_a=8.0, ellipse_b=3.0, max_heading_deg=8.0, heading_target_deg=7.2),
-    )
+
+def _recipe_algorithms() -> dict[str, dict[str, Any]]:
+    """Per algorithm, the stable-baselines3 keyword arguments of the documented training run."""
+    return {
+        # highway-env's published DQN settings, except 2 gradient steps per vectorized step (8 transitions)
+        "dqn": {"learning_rate": 5.0e-4, "buffer_size": 15000, "learning_starts": 200, "batch_size": 32, "gamma": 0.8,
+                "train_freq": 1, "gradient_steps": 2, "target_update_interval": 50, "exploration_fraction": 0.7,
+                "policy_kwargs": {"net_arch": [256, 256]}},
+        # n_steps x n_envs = 1024 transitions per update
+        "ppo": {"n_steps": 128, "batch_size": 64, "n_epochs": 10, "learning_rate": 5.0e-4, "gamma": 0.8,
+                "policy_kwargs": {"net_arch": [256, 256]}},
+        "sac": {"learning_rate": 5.0e-4, "buffer_size": 15000, "learning_starts": 200, "batch_size": 64, "gamma": 0.8,
+                "policy_kwargs": {"net_arch": [256, 256]}},
+    }
 
 
 @dataclass(frozen=True)
@@ -188,14 +178,15 @@ class TrainConfig:
             writes of the custom scalars.
         checkpoint_every: environment steps between two checkpoints.
         eval_episodes: evaluation episodes at the end of training.
-        eval_seed: seed of the first evaluation episode; episode i uses ``eval_seed + i``.
+        eval_seed: seed of the first evaluation episode; episode i uses ``eval_seed + i`` (the
+            same seeds for the safe and the plain highway-env agent).
         eval_envs: evaluation episodes run in lockstep (one batched solve per frame).
         torch_threads: torch CPU threads of the run.
     """
 
-    n_envs: int = 4
-    log_every: int = 500
-    checkpoint_every: int = 5000
+    n_envs: int = 8
+    log_every: int = 400
+    checkpoint_every: int = 2000
     eval_episodes: int = 50
     eval_seed: int = 100_000
     eval_envs: int = 10
@@ -212,9 +203,16 @@ class TrainConfig:
 @dataclass(frozen=True)
 class RLConfig:
     """One training setup: scenario, environment, reward, training and per-algorithm settings.
+    The defaults are the documented training run: DQN picks goals (lane offset x target speed)
+    every 0.5 s and the batch optimizer plans towards them at 10 Hz among highway-env's own
+    highway-fast traffic; the same settings train the unprotected baseline on plain highway-env
+    (``mmpc train-rl --env highway``: same road, traffic, episode length, reward, observation
+    and decision rate, highway-env's DiscreteMetaAction).
 
     Attributes:
-        scenario: the driving scenario (default :func:`rl_scenario`).
+        scenario: the driving scenario (default :data:`RL_SCENARIO`, the shipped file). In YAML
+            its name or path, or ``{from: NAME_OR_PATH, key: value, ...}`` to change some of
+            its settings, or a whole scenario inline (as trained runs record it).
         env: the safe layer's environment settings.
         reward: the reward, shared by the safe environments and the plain highway-env baseline.
         train: training and evaluation settings.
@@ -224,11 +222,12 @@ class RLConfig:
             (:data:`ALGORITHMS`).
     """
 
-    scenario: ScenarioConfig = field(default_factory=rl_scenario)
+    config_folder: ClassVar[str] = "rl"
+    scenario: ScenarioConfig = field(default_factory=lambda: load_scenario(RL_SCENARIO))
     env: SafeEnvConfig = field(default_factory=SafeEnvConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
-    algorithms: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    algorithms: Mapping[str, Mapping[str, Any]] = field(default_factory=_recipe_algorithms)
     action: Optional[str] = None
 
     def __post_init__(self) -> None:
@@ -252,61 +251,3 @@ class RLConfig:
         require(action in SUPPORTED_ACTIONS[algo],
                  f"algorithm {algo!r} cannot train on {action} actions; it supports {list(SUPPORTED_ACTIONS[algo])}")
         return action
-
-    def to_dict(self) -> dict:
-        """Plain data (YAML-ready) that :meth:`from_dict` reads back; the scenario inline."""
-        values = dataclasses.asdict(self)
-        values["scenario"] = self.scenario.to_dict()
-        values["algorithms"] = {name: dict(kwargs) for name, kwargs in self.algorithms.items()}
-        return _plain(values)
-
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any], *, where: str = "rl config") -> "RLConfig":
-        """Build from parsed YAML; unknown keys in any section raise ``ValueError``."""
-        if not isinstance(values, Mapping):
-            raise TypeError(f"{where} must be a mapping; got {type(values).__name__}")
-        values = dict(values)
-        if "scenario" in values:
-            scenario = values["scenario"]
-            if isinstance(scenario, (str, Path)):
-                values["scenario"] = load_scenario(scenario)
-            else:
-                values["scenario"] = ScenarioConfig.from_dict(scenario, where=f"{where}: scenario")
-        sections = {"env": SafeEnvConfig, "reward": RewardConfig, "train": TrainConfig}
-        for name, section in sections.items():
-            if name in values:
-                items = {key: _as_tuple(value) for key, value in dict(values[name] or {}).items()}
-                values[name] = dataclass_from_dict(section, items, where=f"{where}: {name}")
-        if "algorithms" in values:
-            values["algorithms"] = dict(values["algorithms"] or {})
-        return dataclass_from_dict(cls, values, where=where)
-
-
-def load_rl_config(path: Optional[str | Path] = None) -> RLConfig:
-    """Read ``configs/rl/<name>.yaml`` (a path, or a name of a shipped file); ``None``: defaults.
-
-    Raises:
-        FileNotFoundError: no such file; the message lists the shipped configs.
-        ValueError: an invalid or unknown key.
-    """
-    if path is None:
-        return RLConfig()
-    path, values = read_config_yaml(path, RL_CONFIG_DIR, "rl config", "configs")
-    return RLConfig.from_dict(values, where=f"rl config {path}")
-
-
-#: Folder of the RL configs that ship with the repository.
-RL_CONFIG_DIR = shipped_config_dir("rl")
-
-
-def _as_tuple(value: Any) -> Any:
-    return tuple(value) if isinstance(value, list) else value
-
-
-def _plain(value: Any) -> Any:
-    """Tuples -> lists, recursively (for YAML)."""
-    if isinstance(value, Mapping):
-        return {key: _plain(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(item) for item in value]
-    return value

@@ -31,7 +31,8 @@ from gymnasium import spaces
 from mmpc.highway.runner import stack_observations
 from mmpc.drivers import Observation
 from mmpc.highway import HighwayEpisode, road_state
-from mmpc.rl.config import RewardConfig, SafeEnvConfig, rl_scenario
+from mmpc.config import from_dict
+from mmpc.rl.config import RL_SCENARIO, RewardConfig, SafeEnvConfig
 from mmpc.highway.kinematics import DeferredKinematics
 from mmpc.rl.safety import FEATURES_PER_GOAL, SafetyLayer
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
@@ -88,7 +89,7 @@ class SafeHighwayEnv(gym.Env):
 
     Args:
         scenario: the driving scenario, a :class:`mmpc.ScenarioConfig` or the name / path of
-            one (default :func:`mmpc.rl.config.rl_scenario`); its ``duration`` is the episode
+            one (default :data:`mmpc.rl.config.RL_SCENARIO`); its ``duration`` is the episode
             length.
         config: environment settings (a :class:`SafeEnvConfig` or a mapping of its fields).
         reward: reward settings (a :class:`RewardConfig` or a mapping of its fields).
@@ -119,15 +120,13 @@ class SafeHighwayEnv(gym.Env):
         layer: Optional[SafetyLayer] = None,
         render_mode: Optional[str] = None,
     ) -> None:
-        if scenario is None:
-            scenario = rl_scenario()
-        elif isinstance(scenario, str):
-            scenario = load_scenario(scenario)
+        if isinstance(scenario, str) or scenario is None:
+            scenario = load_scenario(RL_SCENARIO if scenario is None else scenario)
         if not isinstance(scenario, ScenarioConfig):
             raise TypeError(f"`scenario` must be a ScenarioConfig, a scenario name or None; got {type(scenario).__name__}")
         self.scenario = scenario
-        self.config = config if isinstance(config, SafeEnvConfig) else SafeEnvConfig(**_tuples(config or {}))
-        self.reward_config = reward if isinstance(reward, RewardConfig) else RewardConfig(**_tuples(reward or {}))
+        self.config = config if isinstance(config, SafeEnvConfig) else from_dict(SafeEnvConfig, config, where="env")
+        self.reward_config = reward if isinstance(reward, RewardConfig) else from_dict(RewardConfig, reward, where="reward")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"`render_mode` must be None or 'rgb_array'; got {render_mode!r}")
         self.render_mode = render_mode
@@ -363,7 +362,3 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
         truncated = not crashed and episode.done
         outcomes.append(StepOutcome(env.observation(features[i]), float(rewards[i]), crashed, truncated, info))
     return outcomes
-
-
-def _tuples(values: dict) -> dict:
-    return {key: tuple(value) if isinstance(value, list) else value for key, value in dict(values).items()}

@@ -95,11 +95,11 @@ class SafetyLayer:
 
     Example:
         >>> import torch
-        >>> from mmpc.rl.config import SafeEnvConfig, rl_scenario
-        >>> from mmpc.scenario import build_mpc
+        >>> from mmpc.rl.config import RL_SCENARIO, SafeEnvConfig
+        >>> from mmpc.scenario import build_mpc, load_scenario
         >>> from mmpc.drivers import Observation
         >>> from mmpc.problem import ego_state
-        >>> layer = SafetyLayer(build_mpc(rl_scenario()), SafeEnvConfig())
+        >>> layer = SafetyLayer(build_mpc(load_scenario(RL_SCENARIO)), SafeEnvConfig())
         >>> ego = ego_state(0.0, 4.0, 0.0, 25.0)
         >>> observation = Observation(ego, torch.tensor([[[60.0, 4.0, 20.0, 0.0]]]))
         >>> commands = layer.discrete_commands(ego, torch.tensor([8]))  # right lane at 15 m/s

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import yaml
 
+from mmpc.config import from_dict, to_dict
 from mmpc.rl.config import ALGORITHMS, RLConfig
 
 logger = logging.getLogger(__name__)
@@ -299,7 +300,7 @@ def train(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete", "timesteps": timesteps,
-           "seed": seed, "config": config.to_dict()}
+           "seed": seed, "config": to_dict(config)}
     (out / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
     # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
     (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
@@ -359,6 +360,6 @@ def load_run(path: str | Path) -> TrainedRun:
             break
     else:
         raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc train-rl`?")
-    config = RLConfig.from_dict(run["config"], where=f"{path.parent / 'config.yaml'}")
+    config = from_dict(RLConfig, run["config"], where=f"{folder / 'config.yaml'}: config")
     model = algorithm_class(run["algo"]).load(str(path), device="cpu")
     return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)

@@ -21,7 +21,8 @@ from typing import Optional
 import numpy as np
 import torch
 
-from mmpc.rl.config import RLConfig, load_rl_config
+from mmpc.config import load_config
+from mmpc.rl.config import RLConfig
 
 
 def run_benchmark(config: RLConfig, *, num_envs: int = 64, steps: int = 3, seed: int = 0, threads: int = 1,
@@ -116,14 +117,14 @@ def format_report(report: dict) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="safe_highway", help="RL config name in configs/rl or a YAML path")
+    parser.add_argument("--config", default=None, help="RL config name in configs/rl or a YAML path (default: RLConfig's defaults)")
     parser.add_argument("--envs", type=int, default=64, help="vectorized environments E (default 64)")
     parser.add_argument("--steps", type=int, default=3, help="timed vectorized steps per variant (default 3)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="benchmarks/bench_safe_vecenv.json", help="JSON report")
     args = parser.parse_args(argv)
-    report = run_benchmark(load_rl_config(args.config), num_envs=args.envs, steps=args.steps, seed=args.seed,
+    report = run_benchmark(load_config(RLConfig, args.config), num_envs=args.envs, steps=args.steps, seed=args.seed,
                            threads=args.threads, out=Path(args.out))
     print(format_report(report))
     print(f"wrote {args.out}")

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from mmpc.config import from_dict
 from mmpc.drivers.batch_nlp import BatchNLPDriver, BatchNLPSolver, goal_subset
 from mmpc.drivers.common import obstacles_for
 from mmpc.drivers.frenet import FrenetConfig, FrenetPlanner, evaluate_polynomial, quartic_coefficients, quintic_coefficients
@@ -185,7 +186,7 @@ def test_bad_input_errors():
     with pytest.raises(ValueError, match="max_heading_deg"):
         FrenetConfig(max_heading_deg=95.0)
     with pytest.raises(ValueError, match="unknown key"):
-        NLPConfig.from_dict({"interval": 10})
+        from_dict(NLPConfig, {"interval": 10})
     with pytest.raises(ValueError, match="intervals"):
         NLPConfig(intervals=1)
     mpc = build_mpc(scenario)

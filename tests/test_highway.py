@@ -9,7 +9,6 @@ import pytest
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
 from mmpc.highway import HighwayEpisode, command_to_action, env_config, vehicle_motion
-from mmpc.mpc import MPCConfig
 from mmpc.scenario import (
     EgoConfig, HighSpeedObjective, IDMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle,
 )
@@ -122,8 +121,7 @@ def test_scripted_scene_with_a_window_recycles_vehicles_in_their_own_lane():
 def test_vehicle_size_resizes_every_vehicle_and_the_steering_inverts_the_new_wheelbase():
     """The authors' 4 m x 1.4 m cars: every vehicle (ego included) gets the footprint, and a
     lane change's commanded turn rate is what highway-env's bicycle executes with L = 4 m."""
-    scenario = scripted([(1, 25.0, 8.0), (0, -10.0, 12.0)]).replace(
-        vehicle_size=(4.0, 1.4), mpc=MPCConfig(wheelbase=4.0))
+    scenario = scripted([(1, 25.0, 8.0), (0, -10.0, 12.0)]).replace(vehicle_size=(4.0, 1.4))
     episode, mpc = HighwayEpisode(scenario, seed=0), make_driver("mpc", scenario)
     try:
         vehicles = episode.unwrapped.road.vehicles

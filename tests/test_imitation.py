@@ -20,8 +20,10 @@ import torch
 
 from mmpc.highway.runner import run_episode, write_outputs
 from mmpc.drivers import MPCDriver, Observation, make_driver
-from mmpc.imitation.bc import TrainConfig, load_yaml_config, run_bc, train_policy
+from mmpc.config import from_dict, load_config
+from mmpc.imitation.bc import TrainConfig, run_bc, train_policy
 from mmpc.imitation.dagger import (
+    DAGGER_POLICY,
     DaggerConfig,
     MixtureDriver,
     NoisyDriver,
@@ -39,11 +41,11 @@ from mmpc.imitation.dataset import (
 )
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.imitation.demos import generate_demonstrations
-from mmpc.imitation.features import FeatureConfig, nearest_neighbours, road_features
+from mmpc.imitation.features import FeatureConfig, SceneGeometry, nearest_neighbours, road_features, scene_geometry
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import rollout_lockstep
 from mmpc.road import Road
-from mmpc.scenario import build_mpc, load_scenario
+from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -103,11 +105,13 @@ def test_minari_loads_the_demonstrations_and_iterates_their_episodes(demos_dir, 
         assert np.isfinite(episode.infos["residual_nonholonomic"][:-1]).all()
         # the ego's speed in the observation (feature vx, normalised by 80 m/s) is the road-frame v
         np.testing.assert_allclose(episode.observations[:, 0, 3] * 80.0, episode.infos["ego"][:, 3], atol=0.05)
-        # the 8 nearest other vehicles, nearest first (the ego's neighbours, what the policy reads)
+        # the 8 nearest other vehicles in the scenario's ellipse, nearest first (what the policy reads)
         neighbours = episode.infos["neighbours"]
         assert neighbours.shape == (21, 8, 4) and np.isfinite(neighbours).all()  # 18 vehicles: every slot filled
-        scaled = ((neighbours[..., 0] - episode.infos["ego"][:, None, 0]) / 8) ** 2 + \
-                 ((neighbours[..., 1] - episode.infos["ego"][:, None, 1]) / 3) ** 2
+        a, b = metadata["mmpc_scenario"]["optimizer"]["ellipse_a"], metadata["mmpc_scenario"]["optimizer"]["ellipse_b"]
+        assert (a, b) == (8.0, 3.3)
+        scaled = ((neighbours[..., 0] - episode.infos["ego"][:, None, 0]) / a) ** 2 + \
+                 ((neighbours[..., 1] - episode.infos["ego"][:, None, 1]) / b) ** 2
         assert (np.diff(scaled, axis=1) >= 0).all()
     # the env spec rebuilds highway-env with the scenario's configuration
     env = dataset.recover_environment()
@@ -246,11 +250,12 @@ def test_nearest_neighbours_and_road_features_on_a_hand_made_scene():
                           [60.0, 8.0, 9.0, 0.0],     # masked out
                           [110.0, 8.0, 9.0, 0.0]]])  # r^2 = 1.5625 + 1.36 = 2.92: nearest of all
     mask = np.array([[True, True, False, True]])
-    near = nearest_neighbours(ego, vehicles, mask, count=4)
+    scene = SceneGeometry(5.0, (8.0, 3.0))  # 5 m cars, distances in (8 m, 3 m) units
+    near = nearest_neighbours(ego, vehicles, mask, count=4, ellipse=scene.ellipse)
     np.testing.assert_array_equal(near[0, :3], vehicles[0, [3, 1, 0]])
     assert np.isnan(near[0, 3]).all()  # fewer real vehicles than slots
-    features = road_features(ego, near, road, FeatureConfig(neighbours=4, ego_command=True))
-    config = FeatureConfig(neighbours=4, ego_command=True)
+    features = road_features(ego, near, road, FeatureConfig(scene, neighbours=4, ego_command=True))
+    config = FeatureConfig(scene, neighbours=4, ego_command=True)
     assert features.shape == (1, config.size) == (1, 27) and len(config.names()) == 27
     np.testing.assert_allclose(features[0, :7], [0.5, 6.5, 5.5, 0.1, 10.0, 0.5, -0.2], rtol=1e-6)
     vx, vy = 10.0 * math.cos(0.1), 10.0 * math.sin(0.1)
@@ -258,24 +263,44 @@ def test_nearest_neighbours_and_road_features_on_a_hand_made_scene():
     np.testing.assert_allclose(features[0, 12:17], [1.0, -10.0, -4.5, 12.0 - vx, 0.5 - vy], rtol=1e-5)
     np.testing.assert_array_equal(features[0, 22:], 0.0)  # empty slot: presence 0 and zeros
     # without the command and with fewer neighbours: a prefix of the same layout
-    short = road_features(ego, near, road, FeatureConfig(neighbours=1))
+    short = road_features(ego, near, road, FeatureConfig(scene, neighbours=1))
     np.testing.assert_array_equal(short[0], np.concatenate([features[0, :5], features[0, 7:12]]))
     with pytest.raises(ValueError, match=r"`neighbours` must have shape \(1, >= 4, 4\)"):
         road_features(ego, near[:, :2], road, config)
     with pytest.raises(ValueError, match="not finite"):
         road_features(ego * np.nan, near, road, config)
     with pytest.raises(ValueError, match=r"`neighbours` must be an int in \[0, 8\]"):
-        FeatureConfig(neighbours=9)
-    assert nearest_neighbours(ego, np.zeros((1, 0, 4)), None, 2).shape == (1, 2, 4)
+        FeatureConfig(scene, neighbours=9)
+    assert nearest_neighbours(ego, np.zeros((1, 0, 4)), None, 2, ellipse=scene.ellipse).shape == (1, 2, 4)
     # lane slots: ego lane 1 (y = 4.5); ahead in lane 2 the vehicle at x = 110, behind in lane 0 the one at 90,
     # ahead in lane 1 the one at 130; the other three slots are empty
-    slotted = FeatureConfig(neighbours=0, lane_slots=True)
+    slotted = FeatureConfig(scene, neighbours=0, lane_slots=True)
     lanes = road_features(ego, near, road, slotted)[0, 5:].reshape(6, 5)  # (left ahead, left behind, own ..., right ...)
     assert slotted.size == 35 and len(slotted.names()) == 35 and slotted.names()[5] == "lane-1_ahead_present"
     np.testing.assert_array_equal(lanes[[0, 3, 5], 0], 0.0)
     np.testing.assert_allclose(lanes[1], [1.0, -10.0, -4.5, 12.0 - vx, (12.0 - vx) / 5.0], rtol=1e-5)  # faster car behind
     np.testing.assert_allclose(lanes[2], [1.0, 30.0, -0.5, 8.0 - vx, (vx - 8.0) / 25.0], rtol=1e-5)
     np.testing.assert_allclose(lanes[4], [1.0, 10.0, 3.5, 9.0 - vx, (vx - 9.0) / 5.0], rtol=1e-5)
+
+
+def test_features_read_the_scenes_vehicle_length_and_ellipse():
+    """The inverse time to collision subtracts the scenario's vehicle length, and the neighbours
+    are read nearest first in the scenario's ellipse, however they were ranked when stored."""
+    road = Road(num_lanes=3)
+    ego = np.array([[100.0, 4.0, 0.0, 10.0, 0.0, 0.0]])
+    vehicles = np.array([[[112.0, 4.0, 8.0, 0.0],    # 12 m ahead in the ego's lane
+                          [104.0, 8.0, 9.0, 0.0]]])  # 4 m ahead one lane over
+    long_cars, short_cars = SceneGeometry(5.0, (8.0, 3.0)), SceneGeometry(4.0, (8.0, 3.0))
+    near = nearest_neighbours(ego, vehicles, ellipse=long_cars.ellipse)
+    ttc = {scene.vehicle_length: road_features(ego, near, road, FeatureConfig(scene, neighbours=0, lane_slots=True))[0, 5:]
+           .reshape(6, 5)[2, 4] for scene in (long_cars, short_cars)}
+    assert ttc == pytest.approx({5.0: 2.0 / 7.0, 4.0: 2.0 / 8.0})
+    # (8, 3): the car beside is nearer (r^2 = 0.25 + 1.78 < 2.25); (30, 3): the car ahead (0.16 < 1.79)
+    np.testing.assert_array_equal(near[0, 0], vehicles[0, 1])
+    ranked = {ellipse: road_features(ego, near, road, FeatureConfig(SceneGeometry(5.0, ellipse), neighbours=1))[0, 6]
+              for ellipse in ((8.0, 3.0), (30.0, 3.0))}
+    assert ranked == {(8.0, 3.0): 4.0, (30.0, 3.0): 12.0}  # dx of the first neighbour read
+    assert scene_geometry(load_scenario("cruise_paper")) == SceneGeometry(4.0, (5.6, 3.1))
 
 
 def _synthetic_states(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -291,11 +316,12 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
     road = Road()
     ego, neighbours = _synthetic_states(2000)
     config = PolicyConfig(hidden=(64, 64), neighbours=2, lane_slots=False)  # 15 features, indexed below
-    features = road_features(ego, neighbours, road, config.features)
+    scene = SceneGeometry(5.0, (8.0, 3.3))
+    features = road_features(ego, neighbours, road, config.feature_config(scene))
     # acceleration from the first neighbour's gap, steering from the lane offset and heading
     actions = np.stack([np.tanh(features[:, 6] / 20.0) * 2, -0.05 * features[:, 0] - 0.5 * features[:, 3]], axis=1)
     data = Transitions(ego, neighbours, actions.astype(np.float32), np.repeat(np.arange(20), 100))
-    policy, history = train_policy(data, road, TrainConfig(epochs=30, batch_size=64, policy=config))
+    policy, history = train_policy(data, road, TrainConfig(epochs=30, batch_size=64, policy=config), scene=scene)
     assert history.val_loss[history.best_epoch] < 0.05  # standardised: 1.0 is the mean predictor
     rmse_acc, rmse_steer = history.val_rmse[history.best_epoch]
     assert rmse_acc < 0.3 and rmse_steer < 0.02
@@ -307,7 +333,7 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
     vehicles = torch.as_tensor(np.nan_to_num(neighbours[:5], nan=1e4))  # "absent" vehicles far away ...
     mask = torch.as_tensor(np.isfinite(neighbours[:5]).all(axis=2))  # ... and masked out
     decision = PolicyDriver(policy).decide(Observation(torch.as_tensor(ego[:5]), vehicles, mask))
-    near = nearest_neighbours(ego[:5], neighbours[:5])  # NaN rows are no vehicles either
+    near = nearest_neighbours(ego[:5], neighbours[:5], ellipse=scene.ellipse)  # NaN rows are no vehicles either
     with torch.no_grad():
         expected = policy(torch.as_tensor(policy.features(ego[:5], near)))
     torch.testing.assert_close(torch.stack([decision.acceleration, decision.steering], dim=1), expected, atol=1e-5, rtol=1e-5)
@@ -319,7 +345,7 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
     with pytest.raises(ValueError, match="`hidden`"):
         PolicyConfig(hidden=())
     with pytest.raises(ValueError, match="unknown key"):
-        TrainConfig.from_dict({"epoch": 3})
+        from_dict(TrainConfig, {"epoch": 3})
     with pytest.raises(ValueError, match="was trained on Road"):
         make_driver(f"bc:{tmp_path / 'p.pt'}", short_cruise().replace(lanes=4))
 
@@ -327,7 +353,7 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
 def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
     scenario = short_cruise(1.0)
     expert = MPCDriver(build_mpc(scenario))
-    policy = MLPPolicy(scenario.road, PolicyConfig(hidden=(8,)))
+    policy = MLPPolicy(scenario.road, PolicyConfig(hidden=(8,)), scene=scene_geometry(scenario))
     learner = PolicyDriver(policy)
     with torch.inference_mode():
         rollouts = rollout_lockstep(scenario, [5, 6], MixtureDriver(expert, learner, 0.5, np.random.default_rng(0)),
@@ -393,12 +419,13 @@ def test_sb3_export_acts_like_the_cloned_policy(bc_run, demos_dir, tmp_path):
     ppo_actions, _ = model.predict(features[:10], deterministic=True)
     np.testing.assert_allclose(ppo_actions, expected[:10], atol=1e-5)
     wrapped = RoadFeatureObservation(gym.make(scenario.env_id, config=env_config(scenario)), policy.road,
-                                     policy.config.features)
+                                     policy.feature_config)
     observation, _ = wrapped.reset(seed=0)
     for _ in range(3):
         observation, *_ = wrapped.step(np.array([0.4, 0.1], dtype=np.float32))
     state = road_state(wrapped.unwrapped, RoadFrame.of(wrapped.unwrapped))
-    driver_view = policy.features(state.ego.numpy(), nearest_neighbours(state.ego.numpy(), state.vehicles.numpy()))
+    driver_view = policy.features(state.ego.numpy(), nearest_neighbours(state.ego.numpy(), state.vehicles.numpy(),
+                                                                        ellipse=policy.scene.ellipse))
     assert observation.shape == (policy.input_size,)
     np.testing.assert_allclose(observation, driver_view[0], rtol=1e-6)
     env.close()
@@ -478,8 +505,83 @@ def test_cli_evaluates_expert_and_policy_side_by_side_and_benchmarks_them(bc_run
         assert entry["speedup_mean"] == pytest.approx(entry["rows"]["expert"]["mean_ms"] / entry["rows"]["policy"]["mean_ms"])
 
 
-def test_library_defaults_are_the_shipped_recipes():
-    """``run_bc(...)`` / ``run_dagger(...)`` from Python train what ``mmpc imitate bc|dagger`` do."""
-    assert load_yaml_config(TrainConfig, "bc") == TrainConfig()
-    assert load_yaml_config(DaggerConfig, "dagger") == DaggerConfig()
+def test_library_defaults_are_what_the_command_line_trains():
+    """``run_bc(...)`` / ``run_dagger(...)`` from Python train what ``mmpc imitate bc|dagger`` do
+    without --config: the dataclass defaults, written once."""
+    assert load_config(TrainConfig) == TrainConfig()
+    assert load_config(DaggerConfig, None, {"train.epochs": 5}) == DaggerConfig(train=TrainConfig(epochs=5, policy=DAGGER_POLICY))
     assert DaggerConfig().train.policy != TrainConfig().policy  # DAgger's 2 x 128 ReLU, BC's 2 x 256 tanh
+
+
+# ----------------------------------------------------------------------------------- artefacts of earlier versions
+
+
+def test_a_checkpoint_without_a_scene_keeps_the_geometry_it_was_trained_with(tmp_path):
+    """Checkpoints written before the features read the scenario hold no ``scene``: they load with
+    5 m cars and the (8, 3) ellipse every feature used then, and drive as before."""
+    from mmpc.imitation.features import LEGACY_SCENE
+
+    road = Road(num_lanes=3)
+    policy = MLPPolicy(road, PolicyConfig(hidden=(8,), neighbours=2), scene=SceneGeometry(5.0, (8.0, 3.0)))
+    old = {  # the checkpoint of then: every key but "scene"
+        "format": "mmpc-policy", "version": 2, "scenario": "cruise", "info": {"round": 3},
+        "config": {"hidden": [8], "activation": "tanh", "neighbours": 2, "ego_command": False, "lane_slots": True},
+        "road": {"num_lanes": 3, "lane_width": 4.0}, "state_dict": policy.state_dict(),
+    }
+    torch.save(old, tmp_path / "old.pt")
+    loaded = load_policy(tmp_path / "old.pt")
+    assert loaded.scene == LEGACY_SCENE == SceneGeometry(5.0, (8.0, 3.0)) and loaded.config == policy.config
+    ego, neighbours = _synthetic_states(50, seed=3)
+    np.testing.assert_array_equal(loaded.features(ego, neighbours), policy.features(ego, neighbours))
+    # a new checkpoint stores its scene; another scene reads other features
+    save_policy(tmp_path / "new.pt", MLPPolicy(road, PolicyConfig(hidden=(8,)), scene=SceneGeometry(4.0, (5.6, 3.1))))
+    assert torch.load(tmp_path / "new.pt", weights_only=True)["scene"] == {"vehicle_length": 4.0, "ellipse": [5.6, 3.1]}
+    assert load_policy(tmp_path / "new.pt").scene == SceneGeometry(4.0, (5.6, 3.1))
+
+
+def test_an_old_manifest_with_compile_and_wheelbase_is_the_same_scenario(tmp_path, caplog):
+    """A demonstrations directory written before mpc.compile and mpc.wheelbase were retired is
+    resumed by a run of the same scenario; one whose wheelbase differs from the length is refused
+    with what to do."""
+    from mmpc.config import to_dict
+    from mmpc.imitation.dataset import MANIFEST, DemonstrationsDir, DemonstrationsError, Manifest
+
+    scenario = short_cruise()
+    old = to_dict(scenario)
+    old["mpc"] = {**old["mpc"], "wheelbase": 5.0, "compile": "auto"}
+    (tmp_path / "demos").mkdir()
+    (tmp_path / "demos" / MANIFEST).write_text(Manifest(old, 4, {"mmpc": "0.1.0"}).to_json())  # hashed as then
+    with caplog.at_level("WARNING", logger="mmpc.scenario"):
+        DemonstrationsDir(tmp_path / "demos", Manifest(to_dict(scenario), 4, {}))
+    assert "mpc.compile" in caplog.text
+    with pytest.raises(DemonstrationsError, match="another configuration"):
+        DemonstrationsDir(tmp_path / "demos", Manifest(to_dict(scenario.replace(lanes=5)), 4, {}))
+    old["mpc"]["wheelbase"] = 4.0
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / MANIFEST).write_text(Manifest(old, 4, {}).to_json())
+    with pytest.raises(DemonstrationsError, match=r"cannot read the scenario.*`mpc.wheelbase` is 4.0 m.*another --out"):
+        DemonstrationsDir(tmp_path / "other", Manifest(to_dict(scenario), 4, {}))
+
+
+def test_the_dagger_config_record_of_an_earlier_run_is_unchanged():
+    """dagger.json's ``config`` (asdict of DaggerConfig without ``iterations``) is what a resumed
+    run compares; the config's fields kept their form, so a run of then still matches. Its
+    ``scenario`` (written with mpc.compile and mpc.wheelbase) reads as today's scenario."""
+    from mmpc.config import to_dict
+
+    old_record = {  # dagger.json of a run with the default settings, as written before this change
+        "initial_episodes": 20, "episodes_per_iteration": 20, "beta": 0.3, "beta_decay": 0.5, "noise": [0.5, 0.01],
+        "label_window": 1.0, "seed_start": 2000, "lockstep": 8, "label_batch": 256, "duration": None,
+        "check_episodes": 20, "check_seed_start": 3000,
+        "train": {"epochs": 30, "batch_size": 256, "learning_rate": 0.001, "weight_decay": 0.0001,
+                  "validation_fraction": 0.2, "seed": 0,
+                  "policy": {"hidden": [128, 128], "activation": "relu", "neighbours": 8, "ego_command": False,
+                             "lane_slots": True}},
+    }
+    settings = json.loads(json.dumps(dataclasses.asdict(DaggerConfig()), default=list))
+    settings.pop("iterations")
+    assert settings == old_record
+    assert from_dict(DaggerConfig, {**old_record, "iterations": 12}) == DaggerConfig()
+    scenario = load_scenario("cruise")
+    old_scenario = {**to_dict(scenario), "mpc": {**to_dict(scenario)["mpc"], "wheelbase": 5.0, "compile": "auto"}}
+    assert to_dict(from_dict(ScenarioConfig, old_scenario)) == to_dict(scenario)

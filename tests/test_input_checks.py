@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from mmpc.cli.main import main
+from mmpc.config import load_config, to_dict
 from mmpc.drivers import registry
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.problem import EGO_V, EGO_Y
@@ -56,7 +57,7 @@ def test_demos_refuses_a_folder_another_run_holds(tmp_path, monkeypatch, capsys,
     out.mkdir()
     scenario = load_scenario("cruise").replace(duration=0.5)
     if existing:  # a demonstrations directory of this very configuration, being resumed by another run
-        (out / MANIFEST).write_text(Manifest(scenario.to_dict(), 4, package_versions()).to_json())
+        (out / MANIFEST).write_text(Manifest(to_dict(scenario), 4, package_versions()).to_json())
     holder = _hold(out / DEMOS_LOCK)
     try:
         code = main(["imitate", "demos", "--scenario", "cruise", "--duration", "0.5", "--episodes", "2", "--out", str(out)])
@@ -105,26 +106,26 @@ def test_demos_holds_its_lock_while_driving_and_releases_it_after_a_run_and_afte
 
 @pytest.mark.parametrize("text", ["", "# settings to come\n"], ids=["empty", "comments-only"])
 def test_an_empty_config_file_is_an_error_naming_it(tmp_path, text):
-    from mmpc.imitation.bc import TrainConfig, load_yaml_config
-    from mmpc.rl.config import load_rl_config
+    from mmpc.imitation.bc import TrainConfig
+    from mmpc.rl.config import RLConfig
 
     path = tmp_path / "empty.yaml"
     path.write_text(text)
-    with pytest.raises(ValueError, match=re.escape(f"scenario file {path} is empty")):
+    with pytest.raises(ValueError, match=re.escape(f"ScenarioConfig file {path} is empty")):
         load_scenario(str(path))  # was the defaults of ScenarioConfig (cruise)
-    with pytest.raises(ValueError, match=re.escape(f"rl config file {path} is empty")):
-        load_rl_config(path)
-    with pytest.raises(ValueError, match=re.escape(f"imitation config file {path} is empty")):
-        load_yaml_config(TrainConfig, path)
+    with pytest.raises(ValueError, match=re.escape(f"RLConfig file {path} is empty")):
+        load_config(RLConfig, path)
+    with pytest.raises(ValueError, match=re.escape(f"TrainConfig file {path} is empty")):
+        load_config(TrainConfig, path)
 
 
 def test_a_config_file_that_is_not_a_mapping_is_an_error_naming_it(tmp_path):
     path = tmp_path / "list.yaml"
     path.write_text("- duration: 5\n")
-    with pytest.raises(ValueError, match=re.escape(f"scenario file {path} must hold a mapping") + ".*got a list"):
+    with pytest.raises(ValueError, match=re.escape(f"ScenarioConfig file {path} must hold a mapping") + ".*got a list"):
         load_scenario(str(path))
     path.write_text("0\n")  # was read as {} (the defaults)
-    with pytest.raises(ValueError, match=re.escape(f"scenario file {path} must hold a mapping") + ".*got a int"):
+    with pytest.raises(ValueError, match=re.escape(f"ScenarioConfig file {path} must hold a mapping") + ".*got a int"):
         load_scenario(str(path))
 
 
@@ -266,9 +267,9 @@ def test_evaluate_resume_with_another_lockstep_runs_only_the_missing_episodes(tm
 
 @pytest.fixture(scope="module")
 def smoke():
-    from mmpc.rl.config import load_rl_config
+    from mmpc.rl.config import RLConfig
 
-    return load_rl_config("smoke")
+    return load_config(RLConfig, "smoke")
 
 
 def _safe_env(smoke, continuous: bool):

@@ -101,7 +101,7 @@ def test_no_feasible_candidate_falls_back_to_the_least_infeasible(cruise_mpc):
 def test_steering_inverts_the_kinematic_turn_rate(cruise_mpc):
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 15.0)
     plan = cruise_mpc.plan(ego, torch.tensor([[[30.0, 4.0, 8.0, 0.0]]]))
-    expected = math.atan(cruise_mpc.config.wheelbase * float(plan.heading_rate[0]) / 15.0)
+    expected = math.atan(cruise_mpc.wheelbase * float(plan.heading_rate[0]) / 15.0)
     assert float(plan.steering[0]) == pytest.approx(expected, rel=1e-5)
 
 
@@ -150,7 +150,7 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
 
 
 @pytest.mark.parametrize("kwargs, name", [({"command_window": 0.0}, "command_window"), ({"road_margin": -1.0}, "road_margin"),
-                                          ({"num_obstacles": -1}, "num_obstacles"), ({"compile": "yes"}, "compile"),
+                                          ({"num_obstacles": -1}, "num_obstacles"),
                                           ({"prediction": "straight"}, "prediction"), ({"tie_margin": -1.0}, "tie_margin"),
                                           ({"tie_tolerance": float("inf")}, "tie_tolerance"),
                                           ({"obstacle_lookahead": -3.0}, "obstacle_lookahead")])

@@ -18,7 +18,8 @@ from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import ego_state
-from mmpc.rl.config import RLConfig, load_rl_config
+from mmpc.config import from_dict, load_config, to_dict
+from mmpc.rl.config import RLConfig
 from mmpc.rl.envs import frame_reward
 from mmpc.rl.safety import SafetyLayer
 from mmpc.scenario import build_mpc
@@ -27,7 +28,7 @@ from mmpc.scenario import build_mpc
 @pytest.fixture(scope="module")
 def smoke() -> RLConfig:
     """The CI-sized configuration: 2 s episodes, a cheap optimizer."""
-    return load_rl_config("smoke")
+    return load_config(RLConfig, "smoke")
 
 
 def make(env_id: str, smoke: RLConfig) -> gym.Env:
@@ -138,12 +139,12 @@ def test_config_rejects_unknown_keys_and_wrong_action_spaces(tmp_path):
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump({"env": {"decision_frame": 5}}))
     with pytest.raises(ValueError, match="unknown key"):
-        load_rl_config(path)
+        load_config(RLConfig, path)
     with pytest.raises(ValueError, match="cannot train on continuous"):
         RLConfig(action="continuous").action_for("dqn")
     with pytest.raises(ValueError, match="must be >="):
         RLConfig(env=dataclasses.replace(RLConfig().env, speeds=(40.0,)))
-    assert RLConfig.from_dict(RLConfig().to_dict()) == RLConfig()
+    assert from_dict(RLConfig, to_dict(RLConfig())) == RLConfig()
 
 
 def test_smoke_training_writes_tensorboard_scalars_eval_and_drives(smoke, tmp_path, one_thread):
@@ -208,7 +209,7 @@ def test_rl_command_lines_reject_bad_arguments(capsys, tmp_path):
     assert "--timesteps must be >= 1" in capsys.readouterr().err
     assert main(["rl-report", "no-label-here"]) == 2
     assert "expected LABEL=RUN_DIR" in capsys.readouterr().err
-    with pytest.raises(FileNotFoundError, match="shipped configs"):
+    with pytest.raises(FileNotFoundError, match=r"shipped rl: \[.*'smoke'"):
         main(["train-rl", "--algo", "dqn", "--config", "no_such_config", "--timesteps", "8", "--out", str(tmp_path)])
 
 
@@ -229,14 +230,85 @@ def test_ppo_and_sac_train_on_their_action_spaces(algo, smoke, tmp_path, one_thr
 
 
 def test_rl_default_scenario_keeps_the_high_speed_ellipse_and_band():
-    """Fast traffic: rl_scenario() spells the high-speed scenario's obstacle ellipse and heading
-    band (not cruise's 13 degrees); the two must not drift apart."""
-    from mmpc.rl.config import rl_scenario
+    """Fast traffic: the RL scenario (a shipped file, RLConfig's default) has the high-speed
+    scenario's obstacle ellipse and heading band (not cruise's 13 degrees); the two must not drift apart."""
     from mmpc.scenario import load_scenario
 
     keys = ("ellipse_a", "ellipse_b", "max_heading_deg", "heading_target_deg")
-    high_speed, rl = load_scenario("high_speed").optimizer, rl_scenario().optimizer
+    high_speed, rl = load_scenario("high_speed").optimizer, RLConfig().scenario.optimizer
     assert [getattr(rl, k) for k in keys] == [getattr(high_speed, k) for k in keys] == [8.0, 3.0, 8.0, 7.2]
+    assert load_config(RLConfig, "smoke").scenario.optimizer.ellipse == (8.0, 3.0)  # smoke starts from it
+
+
+def test_the_defaults_are_the_documented_training_run():
+    """RLConfig() is what configs/rl/safe_highway.yaml used to restate (the README's run); where the
+    two had drifted apart, the YAML's values won except the heading target the test above keeps."""
+    config = RLConfig()
+    assert (config.train.n_envs, config.train.log_every, config.train.checkpoint_every) == (8, 400, 2000)
+    assert config.scenario.objective.near_lane_speeds == (12.0, 20.0) and config.scenario.seeds == (0,)
+    assert config.algorithms["dqn"]["gradient_steps"] == 2 and config.algorithms["ppo"]["n_steps"] == 128
+    assert config.algorithms["sac"]["policy_kwargs"] == {"net_arch": [256, 256]}
+
+
+#: configs/rl/safe_highway.yaml as shipped before the RL config named its scenario (a whole scenario inline).
+OLD_SAFE_HIGHWAY = """
+scenario:
+  name: rl_highway_fast
+  duration: 30.0
+  frequency: 10.0
+  seeds: [0]
+  env_id: highway-fast-v0
+  lanes: 3
+  objective: {type: cruise, v_cruise: 25.0, near_lane_speeds: [12.0, 20.0], near_lanes: 1}
+  ego: {speed: 25.0, lane: null}
+  traffic: {type: idm, vehicles_count: 20, vehicles_density: 1.0, target_speeds: null, window: null,
+            initial_clearance: 10.0, lane_changes: true}
+  optimizer: {ellipse_a: 8.0, ellipse_b: 3.0, max_heading_deg: 8.0, v_max: 30.0}
+  mpc: {num_obstacles: 6, ignore_behind: 20.0, command_window: 0.3, road_margin: 1.0}
+env: {decision_frames: 5, lane_offsets: [-1, 0, 1], speeds: [15.0, 20.0, 25.0, 28.0], lateral_range: 1.0,
+      speed_range: [10.0, 28.0], solver_features: true, intervention_penalty: 0.1, intervention_speed_scale: 5.0}
+reward: {collision_reward: -1.0, right_lane_reward: 0.1, high_speed_reward: 0.4, reward_speed_range: [20.0, 30.0],
+         normalize: true}
+train: {n_envs: 8, log_every: 400, checkpoint_every: 2000, eval_episodes: 50, eval_seed: 100000, eval_envs: 10,
+        torch_threads: 1}
+algorithms:
+  dqn: {learning_rate: 5.0e-4, buffer_size: 15000, learning_starts: 200, batch_size: 32, gamma: 0.8, train_freq: 1,
+        gradient_steps: 2, target_update_interval: 50, exploration_fraction: 0.7, policy_kwargs: {net_arch: [256, 256]}}
+  ppo: {n_steps: 128, batch_size: 64, n_epochs: 10, learning_rate: 5.0e-4, gamma: 0.8, policy_kwargs: {net_arch: [256, 256]}}
+  sac: {learning_rate: 5.0e-4, buffer_size: 15000, learning_starts: 200, batch_size: 64, gamma: 0.8,
+        policy_kwargs: {net_arch: [256, 256]}}
+"""
+
+
+def test_an_old_rl_yaml_with_an_inline_scenario_still_loads(tmp_path):
+    path = tmp_path / "safe_highway.yaml"
+    path.write_text(OLD_SAFE_HIGHWAY)
+    old = load_config(RLConfig, path)
+    # what it trained with: today's defaults but the heading target the shipped file left unset
+    new = RLConfig()
+    assert old == dataclasses.replace(new, scenario=new.scenario.replace(
+        optimizer=dataclasses.replace(new.scenario.optimizer, heading_target_deg=None)))
+
+
+def test_the_config_an_old_trained_run_recorded_still_loads(tmp_path, caplog):
+    """rl/train.py wrote config.yaml with RLConfig.to_dict(): the scenario inline, with the
+    mpc.compile and mpc.wheelbase keys of then; load_run reads it (warning about the retired keys)."""
+    from mmpc.rl.train import load_run
+
+    old = yaml.safe_load(OLD_SAFE_HIGHWAY)
+    old["scenario"]["mpc"].update(wheelbase=5.0, compile="auto", obstacle_lookahead=3.0, prediction="lanes")
+    old["action"] = None
+    run = {"algo": "dqn", "env": "safe", "action": "discrete", "timesteps": 10000, "seed": 0, "config": old}
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
+    with caplog.at_level("WARNING", logger="mmpc.scenario"):
+        config = from_dict(RLConfig, yaml.safe_load((tmp_path / "config.yaml").read_text())["config"])
+    assert "mpc.compile" in caplog.text and "mpc.wheelbase" in caplog.text
+    assert config.scenario.mpc == RLConfig().scenario.mpc and config.train == RLConfig().train
+    caplog.clear()
+    (tmp_path / "model.zip").write_bytes(b"")  # load_run reads the config, then fails on this empty model
+    with caplog.at_level("WARNING", logger="mmpc.scenario"), pytest.raises(Exception) as failure:
+        load_run(tmp_path / "model.zip")
+    assert "config.yaml: config: scenario" in caplog.text and "RLConfig" not in str(failure.value)
 
 
 @pytest.mark.parametrize("length", [5.0, 4.0])
@@ -267,6 +339,6 @@ def test_meta_action_driver_reads_the_scenarios_vehicle_length():
     from mmpc.rl.driver import MetaActionDriver
     from mmpc.scenario import load_scenario
 
-    run = type("Run", (), {"model": None, "config": load_rl_config("smoke")})()
+    run = type("Run", (), {"model": None, "config": load_config(RLConfig, "smoke")})()
     assert MetaActionDriver(run, load_scenario("cruise_paper")).length == 4.0
     assert MetaActionDriver(run, load_scenario("cruise")).length == 5.0

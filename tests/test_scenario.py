@@ -3,11 +3,13 @@ import dataclasses
 import pytest
 
 from mmpc import HighSpeedGoals, NearLaneGoals, Road
+from mmpc.config import from_dict, to_dict
 from mmpc.evaluate import scenario_fingerprint
-from mmpc.footprint import ellipse_coverage
+from mmpc.footprint import ellipse_coverage, smallest_covering_axis
+from mmpc.mpc import MPCConfig
 from mmpc.scenario import (
     SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
-    load_scenario,
+    build_mpc, load_scenario,
 )
 
 
@@ -44,7 +46,7 @@ def test_every_shipped_scenario_loads():
 )
 def test_unknown_keys_are_errors(values, bad_key):
     with pytest.raises(ValueError, match=bad_key):
-        ScenarioConfig.from_dict(values)
+        from_dict(ScenarioConfig, values)
 
 
 def test_yaml_file_with_unknown_key_is_an_error(tmp_path):
@@ -56,9 +58,9 @@ def test_yaml_file_with_unknown_key_is_an_error(tmp_path):
 
 def test_variants_need_a_known_type():
     with pytest.raises(ValueError, match="type"):
-        ScenarioConfig.from_dict({"objective": {"v_cruise": 15.0}})
+        from_dict(ScenarioConfig, {"objective": {"v_cruise": 15.0}})
     with pytest.raises(ValueError, match="fast_lane"):
-        ScenarioConfig.from_dict({"objective": {"type": "fast_lane"}})
+        from_dict(ScenarioConfig, {"objective": {"type": "fast_lane"}})
 
 
 def test_missing_scenario_lists_the_shipped_ones():
@@ -75,28 +77,27 @@ def test_missing_scenario_lists_the_shipped_ones():
         ({"mpc": {"num_obstacles": 12}}, "max_obstacles"),
         ({"duration": 0.0}, "duration"),
         ({"seeds": []}, "seeds"),
-        ({"vehicle_size": [4.0, 1.4]}, "wheelbase"),
-        ({"vehicle_size": [4.0, -1.4], "mpc": {"wheelbase": 4.0}}, "vehicle_width"),
-        ({"vehicle_size": [4.0], "mpc": {"wheelbase": 4.0}}, "vehicle_size"),
-        ({"vehicle_size": [4.0, 1.4], "mpc": {"wheelbase": 4.0}, "traffic": {"type": "ngsim", "path": "x.csv"}}, "NGSIM"),
-        ({"mpc": {"wheelbase": 4.0}}, "wheelbase"),
+        ({"vehicle_size": [4.0, -1.4]}, "vehicle_width"),
+        ({"vehicle_size": [4.0]}, "vehicle_size"),
+        ({"vehicle_size": [4.0, 1.4], "traffic": {"type": "ngsim", "path": "x.csv"}}, "NGSIM"),
+        ({"optimizer": {"ellipse_a": 8.0, "ellipse_b": 3.0}}, "does not cover two 5.0 m x 2.0 m vehicles"),
     ],
 )
 def test_inconsistent_scenarios_are_rejected(values, message):
     with pytest.raises(ValueError, match=message):
-        ScenarioConfig.from_dict(values)
+        from_dict(ScenarioConfig, values)
 
 
 def test_to_dict_omits_unset_settings_and_round_trips():
     """A top-level setting left at None (vehicle_size, added after datasets and evaluations were
     written) is not part of the record, so earlier records keep their identity; a set one is."""
     plain = load_scenario("cruise")
-    small = plain.replace(vehicle_size=(4.0, 1.4), mpc=dataclasses.replace(plain.mpc, wheelbase=4.0))
-    assert "vehicle_size" not in plain.to_dict() and small.to_dict()["vehicle_size"] == [4.0, 1.4]
+    small = plain.replace(vehicle_size=(4.0, 1.4))
+    assert "vehicle_size" not in to_dict(plain) and to_dict(small)["vehicle_size"] == [4.0, 1.4]
     for scenario in (plain, small):
-        assert ScenarioConfig.from_dict(scenario.to_dict()) == scenario
+        assert from_dict(ScenarioConfig, to_dict(scenario)) == scenario
     assert scenario_fingerprint(small) != scenario_fingerprint(plain)
-    assert scenario_fingerprint(ScenarioConfig.from_dict(plain.to_dict())) == scenario_fingerprint(plain)
+    assert scenario_fingerprint(from_dict(ScenarioConfig, to_dict(plain))) == scenario_fingerprint(plain)
 
 
 def test_traffic_values_are_validated():
@@ -139,3 +140,84 @@ def test_shipped_ellipses_cover_the_scenario_vehicles_across_the_heading_band(na
     optimizer = scenario.optimizer
     axes, band = (optimizer.ellipse_a, optimizer.ellipse_b), optimizer.max_heading_deg
     assert max(ellipse_coverage(axes, heading, vehicle=scenario.vehicle) for heading in (-band, band)) <= 1.0
+
+
+def test_the_ellipse_is_checked_at_load_and_the_message_names_the_smallest_covering_one():
+    """cruise's b = 3.3 m is what covers two 5 m x 2 m cars over its 13-degree band: b = 3.0 m is
+    refused, naming b >= 3.14 m for a = 8 m (and a for b = 3 m); with an 8-degree band 3.0 m is enough."""
+    with pytest.raises(ValueError, match=r"ellipse_coverage 1\.062 > 1.*`optimizer.ellipse_b` >= 3\.14 m with a = 8\.0 m "
+                                         r"or `optimizer.ellipse_a` >= 8\.83 m with b = 3\.0 m"):
+        load_scenario("cruise", {"optimizer.ellipse_b": 3.0})
+    with pytest.raises(ValueError, match="no b covers them with a = 4.5 m"):
+        load_scenario("cruise", {"optimizer.ellipse_a": 4.5})
+    assert load_scenario("cruise", {"optimizer.ellipse_b": 3.14, "optimizer.max_heading_deg": 13.0}).optimizer.ellipse_b == 3.14
+    assert load_scenario("cruise", {"optimizer.ellipse_b": 3.0, "optimizer.max_heading_deg": 8.0,
+                                    "optimizer.heading_target_deg": 7.2}).optimizer.ellipse == (8.0, 3.0)
+    # the authors' smaller cars are covered by their smaller ellipse, highway-env's are not
+    assert load_scenario("cruise_paper").optimizer.ellipse == (5.6, 3.1)
+    with pytest.raises(ValueError, match="does not cover two 5.0 m x 2.0 m vehicles"):
+        load_scenario("cruise_paper", {"vehicle_size": None})
+    b = smallest_covering_axis(8.0, "a", (-13.0, 13.0))
+    assert max(ellipse_coverage((8.0, b), h) for h in (-13.0, 13.0)) == pytest.approx(1.0)
+    a = smallest_covering_axis(3.3, "b", (-13.0, 13.0))
+    assert max(ellipse_coverage((a, 3.3), h) for h in (-13.0, 13.0)) == pytest.approx(1.0)
+
+
+# ----------------------------------------------------------------------------------- retired settings
+
+#: A scenario as mmpc wrote it (ScenarioConfig.to_dict) before compiling became a run option and the
+#: wheelbase was derived: dataset manifests, DAgger runs, RL run folders and old YAML files hold these keys.
+OLD_CRUISE_PAPER = {
+    "name": "cruise_paper", "objective": {"type": "cruise", "v_cruise": 15.0, "near_lane_speeds": [3.0, 6.0, 9.0, 12.0],
+                                          "near_lanes": 2},
+    "lanes": 6, "duration": 67.0, "frequency": 10.0, "seeds": [0, 1], "env_id": "highway-v0",
+    "ego": {"speed": 14.0, "lane": 0},
+    "traffic": {"type": "scripted", "vehicles": [{"lane": 2, "x": 10.0, "speed": 10.0, "lane_change": False,
+                                                  "constant_speed": False, "cut_in_lane": None, "cut_in_at": 0.0,
+                                                  "brake_at": None, "brake_deceleration": 6.0}],
+                "window": [36.0, 200.0]},
+    "vehicle_size": [4.0, 1.4],
+    "optimizer": {"ellipse_a": 5.6, "ellipse_b": 3.1, "max_heading_deg": 13.0, "heading_target_deg": 11.7, "v_max": 30.0},
+    "mpc": {"num_obstacles": 6, "ignore_behind": 20.0, "obstacle_lookahead": 3.0, "prediction": "lanes",
+            "wheelbase": 4.0, "command_window": 0.3, "tie_tolerance": 0.01, "tie_margin": 1.0, "brake_deceleration": 4.0,
+            "max_deceleration": 5.0, "stop_lanes": 1, "stop_gap": 2.0, "max_steering": 0.7853981633974483,
+            "road_margin": 1.0, "compile": "auto"},
+}
+
+
+def test_an_old_scenario_with_compile_and_wheelbase_loads_with_warnings(caplog, tmp_path):
+    import yaml
+
+    path = tmp_path / "old.yaml"
+    path.write_text(yaml.safe_dump(OLD_CRUISE_PAPER))
+    with caplog.at_level("WARNING", logger="mmpc.scenario"):
+        scenario = load_scenario(path)
+    assert "`mpc.compile: auto` is ignored: compiling is a run option" in caplog.text
+    assert "`mpc.wheelbase` is ignored: the MPC takes the vehicle length (4.0 m)" in caplog.text
+    assert scenario.mpc == MPCConfig() and scenario.vehicle == (4.0, 1.4)
+    assert scenario == from_dict(ScenarioConfig, {**OLD_CRUISE_PAPER, "mpc": {}})
+    assert build_mpc(scenario).wheelbase == 4.0 and build_mpc(load_scenario("cruise")).wheelbase == 5.0
+    old_cruise = {**to_dict(load_scenario("cruise")), "mpc": {"wheelbase": 5.0, "compile": False}}
+    assert from_dict(ScenarioConfig, old_cruise) == load_scenario("cruise")
+
+
+def test_an_old_wheelbase_other_than_the_vehicle_length_is_refused():
+    with pytest.raises(ValueError, match=r"`mpc.wheelbase` is 5.0 m but the vehicles are 4.0 m long.*remove `mpc.wheelbase`"):
+        from_dict(ScenarioConfig, {**OLD_CRUISE_PAPER, "mpc": {"wheelbase": 5.0}})
+    with pytest.raises(ValueError, match=r"`mpc.wheelbase` is 4.0 m but the vehicles are 5.0 m long.*vehicle_size: \[4.0, WIDTH\]"):
+        load_scenario("cruise", {"mpc.wheelbase": 4.0})
+    assert "wheelbase" not in {f.name for f in dataclasses.fields(MPCConfig)}
+
+
+def test_compile_is_a_run_option_not_part_of_the_scenario(monkeypatch):
+    from mmpc.optimizer import COMPILE_ENV
+
+    assert "compile" not in {f.name for f in dataclasses.fields(MPCConfig)}
+    plain = load_scenario("cruise")
+    assert scenario_fingerprint(load_scenario("cruise", {"mpc.compile": False})) == scenario_fingerprint(plain)
+    assert scenario_fingerprint(load_scenario("cruise", {"mpc.stop_gap": 3.0})) != scenario_fingerprint(plain)
+    monkeypatch.setenv(COMPILE_ENV, "0")
+    assert not build_mpc(plain).optimizer.compiled  # "auto" reads MMPC_COMPILE
+    assert build_mpc(plain, compile=True).optimizer.compiled  # an explicit choice wins
+    monkeypatch.setenv(COMPILE_ENV, "1")
+    assert build_mpc(plain).optimizer.compiled and not build_mpc(plain, compile=False).optimizer.compiled

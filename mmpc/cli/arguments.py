@@ -1,16 +1,21 @@
 """Argument types and groups shared by every ``mmpc`` verb (``mmpc.rl`` and ``mmpc.imitation``
-included), so that seeds, overrides and output folders read the same everywhere."""
+included), so that seeds, configs, overrides, compiling and output folders read the same everywhere."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import yaml
 
 from mmpc.files import TEMPORARY_PREFIX
+from mmpc.optimizer import COMPILE_ENV
+
+#: ``--compile`` choices -> the value of :data:`mmpc.optimizer.COMPILE_ENV` they set (``None``: leave it).
+COMPILE_CHOICES = {"auto": None, "on": "1", "off": "0"}
 
 
 def int_list(text: str) -> tuple[int, ...]:
@@ -43,6 +48,45 @@ def override(text: str) -> tuple[str, object]:
     if not sep or not key:
         raise argparse.ArgumentTypeError(f"expected KEY=VALUE such as traffic.lane_changes=true; got {text!r}")
     return key, yaml.safe_load(value)
+
+
+def add_config(parser: argparse.ArgumentParser, what: str, default: Optional[str] = None) -> None:
+    """``--config NAME_OR_PATH`` and ``--set KEY=VALUE`` (repeatable) for the verb's config
+    (:func:`mmpc.config.load_config`; ``args.config``, ``args.set``)."""
+    parser.add_argument("--config", default=default, metavar="NAME_OR_PATH",
+                        help=f"{what}: a shipped name or a YAML path (default: "
+                             f"{default or 'the defaults, see `mmpc config show`'})")
+    add_set(parser, what)
+
+
+def add_set(parser: argparse.ArgumentParser, what: str, example: str = "") -> None:
+    """``--set KEY=VALUE`` (dotted key, YAML value, repeatable) into ``args.set``."""
+    parser.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
+                        help=f"override a value of the {what} (dotted key, YAML value; repeatable){example}")
+
+
+def add_compile(parser: argparse.ArgumentParser) -> None:
+    """``--compile auto|on|off`` for verbs that build an MPC (:func:`apply_compile`)."""
+    parser.add_argument("--compile", choices=tuple(COMPILE_CHOICES), default="auto",
+                        help=f"compile the batch optimizer: auto (default: when a C++ compiler is found, unless "
+                             f"{COMPILE_ENV} is set), on, off (eager)")
+
+
+def apply_compile(choice: str) -> None:
+    """Set :data:`mmpc.optimizer.COMPILE_ENV` for ``--compile on|off`` (``auto`` leaves it), so
+    that every MPC this process and its workers build (:func:`mmpc.scenario.build_mpc`) follows it."""
+    value = COMPILE_CHOICES[choice]
+    if value is not None:
+        os.environ[COMPILE_ENV] = value
+
+
+def split_overrides(pairs: list[tuple[str, Any]], section: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``--set`` pairs -> (those for the verb's config, those under ``section.`` with the prefix
+    removed), e.g. DAgger's ``--set train.epochs=5 --set scenario.lanes=4``."""
+    prefix = f"{section}."
+    own = {key: value for key, value in pairs if not key.startswith(prefix)}
+    routed = {key.removeprefix(prefix): value for key, value in pairs if key.startswith(prefix)}
+    return own, routed
 
 
 def unwritable(out: Path) -> Optional[str]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import override, seed_list, unwritable
+from mmpc.cli.arguments import add_compile, add_set, apply_compile, seed_list, unwritable
 
 
 def run(args: argparse.Namespace) -> int:
@@ -22,6 +22,7 @@ def run(args: argparse.Namespace) -> int:
         print("mmpc drive: error: give --seed (one episode) or --seeds (an evaluation), not both", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
+    apply_compile(args.compile)
     scenarios = []
     for name in args.scenario.split(","):
         scenario = load_scenario(name, dict(args.set))
@@ -92,9 +93,9 @@ def add_subcommand(sub: argparse._SubParsersAction) -> None:
                        help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "
                             "a video only for episodes with a collision")
     drive.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
-    drive.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
-                       help="override a scenario value (YAML; repeatable), e.g. highway-env's own faster traffic: "
-                            "--set traffic.target_speeds=null --set name=cruise_default_traffic")
+    add_set(drive, "scenario", example=", e.g. highway-env's own faster traffic: "
+                                       "--set traffic.target_speeds=null --set name=cruise_default_traffic")
+    add_compile(drive)
     drive.add_argument("--no-video", action="store_true", help="skip episode.mp4 (single episode)")
     drive.add_argument("--workers", type=int, default=1, help="parallel episodes with --seeds (default 1)")
     drive.add_argument("--threads", type=int, default=1, help="torch threads per episode (default 1)")

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mmpc.cli.arguments import driver_specs, override, seed_list
+from mmpc.cli.arguments import add_compile, add_set, apply_compile, driver_specs, seed_list
 
 
 def run(args: argparse.Namespace) -> int:
@@ -16,6 +16,7 @@ def run(args: argparse.Namespace) -> int:
     from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table, read_episodes
     from mmpc.scenario import load_scenario
 
+    apply_compile(args.compile)
     drivers = driver_specs(args.driver or ["mpc"])
     if not drivers:
         print("mmpc evaluate: error: --driver needs at least one driver spec", file=sys.stderr)
@@ -97,8 +98,8 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--retries", type=int, default=1,
                         help="re-runs of a group whose worker process died before it is recorded as errors (default 1)")
     parser.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
-    parser.add_argument("--set", type=override, action="append", default=[], metavar="KEY=VALUE",
-                        help="override a scenario value (YAML; repeatable), as in mmpc drive")
+    add_set(parser, "scenarios", example=", as in mmpc drive")
+    add_compile(parser)
     parser.add_argument("--episode-outputs", action="store_true",
                         help="also write metrics.json, steps.csv and topdown.png per episode under OUT/episodes/")
     parser.add_argument("--collision-videos", action="store_true",

@@ -1,4 +1,4 @@
-"""The ``mmpc`` command: ``solve``, ``drive``, ``evaluate``, ``rl ...`` and ``imitate ...``.
+"""The ``mmpc`` command: ``solve``, ``drive``, ``evaluate``, ``config show``, ``rl ...`` and ``imitate ...``.
 
 Each verb's module adds its subcommand and keeps its heavy imports (CasADi, Ray,
 stable-baselines3, Minari) inside the command function.
@@ -11,7 +11,7 @@ import logging
 import sys
 from typing import Optional, Sequence
 
-from mmpc.cli import drive, evaluate, solve
+from mmpc.cli import config, drive, evaluate, solve
 from mmpc.imitation import cli as imitation_cli
 from mmpc.rl import cli as rl_cli
 
@@ -23,6 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_subcommand(sub)
     drive.add_subcommand(sub)
     evaluate.add_subcommand(sub)
+    config.add_subcommand(sub)
     rl_cli.add_subcommands(sub)
     imitation_cli.add_subcommands(sub)
     return parser

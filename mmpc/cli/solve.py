@@ -8,7 +8,8 @@ from pathlib import Path
 
 import torch
 
-from mmpc.config import OptimizerConfig
+from mmpc.cli.arguments import add_config
+from mmpc.config import OptimizerConfig, load_config
 from mmpc.goals import CruiseGoals, HighSpeedGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost
 from mmpc.optimizer import BatchOptimizer
@@ -22,7 +23,7 @@ from mmpc.scenes import demo_scene
 def run(args: argparse.Namespace) -> int:
     """One batch solve of the built-in demo scene; table + plot + JSON."""
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
-    config = OptimizerConfig.from_yaml(args.config) if args.config else OptimizerConfig()
+    config = load_config(OptimizerConfig, args.config, dict(args.set))
     optimizer = BatchOptimizer(config, dtype=dtype)
     scene = demo_scene(optimizer.config.num_steps, optimizer.config.horizon)
     if args.scenario == "cruise":
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     plot = plot_candidates(out / "solve.png", problem, result, scene.road, best=best_index,
-                           ellipse=(optimizer.config.ellipse_a, optimizer.config.ellipse_b),
+                           ellipse=optimizer.config.ellipse,
                            title=f"mmpc solve ({args.scenario}): {args.goals} goal-directed optimizations, best in red")
     (out / "solve.json").write_text(json.dumps({"scenario": args.scenario, "best": best_index,
                                                 "best_feasible": bool(best.feasible[0]), "candidates": rows}, indent=2))
@@ -82,6 +83,6 @@ def add_subcommand(sub: argparse._SubParsersAction) -> None:
                        help="goal sampler and meta cost (default cruise)")
     solve.add_argument("--goals", type=int, default=11, help="number of goals G (default 11)")
     solve.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    solve.add_argument("--config", default=None, help="optimizer YAML (e.g. configs/optimizer/default.yaml)")
+    add_config(solve, "optimizer config (mmpc.OptimizerConfig)")
     solve.add_argument("--out", default="runs/solve", help="output folder for solve.png and solve.json")
     solve.set_defaults(func=run)

@@ -29,7 +29,7 @@ from typing import Optional
 import torch
 
 from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
-from mmpc.config import dataclass_from_dict, require_positive
+from mmpc.config import require_positive
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
@@ -72,13 +72,6 @@ class FrenetConfig:
     @property
     def num_candidates(self) -> int:
         return self.num_offsets * len(self.durations) * self.num_speeds
-
-    @classmethod
-    def from_dict(cls, values) -> "FrenetConfig":
-        values = dict(values)
-        if isinstance(values.get("durations"), list):
-            values["durations"] = tuple(values["durations"])
-        return dataclass_from_dict(cls, values, where="frenet config")
 
 
 def quintic_coefficients(start: torch.Tensor, end: torch.Tensor, duration: torch.Tensor) -> torch.Tensor:

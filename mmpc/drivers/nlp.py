@@ -41,7 +41,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import numpy as np
 import torch
 
-from mmpc.config import OptimizerConfig, dataclass_from_dict, require_non_negative, require_positive
+from mmpc.config import OptimizerConfig, require_non_negative, require_positive
 from mmpc.result import Trajectories
 from mmpc.road import Road
 
@@ -94,10 +94,6 @@ class NLPConfig:
             raise ValueError(f"`max_iter` must be an int >= 1; got {self.max_iter!r}")
         require_positive("", tol=self.tol, feasibility_tolerance=self.feasibility_tolerance, max_cpu_time=self.max_cpu_time)
         require_non_negative("", jerk_weight=self.jerk_weight)
-
-    @classmethod
-    def from_dict(cls, values) -> "NLPConfig":
-        return dataclass_from_dict(cls, values, where="nlp config")
 
 
 class NLPSolution(NamedTuple):

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+from mmpc.config import to_dict
 from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
 
@@ -156,8 +157,8 @@ _CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run wi
 
 
 def scenario_fingerprint(scenario: ScenarioConfig) -> str:
-    """A short hash of every setting of a scenario (:meth:`ScenarioConfig.to_dict`)."""
-    return hashlib.sha256(json.dumps(scenario.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+    """A short hash of every setting of a scenario (:func:`mmpc.config.to_dict`)."""
+    return hashlib.sha256(json.dumps(to_dict(scenario), sort_keys=True).encode()).hexdigest()[:16]
 
 
 def check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
