@@ -55,14 +55,15 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import numpy as np
 import torch
 
-from mmpc.config import to_dict
-from mmpc.highway.runner import stack_observations
+from mmpc.config import from_dict, to_dict
 from mmpc.drivers import Decision, Driver, Observation
+from mmpc.highway.runner import stack_observations
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
 from mmpc.imitation.dataset import Transitions
+from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.policy import PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
@@ -330,6 +331,10 @@ def _resume(out: Path, identity: dict) -> tuple[list[dict], Optional[Transitions
     except (ValueError, KeyError, TypeError) as error:
         raise ValueError(f"{path} is not a readable DAgger report ({type(error).__name__}: {error}); "
                          "remove it or choose another --out") from error
+    try:  # in today's form: a report of an earlier mmpc may hold retired scenario keys
+        earlier["scenario"] = to_dict(from_dict(ScenarioConfig, earlier["scenario"], where=f"{path}: scenario"))
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"{path} holds a scenario this mmpc cannot read ({error}); choose another --out") from error
     if earlier != identity:
         changed = sorted(k for k in identity if earlier[k] != identity[k])
         raise ValueError(f"{out} holds a DAgger run of another configuration (differs in: {', '.join(changed)}); "
@@ -429,7 +434,8 @@ def run_dagger(
                 writer.add_scalar("dagger/collisions", stats["collisions"], round_index)
                 writer.add_scalar("dagger/meta_cost_mean", stats["meta_cost_mean"], round_index)
                 writer.add_scalar("dagger/expert_share", stats["expert_share"], round_index)
-            policy, history = train_policy(data, road, config.train, writer=writer, tag=f"round_{round_index}/")
+            policy, history = train_policy(data, road, config.train, scene=scene_geometry(scenario), writer=writer,
+                                           tag=f"round_{round_index}/")
             entry = {
                 "round": round_index,
                 **stats,

@@ -1,5 +1,5 @@
-"""``mmpc train-rl`` and ``mmpc eval-rl``: train stable-baselines3 agents on the safe action layer
-(or on plain highway-env, the unprotected baseline) and evaluate them on fixed seeds."""
+"""``mmpc rl {train, evaluate, report}``: train stable-baselines3 agents on the safe action layer
+(or on plain highway-env, the unprotected baseline), evaluate them on fixed seeds, report runs."""
 
 from __future__ import annotations
 
@@ -9,12 +9,15 @@ import sys
 from pathlib import Path
 
 
-def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
+def add_subcommands(sub: argparse._SubParsersAction) -> None:
+    """Add ``mmpc rl {train, evaluate, report}``."""
     from mmpc.cli.arguments import add_compile, add_config, add_set
     from mmpc.rl.config import ALGORITHMS
 
+    rl = sub.add_parser("rl", help="safe RL: train, evaluate and report stable-baselines3 agents behind the layer")
+    subparsers = rl.add_subparsers(dest="rl_command", required=True)
     train = subparsers.add_parser(
-        "train-rl", help="train an SB3 agent on the safe layer (or plain highway-env): TensorBoard, checkpoints, eval.json")
+        "train", help="train an SB3 agent on the safe layer (or plain highway-env): TensorBoard, checkpoints, eval.json")
     train.add_argument("--algo", choices=sorted(ALGORITHMS), required=True, help="dqn, ppo or sac")
     add_config(train, "RL config (mmpc.rl.config.RLConfig; scenario keys as scenario.KEY)")
     add_compile(train)
@@ -28,16 +31,16 @@ def add_subcommands(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--progress", action="store_true", help="show SB3's progress bar")
     train.set_defaults(func=_train)
 
-    evaluate = subparsers.add_parser("eval-rl", help="evaluate a trained run's model on its fixed evaluation seeds")
-    evaluate.add_argument("--model", required=True, help="MODEL.zip written by train-rl (or a checkpoint)")
+    evaluate = subparsers.add_parser("evaluate", help="evaluate a trained run's model on its fixed evaluation seeds")
+    evaluate.add_argument("--model", required=True, help="MODEL.zip written by mmpc rl train (or a checkpoint)")
     evaluate.add_argument("--episodes", type=int, default=None, help="override train.eval_episodes of the run's config")
     evaluate.add_argument("--out", default=None, help="write the summary here (default: print only)")
     add_set(evaluate, "run's RL config", example=", e.g. --set scenario.traffic.vehicles_count=30")
     add_compile(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
-    report = subparsers.add_parser("rl-report", help="TensorBoard curves (PNG) and evaluation table (markdown, JSON) of runs")
-    report.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR", help="runs written by train-rl, e.g. safe=runs/rl/safe_dqn")
+    report = subparsers.add_parser("report", help="TensorBoard curves (PNG) and evaluation table (markdown, JSON) of runs")
+    report.add_argument("runs", nargs="+", metavar="LABEL=RUN_DIR", help="runs written by mmpc rl train, e.g. safe=runs/rl/safe_dqn")
     report.add_argument("--out", default="docs/rl", help="output folder (curves.png, results.md, results.json)")
     report.set_defaults(func=_report)
 
@@ -49,13 +52,13 @@ def _train(args: argparse.Namespace) -> int:
     from mmpc.rl.train import train
 
     if args.timesteps < 1:
-        print("mmpc train-rl: error: --timesteps must be >= 1", file=sys.stderr)
+        print("mmpc rl train: error: --timesteps must be >= 1", file=sys.stderr)
         return 2
     apply_compile(args.compile)
     config = load_config(RLConfig, args.config, dict(args.set))
     if args.eval_episodes is not None:
         if args.eval_episodes < 1:
-            print("mmpc train-rl: error: --eval-episodes must be >= 1", file=sys.stderr)
+            print("mmpc rl train: error: --eval-episodes must be >= 1", file=sys.stderr)
             return 2
         config = _with_episodes(config, args.eval_episodes)
     summary = train(config, args.algo, args.timesteps, Path(args.out), env_kind=args.env, seed=args.seed,
@@ -96,7 +99,7 @@ def _report(args: argparse.Namespace) -> int:
     for item in args.runs:
         label, sep, run = item.partition("=")
         if not sep or not label or not run:
-            print(f"mmpc rl-report: error: expected LABEL=RUN_DIR; got {item!r}", file=sys.stderr)
+            print(f"mmpc rl report: error: expected LABEL=RUN_DIR; got {item!r}", file=sys.stderr)
             return 2
         runs[label] = run
     out = Path(args.out)

@@ -22,7 +22,7 @@ from typing import Any, ClassVar, Mapping, Optional
 from mmpc.config import is_finite_number, require, require_non_negative, require_positive
 from mmpc.scenario import ScenarioConfig, load_scenario
 
-#: Algorithms ``mmpc train-rl`` knows, with the action space each trains on by default.
+#: Algorithms ``mmpc rl train`` knows, with the action space each trains on by default.
 ALGORITHMS: dict[str, str] = {"dqn": "discrete", "ppo": "discrete", "sac": "continuous"}
 #: Action spaces each algorithm supports (stable-baselines3: DQN discrete only, SAC Box only).
 SUPPORTED_ACTIONS: dict[str, tuple[str, ...]] = {"dqn": ("discrete",), "ppo": ("discrete", "continuous"), "sac": ("continuous",)}
@@ -169,7 +169,7 @@ class SafeEnvConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """How ``mmpc train-rl`` trains and evaluates.
+    """How ``mmpc rl train`` trains and evaluates.
 
     Attributes:
         n_envs: environments per vectorized step (the safe layer solves all of them in one
@@ -206,7 +206,7 @@ class RLConfig:
     The defaults are the documented training run: DQN picks goals (lane offset x target speed)
     every 0.5 s and the batch optimizer plans towards them at 10 Hz among highway-env's own
     highway-fast traffic; the same settings train the unprotected baseline on plain highway-env
-    (``mmpc train-rl --env highway``: same road, traffic, episode length, reward, observation
+    (``mmpc rl train --env highway``: same road, traffic, episode length, reward, observation
     and decision rate, highway-env's DiscreteMetaAction).
 
     Attributes:

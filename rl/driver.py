@@ -1,6 +1,6 @@
 """Trained stable-baselines3 agents as :class:`mmpc.drivers.Driver` s (``mmpc drive --driver sb3:MODEL.zip``).
 
-:func:`make_sb3_driver` reads the run's ``config.yaml`` (written by ``mmpc train-rl``) to know
+:func:`make_sb3_driver` reads the run's ``config.yaml`` (written by ``mmpc rl train``) to know
 what the model was trained on:
 
 - a safe-layer agent (``--env safe``) picks a goal every ``decision_frames`` control steps from
@@ -255,7 +255,7 @@ def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:
 
     Args:
         scenario: the scenario to drive.
-        path: ``model.zip`` (or a checkpoint) of a run written by ``mmpc train-rl``.
+        path: ``model.zip`` (or a checkpoint) of a run written by ``mmpc rl train``.
     """
     from mmpc.rl.train import load_run
 

@@ -1,5 +1,5 @@
 """Results of training runs side by side: TensorBoard curves as an image, the evaluations as a
-table (``mmpc rl-report``)."""
+table (``mmpc rl report``)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def read_scalars(run: str | Path) -> dict[str, list[tuple[int, float]]]:
 
     folders = sorted((Path(run) / "tb").glob("*"))
     if not folders:
-        raise FileNotFoundError(f"no TensorBoard folder under {Path(run) / 'tb'}; was {run} written by `mmpc train-rl`?")
+        raise FileNotFoundError(f"no TensorBoard folder under {Path(run) / 'tb'}; was {run} written by `mmpc rl train`?")
     scalars: dict[str, list[tuple[int, float]]] = {}
     for folder in folders:
         events = EventAccumulator(str(folder))

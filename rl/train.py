@@ -359,7 +359,7 @@ def load_run(path: str | Path) -> TrainedRun:
             run = yaml.safe_load((folder / "config.yaml").read_text())
             break
     else:
-        raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc train-rl`?")
+        raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc rl train`?")
     config = from_dict(RLConfig, run["config"], where=f"{folder / 'config.yaml'}: config")
     model = algorithm_class(run["algo"]).load(str(path), device="cpu")
     return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)

@@ -255,8 +255,8 @@ def test_every_verb_with_a_config_takes_set_and_the_mpc_verbs_compile():
 
     parser = build_parser()
     verbs = {
-        ("solve",): False, ("drive",): True, ("evaluate",): True, ("train-rl", "--algo", "dqn", "--timesteps", "1", "--out", "x"): True,
-        ("eval-rl", "--model", "m.zip"): True, ("imitate", "demos"): True, ("imitate", "bc", "--dataset", "d"): False,
+        ("solve",): False, ("drive",): True, ("evaluate",): True,
+        ("rl", "train", "--algo", "dqn", "--timesteps", "1", "--out", "x"): True, ("rl", "evaluate", "--model", "m.zip"): True, ("imitate", "demos"): True, ("imitate", "bc", "--dataset", "d"): False,
         ("imitate", "dagger"): True, ("config", "show", "rl"): False,
     }
     for verb, builds_mpc in verbs.items():

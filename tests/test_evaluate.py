@@ -19,9 +19,9 @@ import torch
 
 from mmpc.cli.main import main
 from mmpc.highway.runner import run_episode
-from mmpc.drivers import registry
-from mmpc.drivers import Decision, Driver, Observation
-from mmpc.evaluate import METRIC_COLUMNS, EvaluationConfig, evaluate, read_episodes
+from mmpc.drivers import Decision, Driver, Observation, registry
+from mmpc.evaluate import METRIC_COLUMNS, Backend, EvaluationConfig, evaluate, read_episodes, run_tasks
+from mmpc.optimizer import COMPILE_ENV
 from mmpc.evaluate.report import mean_ci, summarize, t_quantile_975, wilson_ci
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import EGO_V, EGO_Y
@@ -259,8 +259,16 @@ def test_killed_coordinator_resumes_without_loss_or_duplicates(tmp_path):
     assert summary[0]["episodes"] == 6
 
 
+def _compile_setting(task: str) -> str:
+    return os.environ.get(COMPILE_ENV, "unset")
+
+
+def _raise(task, error):
+    raise error if isinstance(error, BaseException) else RuntimeError(error)
+
+
 @pytest.mark.usefixtures("one_thread")
-def test_ray_and_local_backends_give_identical_episodes(tmp_path):
+def test_ray_and_local_backends_give_identical_episodes(tmp_path, monkeypatch):
     ray = pytest.importorskip("ray")
     scenario = short()
     config = EvaluationConfig(seeds=(0, 1, 2, 3), workers=2, lockstep=2, report=False)
@@ -268,6 +276,11 @@ def test_ray_and_local_backends_give_identical_episodes(tmp_path):
     try:
         on_ray = evaluate([scenario], tmp_path / "ray", dataclasses.replace(config, ray="auto"))
         ray_workers = {r["worker"] for r in on_ray.rows}
+        # --compile sets MMPC_COMPILE after the cluster started: the tasks still see it
+        with monkeypatch.context() as patch:
+            patch.setenv(COMPILE_ENV, "1")
+            seen = [value for _, value in run_tasks(["a"], _compile_setting, _raise, Backend(workers=1, ray="auto"))]
+        assert seen == ["1"]
     finally:
         ray.shutdown()
     local = evaluate([scenario], tmp_path / "local", dataclasses.replace(config, workers=1))  # in this process

@@ -465,6 +465,24 @@ def test_dagger_aggregates_labelled_rounds_and_resumes(tmp_path):
         run_dagger(scenario, tmp_path, dataclasses.replace(config, beta=0.1))
 
 
+def test_a_dagger_folder_written_with_retired_scenario_keys_resumes(tmp_path):
+    scenario = short_cruise(0.5)
+    config = DaggerConfig(iterations=0, initial_episodes=1, lockstep=1, check_episodes=0,
+                          train=TrainConfig(epochs=1, batch_size=4, policy=PolicyConfig(hidden=(8,))))
+    first = run_dagger(scenario, tmp_path, config)
+    path = tmp_path / "dagger.json"
+    record = json.loads(path.read_text())
+    record["scenario"]["mpc"].update(compile="auto", wheelbase=5.0)  # as an earlier mmpc wrote it
+    path.write_text(json.dumps(record))
+    seen = []
+    again = run_dagger(scenario, tmp_path, config, on_round=seen.append)
+    assert [e["round"] for e in seen] == [0] and json.dumps(again["rounds"]) == json.dumps(first["rounds"])
+    record["scenario"]["mpc"]["wheelbase"] = 4.0  # not the scenario's car: refused, saying why
+    path.write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="cannot read.*wheelbase"):
+        run_dagger(scenario, tmp_path, config)
+
+
 def test_best_round_has_the_fewest_check_collisions_and_the_most_data_among_ties():
     rounds = [{"round": 0, "check_collisions": 3}, {"round": 1, "check_collisions": 1},
               {"round": 2, "check_collisions": 4}, {"round": 3, "check_collisions": 1}]

@@ -15,8 +15,7 @@ import torch
 
 from mmpc.cli.main import main
 from mmpc.config import load_config, to_dict
-from mmpc.drivers import registry
-from mmpc.drivers import Decision, Driver, Observation
+from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
 
@@ -239,6 +238,19 @@ def test_evaluate_resume_refuses_a_damaged_scenarios_json_naming_it(tmp_path, ca
     assert main(_evaluate_cli(tmp_path)) == 2
     assert f"mmpc evaluate: error: {path} is corrupt" in capsys.readouterr().err
     assert path.read_text() == text  # left for the user to look at
+
+
+@pytest.mark.usefixtures("keep_lane")
+def test_evaluate_resume_of_a_folder_of_an_earlier_mmpc_says_why_it_is_refused(tmp_path):
+    _evaluation(tmp_path)
+    path = tmp_path / "scenarios.json"
+    assert json.loads(path.read_text())["format"] == 2
+    path.write_text(json.dumps({"cruise": "0123456789abcdef"}))  # an earlier mmpc's hash (compile, wheelbase)
+    with pytest.raises(ValueError, match=r"written by an earlier mmpc .*mpc.compile, mpc.wheelbase.*delete .*scenarios.json"):
+        _evaluation(tmp_path)
+    path.write_text(json.dumps({"format": 2, "scenarios": {"cruise": "0123456789abcdef"}}))
+    with pytest.raises(ValueError, match="holds episodes of another scenario named 'cruise'"):
+        _evaluation(tmp_path)
 
 
 @pytest.mark.usefixtures("keep_lane")

@@ -205,12 +205,12 @@ def test_plain_highway_baseline_trains_and_its_meta_actions_drive(smoke, tmp_pat
 def test_rl_command_lines_reject_bad_arguments(capsys, tmp_path):
     from mmpc.cli.main import main
 
-    assert main(["train-rl", "--algo", "dqn", "--config", "smoke", "--timesteps", "0", "--out", str(tmp_path)]) == 2
+    assert main(["rl", "train", "--algo", "dqn", "--config", "smoke", "--timesteps", "0", "--out", str(tmp_path)]) == 2
     assert "--timesteps must be >= 1" in capsys.readouterr().err
-    assert main(["rl-report", "no-label-here"]) == 2
+    assert main(["rl", "report", "no-label-here"]) == 2
     assert "expected LABEL=RUN_DIR" in capsys.readouterr().err
     with pytest.raises(FileNotFoundError, match=r"shipped rl: \[.*'smoke'"):
-        main(["train-rl", "--algo", "dqn", "--config", "no_such_config", "--timesteps", "8", "--out", str(tmp_path)])
+        main(["rl", "train", "--algo", "dqn", "--config", "no_such_config", "--timesteps", "8", "--out", str(tmp_path)])
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])

@@ -26,6 +26,8 @@ from typing import Callable, Iterator, Optional, Sequence, TypeVar
 
 import torch
 
+from mmpc.optimizer import COMPILE_ENV
+
 logger = logging.getLogger(__name__)
 
 Task = TypeVar("Task")
@@ -204,7 +206,9 @@ def _ray(tasks, run, failed, backend: Backend) -> Iterator[tuple]:
         started = True
     try:
         workers = backend.workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
-        remote = ray.remote(num_cpus=1, max_retries=backend.retries)(_run_with_threads)
+        # the compile setting (--compile, MMPC_COMPILE) travels with the tasks to every node
+        env_vars = {COMPILE_ENV: os.environ[COMPILE_ENV]} if COMPILE_ENV in os.environ else {}
+        remote = ray.remote(num_cpus=1, max_retries=backend.retries, runtime_env={"env_vars": env_vars})(_run_with_threads)
         pending = deque(tasks)
         running: dict = {}
         while pending or running:

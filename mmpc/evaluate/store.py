@@ -161,24 +161,38 @@ def scenario_fingerprint(scenario: ScenarioConfig) -> str:
     return hashlib.sha256(json.dumps(to_dict(scenario), sort_keys=True).encode()).hexdigest()[:16]
 
 
+#: ``format`` of ``scenarios.json``; files without it come from mmpc before 2026-11-23, whose
+#: hashes covered ``mpc.compile`` and ``mpc.wheelbase`` (no longer settings of a scenario).
+SCENARIOS_FORMAT = 2
+
+
 def check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
     """Refuse to mix episodes of two different scenarios under one name in ``out``."""
     path = out / "scenarios.json"
     known: dict[str, str] = {}
+    legacy = False
     if path.exists():
         try:
-            known = json.loads(path.read_text(encoding="utf-8"))
+            stored = json.loads(path.read_text(encoding="utf-8"))
         except ValueError as error:  # JSONDecodeError names the line and column; UnicodeDecodeError the byte
             raise EvaluationFolderError(f"{path} is corrupt ({error}); expected the JSON object of scenario name -> "
                                         f"settings hash this folder's episodes were run with; {_CORRUPT_SCENARIOS}") from error
+        legacy = isinstance(stored, dict) and "format" not in stored
+        known = stored if legacy else stored.get("scenarios") if isinstance(stored, dict) else stored
         if not isinstance(known, dict) or not all(isinstance(v, str) for v in known.values()):
             raise EvaluationFolderError(f"{path} is corrupt: expected a JSON object of scenario name -> settings hash; "
-                                        f"got {str(known)[:100]}; {_CORRUPT_SCENARIOS}")
+                                        f"got {str(stored)[:100]}; {_CORRUPT_SCENARIOS}")
     for scenario in scenarios:
         fingerprint = scenario_fingerprint(scenario)
         if known.setdefault(scenario.name, fingerprint) != fingerprint:
+            if legacy:
+                raise EvaluationFolderError(
+                    f"{out} was written by an earlier mmpc whose scenario hashes included settings that are no longer "
+                    f"part of a scenario (mpc.compile, mpc.wheelbase), so its episodes of {scenario.name!r} cannot be "
+                    f"matched to today's scenario; use another `out`, or delete {path} if the scenarios are unchanged "
+                    "apart from those two settings")
             raise EvaluationFolderError(
                 f"{out} holds episodes of another scenario named {scenario.name!r} (settings changed, e.g. --duration or "
                 f"--set); use another `out` or rename the scenario (--set name=...)"
             )
-    atomic_write_text(path, json.dumps(known, indent=2) + "\n")
+    atomic_write_text(path, json.dumps({"format": SCENARIOS_FORMAT, "scenarios": known}, indent=2) + "\n")
