@@ -130,7 +130,6 @@ class RolloutRecorder(Observer):
                  on_finished: Optional[Callable[[Rollout], None]] = None) -> None:
         self.scenario = scenario
         self.seeds = list(seeds)
-        self.keep_states = keep_states
         self.on_finished = on_finished
         self.rollouts: list[Optional[Rollout]] = [None] * len(self.seeds)
         self._rows = [_Rows(keep_states) for _ in self.seeds]

@@ -131,7 +131,7 @@ def error_rows(task: GroupTask, error: BaseException | str, wall_s: float = floa
     text = error if isinstance(error, str) else error_text(error)
     return [
         new_row(driver=task.driver, scenario=task.scenario.name, seed=seed, status="error", error=text, group=task.group,
-             group_size=len(task.seeds), worker=worker_name(), wall_s=wall_s)
+                group_size=len(task.seeds), worker=worker_name(), wall_s=wall_s)
         for seed in task.seeds
     ]
 
@@ -185,8 +185,8 @@ def run_group(task: GroupTask) -> list[dict]:
     rows = []
     for result, share in zip(results, _per_episode_solve_ms(results)):
         rows.append(new_row(**{**result.metrics, "driver": task.driver, "status": "ok", "error": "", "group": task.group,
-                            "group_size": len(task.seeds), "worker": worker_name(), "wall_s": wall_s,
-                            "solve_ms_per_episode_mean": share}))
+                               "group_size": len(task.seeds), "worker": worker_name(), "wall_s": wall_s,
+                               "solve_ms_per_episode_mean": share}))
     return rows
 
 
