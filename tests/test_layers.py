@@ -20,6 +20,7 @@ PACKAGES = {"mmpc": "mmpc", "rl": "mmpc.rl", "imitation": "mmpc.imitation", "con
 LAYERS = (
     ("configs", ("mmpc.configs",)),
     ("core", ("mmpc",)),
+    ("sim", ("mmpc.sim",)),
     ("drivers", ("mmpc.drivers",)),
     ("highway", ("mmpc.highway",)),
     ("evaluate", ("mmpc.evaluate",)),

@@ -1,0 +1,96 @@
+"""The other vehicles' driving: highway-env's ``IDMVehicle`` on straight lanes, batched
+(longitudinal IDM behind the nearest vehicle ahead, lateral ``ControlledVehicle.steering_control``).
+
+IDM (``IDMVehicle.acceleration``), for a vehicle of speed v behind one at gap d (centre to
+centre, along the road) closing at dv (the velocity difference projected on its heading)::
+
+    a = a_max [1 - (max(v, 0) / v0)^delta] - a_max (d* / d)^2,   d* = d0 + v T + v dv / (2 sqrt(a_max b))
+
+with v0 the target speed clipped to [0, speed_limit]; without a vehicle ahead the second term
+is dropped. A vehicle off its target lane takes the smaller of the two lanes' accelerations;
+the result is clipped to +-acc_max. Divisors near zero become +-0.01 as highway-env's ``not_zero``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from mmpc.sim.config import SimConfig
+from mmpc.sim.state import VehicleState
+
+#: highway-env's ``utils.not_zero`` threshold.
+NOT_ZERO = 1e-2
+
+
+def not_zero(value: torch.Tensor) -> torch.Tensor:
+    """``value`` with |value| <= 0.01 replaced by 0.01 carrying its sign (+0.01 for 0)."""
+    small = value.abs() <= NOT_ZERO
+    return torch.where(small, torch.where(value >= 0, NOT_ZERO, -NOT_ZERO).to(value.dtype), value)
+
+
+def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
+    """Angles [rad] wrapped to [-pi, pi)."""
+    return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
+
+
+def vehicle_ahead(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every vehicle, the nearest other present vehicle ahead on lane ``lane`` (E, V) int64.
+
+    A vehicle is on a lane within ``lane_width / 2 + lane_margin`` of its centre (so one
+    between two lanes counts on both); ahead means ``x_other >= x`` (equal counts); on equal
+    ``x`` the later slot wins, as in highway-env's ``Road.neighbour_vehicles``. The ego counts.
+
+    Returns:
+        index: (E, V) int64 slot of the vehicle ahead (0 where there is none).
+        found: (E, V) bool.
+    """
+    num_vehicles = state.x.shape[1]
+    slots = torch.arange(num_vehicles, device=state.x.device)
+    centre = lane.to(state.y.dtype) * config.lane_width  # (E, V) the searched lane of each vehicle
+    on_lane = (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+    ahead = state.x[:, None, :] >= state.x[:, :, None]  # (E, V, V): [e, i, j] j is ahead of i
+    candidate = on_lane & ahead & state.alive[:, None, :] & (slots[:, None] != slots[None, :])
+    distance = torch.where(candidate, state.x[:, None, :], torch.full_like(candidate, torch.inf, dtype=state.x.dtype))
+    nearest = distance.min(dim=2, keepdim=True).values
+    winners = torch.where(candidate & (distance == nearest), slots, -1)
+    index = winners.max(dim=2).values
+    return index.clamp(min=0), index >= 0
+
+
+def idm_acceleration(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> torch.Tensor:
+    """(E, V) IDM acceleration [m/s^2] of every vehicle behind its vehicle ahead on ``lane`` (E, V), unclipped."""
+    target = state.target_speed.clamp(0.0, config.speed_limit)
+    free = config.comfort_acc_max * (1 - torch.pow(state.speed.clamp(min=0.0) / not_zero(target).abs(), state.idm_delta))
+    index, found = vehicle_ahead(state, lane, config)
+    front_x, front_speed, front_heading = (torch.gather(field, 1, index) for field in (state.x, state.speed, state.heading))
+    cos, sin = torch.cos(state.heading), torch.sin(state.heading)
+    closing = ((state.speed * cos - front_speed * torch.cos(front_heading)) * cos
+               + (state.speed * sin - front_speed * torch.sin(front_heading)) * sin)
+    ab = -config.comfort_acc_max * config.comfort_acc_min
+    desired_gap = config.distance_wanted + state.speed * config.time_wanted + state.speed * closing / (2 * ab ** 0.5)
+    interaction = config.comfort_acc_max * torch.pow(desired_gap / not_zero(front_x - state.x), 2)
+    return torch.where(found, free - interaction, free)
+
+
+def lane_keeping_steering(state: VehicleState, config: SimConfig) -> torch.Tensor:
+    """(E, V) steering [rad] to the target lane's centre (``ControlledVehicle.steering_control``
+    on a straight lane along +x): a lateral speed ``-kp_lateral * offset`` becomes a heading
+    reference (within +-pi/4), a heading rate ``kp_heading * (reference - heading)`` a slip angle
+    and that a steering angle, clipped to +-max_steering."""
+    offset = state.y - state.target_lane.to(state.y.dtype) * config.lane_width
+    speed = not_zero(state.speed)
+    lateral_speed = -config.kp_lateral * offset
+    heading_reference = torch.asin((lateral_speed / speed).clamp(-1, 1)).clamp(-torch.pi / 4, torch.pi / 4)
+    heading_rate = config.kp_heading * wrap_to_pi(heading_reference - state.heading)
+    slip = torch.asin((state.length / 2 / speed * heading_rate).clamp(-1, 1))
+    return torch.atan(2 * torch.tan(slip)).clamp(-config.max_steering, config.max_steering)
+
+
+def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every vehicle's IDM command (``IDMVehicle.act`` without lane changes): (acceleration
+    [m/s^2], steering [rad]), each (E, V). Slot 0 (the ego) is computed too; the caller replaces it."""
+    acceleration = idm_acceleration(state, state.lane, config)
+    changing = state.lane != state.target_lane
+    acceleration = torch.where(changing, torch.minimum(acceleration, idm_acceleration(state, state.target_lane, config)),
+                               acceleration)
+    return acceleration.clamp(-config.acc_max, config.acc_max), lane_keeping_steering(state, config)

@@ -1,0 +1,83 @@
+"""The simulator: one ego command per environment, all vehicles stepped at once."""
+
+from __future__ import annotations
+
+import torch
+
+from mmpc.sim.collision import handle_collisions
+from mmpc.sim.config import SimConfig
+from mmpc.sim.ego import ego_action
+from mmpc.sim.idm import traffic_command
+from mmpc.sim.kinematics import bicycle_step
+from mmpc.sim.state import VehicleState, check_state
+
+
+class HighwaySimulator:
+    """E highway environments x V vehicles stepped together, as highway-env steps one.
+
+    Each frame: every IDM vehicle decides from the current state (IDM behind its vehicle
+    ahead, lane keeping), the ego holds its command, all vehicles move
+    (:func:`mmpc.sim.kinematics.bicycle_step`), then every pair is checked for collisions
+    (:func:`mmpc.sim.collision.handle_collisions`).
+
+    Args:
+        config: road, model and behaviour constants; ``config.dt`` is the frame.
+
+    Example:
+        >>> from mmpc.sim import vehicle_state
+        >>> simulator = HighwaySimulator()
+        >>> state = vehicle_state(torch.tensor([[0.0, 40.0]]), torch.tensor([[4.0, 4.0]]), speed=20.0,
+        ...                       target_speed=torch.tensor([[20.0, 15.0]]))
+        >>> state = simulator.step(state, torch.tensor([[1.0, 0.0]]))   # (E, 2): acceleration, steering
+        >>> round(float(state.x[0, 0]), 3), round(float(state.speed[0, 0]), 3)
+        (2.0, 20.1)
+    """
+
+    def __init__(self, config: SimConfig = SimConfig()) -> None:
+        if not isinstance(config, SimConfig):
+            raise TypeError(f"`config` must be a SimConfig; got {type(config).__name__}")
+        self.config = config
+
+    def step(self, state: VehicleState, command: torch.Tensor) -> VehicleState:
+        """One ego command, held for ``config.frames_per_command`` frames; inputs checked first.
+
+        Args:
+            state: the vehicles (slot 0 the ego), checked with :func:`mmpc.sim.state.check_state`.
+            command: (E, 2) the ego's acceleration [m/s^2] and steering [rad], any floating
+                dtype (cast to the state's), on the state's device, finite.
+
+        Returns:
+            The state after the command's frames.
+        """
+        check_state(state, self.config)
+        num_envs = state.x.shape[0]
+        if not isinstance(command, torch.Tensor) or not command.is_floating_point():
+            got = command.dtype if isinstance(command, torch.Tensor) else type(command).__name__
+            raise ValueError(f"`command` must be a floating-point tensor of shape (E, 2); got {got}")
+        if command.dim() != 2 or command.shape[1] != 2:
+            raise ValueError(f"`command` must have shape (E, 2) (acceleration, steering); got {tuple(command.shape)}")
+        if command.shape[0] != num_envs:
+            raise ValueError(f"`command` has {command.shape[0]} environments; the state has E = {num_envs}")
+        if command.device != state.x.device:
+            raise ValueError(f"`command` is on {command.device}; the state is on {state.x.device}")
+        if not bool(torch.isfinite(command).all()):
+            bad = torch.nonzero(~torch.isfinite(command).all(dim=1))[:5, 0].tolist()
+            raise ValueError(f"`command` must be finite; NaN or inf in environments {bad}")
+        return self.advance(state, command.to(state.x.dtype))
+
+    def advance(self, state: VehicleState, command: torch.Tensor) -> VehicleState:
+        """:meth:`step` without the checks (no host synchronisation: capturable)."""
+        acceleration, steering = ego_action(command[:, 0], command[:, 1], state.speed[:, 0], self.config)
+        moving_forward = state.speed[:, 0] >= 0
+        for _ in range(self.config.frames_per_command):
+            state = self.frame(state, acceleration, steering)
+        ego_speed = torch.where(moving_forward & (state.speed[:, 0] < 0), 0.0, state.speed[:, 0])
+        return state._replace(speed=torch.cat([ego_speed[:, None], state.speed[:, 1:]], dim=1))
+
+    def frame(self, state: VehicleState, ego_acceleration: torch.Tensor, ego_steering: torch.Tensor) -> VehicleState:
+        """One simulation frame with the ego's applied (acceleration [m/s^2], steering [rad]), each (E,)."""
+        acceleration, steering = traffic_command(state, self.config)
+        acceleration = torch.cat([ego_acceleration[:, None], acceleration[:, 1:]], dim=1)
+        steering = torch.cat([ego_steering[:, None], steering[:, 1:]], dim=1)
+        state = bicycle_step(state, acceleration, steering, self.config)
+        return handle_collisions(state, self.config.dt)
