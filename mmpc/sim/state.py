@@ -90,7 +90,8 @@ def vehicle_state(
         if isinstance(value, torch.Tensor):
             if value.device != x.device:
                 raise ValueError(f"`{name}` is on {value.device}; `x` is on {x.device}")
-            if value.dim() > 2 or torch.broadcast_shapes(value.shape, x.shape) != x.shape:
+            fits = value.dim() <= 2 and all(a in (1, b) for a, b in zip(value.shape[::-1], x.shape[::-1]))
+            if not fits:
                 raise ValueError(f"`{name}` must broadcast to (E, V) = {tuple(x.shape)}; got {tuple(value.shape)}")
             return value.to(dtype).expand(x.shape).clone()
         return torch.full(x.shape, value, dtype=dtype, device=x.device)
