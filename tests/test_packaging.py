@@ -66,6 +66,22 @@ def test_wheel_ships_every_config(installed_wheel):
     assert in_wheel == shipped_names()
 
 
+def test_wheel_ships_every_package_and_declares_the_drivers(installed_wheel):
+    def modules(root: Path, package: str) -> set[str]:
+        found = set()
+        for init in root.rglob("__init__.py"):
+            if "__pycache__" not in init.parts:
+                found.add(".".join((package, *init.parent.relative_to(root).parts)))
+        return found
+
+    in_source = modules(REPO / "mmpc", "mmpc") | {"mmpc.rl", "mmpc.imitation", "mmpc.configs"}
+    assert modules(installed_wheel / "mmpc", "mmpc") == in_source
+    (entry_points,) = installed_wheel.glob("mmpc-*.dist-info/entry_points.txt")
+    declared = entry_points.read_text()
+    assert "[mmpc.drivers]" in declared and all(f"\n{name} = " in declared
+                                                for name in ("mpc", "frenet", "standard-mpc", "batch-nlp", "bc", "sb3"))
+
+
 def test_installed_wheel_loads_shipped_configs_by_name(installed_wheel, tmp_path):
     script = textwrap.dedent(
         """
