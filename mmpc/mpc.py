@@ -63,14 +63,13 @@ class MPCConfig:
         prediction: how the obstacles move over the horizon: ``"lanes"`` (constant velocity,
             lateral motion ending on the next lane centre, :func:`mmpc.predict_within_lanes`)
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
-            unbounded). Measured in highway-env cruise traffic: a vehicle changing lanes at
-            2-3 m/s of vy, extrapolated straight, crossed every lane within the horizon and left
-            no feasible candidate, and the fallback braked the ego from 14.5 to 6.3 m/s.
+            unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
+            the horizon and leaves no feasible candidate.
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
-            (measured in highway-env: 1.1 m overshoot on a two-lane change); averaging over
-            0.3 s anticipates the plan's trend (0.15 m) at no cost in speed tracking.
+            (it overshoots lane changes); averaging over 0.3 s anticipates the plan's trend at
+            no cost in speed tracking.
         tie_tolerance, tie_margin: candidates whose meta cost is within
             ``tie_tolerance * lowest + tie_margin`` of the lowest count as tied [-, meta-cost
             units; 1.0 is e.g. 0.1 m/s of RMS speed error over a 100-sample horizon for the

@@ -32,25 +32,15 @@ from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
 
-#: Obstacle ellipse semi-axes for highway-env [m] (the default cruise scenario's). Its collision
-#: check intersects 5 m x 2 m rectangles, so a covering ellipse must hold their Minkowski sum
-#: (half extents 5 m x 2 m, more with a relative heading): 25 / a^2 + 4 / b^2 <= 1
-#: (:func:`mmpc.footprint.ellipse_coverage`). The authors' (5.6, 3.0) gives 1.24 and lets the ego
-#: graze cars it believes it clears (observed as side collisions in closed loop). With the ego
-#: turned to the band's 13 degrees and the other car turned 3 degrees the same way (changing
-#: lane) the sum's corners reach 0.99 for (8.0, 3.3) and 1.13 for (8.0, 3.0); the high-speed
-#: scenario keeps (8.0, 3.0) with an 8-degree band (0.97; 1.03 with the other car turned 3 degrees).
+#: Obstacle ellipse semi-axes for highway-env [m] (the default cruise scenario's): it must hold the
+#: Minkowski sum of two 5 m x 2 m cars with the ego turned over its heading band
+#: (:func:`mmpc.footprint.ellipse_coverage` <= 1; the authors' (5.6, 3.0) does not). Figures:
+#: docs/experiments/2026-11-21-differences-from-paper.md.
 HIGHWAY_ELLIPSE = (8.0, 3.3)
-#: Heading band [deg], the paper's 13. With b = 3.0 m an 11-degree band had ended in a collision
-#: (cruise, seed 12), hence 8 degrees before b = 3.3 m; 13 degrees gives 2.2 m/s of lateral speed
-#: at 10 m/s (8: 1.4), over 20 cruise seeds x 40 s (v - 15)^2 0.63 -> 0.32, 0 collisions.
-#: High speed did worse with it (29.7 -> 44.1) and keeps 8 degrees.
+#: Heading band [deg], the paper's 13 (the high-speed scenario keeps 8, which drove it better).
 HIGHWAY_MAX_HEADING_DEG = 13.0
-#: Band [deg] the heading step's targets are clipped to, 0.9 x the band above (the heading
-#: polynomial overshoots clipped targets slightly). With 7.2 of 8 degrees, on 200 dense cruise
-#: states it raised the feasible goal-directed problems from 1444 to 1905 of 3600 (heading
-#: failures 1886 -> 833), and over 20 seeds x 40 s the cruise meta cost from 3.65 to 2.15 and
-#: high speed from 67.1 to 44.4.
+#: Band [deg] the heading step's targets are clipped to, 0.9 x the band above: the iterations
+#: then stay inside the band (the heading polynomial overshoots clipped targets slightly).
 HIGHWAY_HEADING_TARGET_DEG = 11.7
 #: Folder of the scenarios that ship with mmpc (:attr:`ScenarioConfig.config_folder`).
 SCENARIO_DIR = shipped_config_dir("scenarios")
@@ -83,7 +73,7 @@ class CruiseObjective:
             for the lane-centre goals only.
         near_lanes: those goals sit on the ego's lane and this many lanes either side;
             ``None``: on every lane. (2: behind a wall of slow cars the way out can be two
-            lanes over; cruise seed 12, (v - 15)^2 17.7 -> 1.0 against 1.)
+            lanes over.)
     """
 
     kind: ClassVar[str] = "cruise"
@@ -135,7 +125,7 @@ class HighSpeedObjective:
         other_distance: distance ahead of the goals on the other lanes [m].
         near_lane_speeds: average speeds of the goals on the lanes around the ego [m/s]. Up to
             ``v_max``: the authors' goals lie 150-175 m ahead, an average of at most 21.9 m/s
-            over 8 s (20 seeds x 40 s: meta cost 40.4 -> 29.7 with 22 and 24 m/s added).
+            over 8 s, slower than the road allows.
         near_lanes: those goals sit on the ego's lane and this many lanes either side;
             ``None``: on every lane.
     """
