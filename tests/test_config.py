@@ -20,6 +20,7 @@ from mmpc.imitation.features import FeatureConfig, SceneGeometry
 from mmpc.imitation.policy import PolicyConfig
 from mmpc.rl.config import RL_SCENARIO, RewardConfig, RLConfig, SafeEnvConfig
 from mmpc.rl.config import TrainConfig as RLTrainConfig
+from mmpc.sim import SimConfig
 from mmpc.scenario import (
     CruiseObjective, EgoConfig, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
     ScriptedVehicle, load_scenario,
@@ -37,6 +38,7 @@ CONFIGS = [
     FrenetConfig(), NLPConfig(), RewardConfig(), SafeEnvConfig(), RLTrainConfig(), RLConfig(), BCTrainConfig(),
     PolicyConfig(), DaggerConfig(), SceneGeometry(4.0, (5.6, 3.1)), FeatureConfig(SceneGeometry(5.0, (8.0, 3.3))),
     EvaluationConfig(drivers=("mpc", "frenet"), seeds=(3, 1), ray="auto", episode_layout="{driver}/{seed}"),
+    SimConfig(),
 ]
 
 
