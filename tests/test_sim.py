@@ -51,43 +51,58 @@ def ego_commands(scene: str, frequency: float) -> np.ndarray:
     return np.stack([np.sin(0.4 * t) - 0.6 - 8.0 * (t > 17.0), 0.004 * np.cos(0.7 * t)], axis=1)
 
 
-def highway_env_run(rows, commands: np.ndarray, frequency: float) -> np.ndarray:
-    """(N, V, 4) x, y, speed, crashed of every vehicle after each command, in highway-env
-    driven through the project's own path (HighwayEpisode.apply)."""
+def highway_env_run(rows, commands: np.ndarray, frequency: float, *, lane_changes: bool = False,
+                    politeness: float = 0.0) -> np.ndarray:
+    """(N, V, 5) x, y, speed, crashed, target lane of every vehicle after each command, in
+    highway-env driven through the project's own path (HighwayEpisode.apply). Without
+    ``lane_changes`` the IDM vehicles keep lane 1; with them, they start on their own lane with
+    MOBIL on, the timer of row column 6 and ``politeness``."""
     scenario = ScenarioConfig(name="sim", lanes=LANES, frequency=frequency, duration=100.0,
                               traffic=ScriptedTraffic(), ego=EgoConfig(lane=1))
     episode = HighwayEpisode(scenario, seed=0)
     road = episode.unwrapped.road
-    x, y, heading, speed, _, _ = rows[0]
+    x, y, heading, speed = rows[0][:4]
     episode.ego.position, episode.ego.heading, episode.ego.speed = np.array([x, y]), heading, speed
     episode.ego.on_state_update()
-    for x, y, heading, speed, target_speed, delta in rows[1:]:
-        vehicle = IDMVehicle(road, [x, y], heading, speed, target_lane_index=("0", "1", 1),
-                             target_speed=target_speed, enable_lane_change=False)
-        vehicle.DELTA = delta
+    for x, y, heading, speed, target_speed, delta, *timer in rows[1:]:
+        vehicle = IDMVehicle(road, [x, y], heading, speed, target_lane_index=None if lane_changes else ("0", "1", 1),
+                             target_speed=target_speed, enable_lane_change=lane_changes)
+        vehicle.DELTA, vehicle.POLITENESS = delta, politeness
+        if lane_changes:
+            vehicle.timer = timer[0]  # the constructor would replace 0 by its position-based value
         road.vehicles.append(vehicle)
     trace = []
     for acceleration, steering in commands:
         episode.apply(float(acceleration), float(steering))
-        trace.append([[v.position[0], v.position[1], v.speed, v.crashed] for v in road.vehicles])
+        trace.append([[v.position[0], v.position[1], v.speed, v.crashed, getattr(v, "target_lane_index", v.lane_index)[2]]
+                      for v in road.vehicles])
     episode.close()
     return np.asarray(trace, dtype=np.float64)
 
 
-def initial_state(rows, config: SimConfig, dtype: torch.dtype, device="cpu") -> VehicleState:
+def initial_state(rows, config: SimConfig, dtype: torch.dtype, device="cpu", *, lane_changes: bool = False) -> VehicleState:
     table = torch.tensor([rows], dtype=dtype, device=device)
+    if lane_changes:
+        return vehicle_state(table[..., 0], table[..., 1], table[..., 2], table[..., 3], config=config,
+                             target_speed=table[..., 4], idm_delta=table[..., 5],
+                             lane_change_timer=torch.tensor([rows], dtype=torch.float64, device=device)[..., 6])
     return vehicle_state(table[..., 0], table[..., 1], table[..., 2], table[..., 3], config=config,
                          target_speed=table[..., 4], idm_delta=table[..., 5],
-                         target_lane=torch.ones(table.shape[:2], dtype=torch.int64, device=device))
+                         target_lane=torch.ones(table.shape[:2], dtype=torch.int64, device=device),
+                         lane_change_enabled=False)
 
 
-def sim_run(rows, commands: np.ndarray, frequency: float, dtype: torch.dtype) -> np.ndarray:
-    simulator = HighwaySimulator(SimConfig(simulation_frequency=frequency, policy_frequency=frequency, lanes=LANES))
-    state = initial_state(rows, simulator.config, dtype)
+def sim_run(rows, commands: np.ndarray, frequency: float, dtype: torch.dtype, *, lane_changes: bool = False,
+            politeness: float = 0.0) -> np.ndarray:
+    """The same trace as :func:`highway_env_run`, from mmpc.sim."""
+    config = SimConfig(simulation_frequency=frequency, policy_frequency=frequency, lanes=LANES, politeness=politeness)
+    simulator = HighwaySimulator(config)
+    state = initial_state(rows, config, dtype, lane_changes=lane_changes)
     trace = []
     for command in torch.tensor(commands, dtype=dtype)[:, None]:
         state = simulator.step(state, command)
-        trace.append(torch.stack([state.x[0], state.y[0], state.speed[0], state.crashed[0].to(dtype)], dim=1))
+        trace.append(torch.stack([state.x[0], state.y[0], state.speed[0], state.crashed[0].to(dtype),
+                                  state.target_lane[0].to(dtype)], dim=1))
     return torch.stack(trace).double().numpy()
 
 
@@ -109,6 +124,79 @@ def test_matches_highway_env_for_20_seconds(scene, frequency):
     np.testing.assert_allclose(single[..., :2], expected[..., :2], rtol=0, atol=FLOAT32_POSITION_TOLERANCE)
     np.testing.assert_allclose(single[..., 2], expected[..., 2], rtol=0, atol=FLOAT32_SPEED_TOLERANCE)
     np.testing.assert_array_equal(single[..., 3], expected[..., 3])
+
+
+#: Rows (x [m], y [m], heading [rad], speed [m/s], target speed [m/s], IDM delta, lane-change timer [s]);
+#: row 0 the ego (timer unused), driven straight at constant speed; lanes 0, 1, 2 at y = 0, 4, 8 m.
+OVERTAKE = (  # a fast car behind a slow one, both neighbour lanes free: MOBIL accepts both, the right one wins
+    (300.0, 0.0, 0.0, 25.0, 25.0, 4.0, 0.0),
+    (60.0, 4.0, 0.0, 15.0, 15.0, 4.0, 0.3),
+    (30.0, 4.0, 0.0, 25.0, 30.0, 4.0, 0.55),
+)
+UNSAFE = OVERTAKE + (  # cars close behind on both sides: the new follower would brake too hard until they pass
+    (22.0, 0.0, 0.0, 25.0, 25.0, 4.0, 0.1),
+    (24.0, 8.0, 0.0, 25.0, 25.0, 4.0, 0.7),
+)
+ABORT = (  # two fast cars change into the free middle lane in the same frame; the one behind aborts
+    (400.0, 4.0, 0.0, 28.0, 28.0, 4.0, 0.0),
+    (70.0, 0.0, 0.0, 15.0, 15.0, 4.0, 0.2),
+    (40.0, 0.0, 0.0, 25.0, 30.0, 4.0, 0.95),
+    (80.0, 8.0, 0.0, 15.0, 15.0, 4.0, 0.4),
+    (50.0, 8.0, 0.0, 25.0, 30.0, 4.0, 0.95),
+)
+POLITE = (  # a small gain for car 2 against the braking it imposes on car 3 in the right lane; the ego behind on the left
+    (100.0, 0.0, 0.0, 22.0, 22.0, 4.0, 0.0),
+    (190.0, 4.0, 0.0, 21.5, 21.5, 4.0, 0.3),
+    (130.0, 4.0, 0.0, 22.0, 22.0, 4.0, 0.95),
+    (54.0, 8.0, 0.0, 25.0, 25.0, 4.0, 0.6),
+)
+#: scene id: (rows, politeness, every target-lane change as (step, slot, new lane), steps counted from 1).
+LANE_CHANGE_SCENES = {
+    "overtake-right-wins": (OVERTAKE, 0.0, [(6, 2, 2)]),
+    "unsafe-until-passed": (UNSAFE, 0.0, [(28, 2, 2), (127, 2, 1), (130, 1, 0)]),
+    "abort-same-target": (ABORT, 0.0, [(2, 2, 1), (2, 4, 1), (3, 2, 0), (24, 2, 1), (101, 2, 0), (109, 1, 1)]),
+    "selfish": (POLITE, 0.0, [(2, 2, 2), (17, 3, 1)]),
+    "polite": (POLITE, 1.0, [(9, 1, 2)]),  # car 2 stays; the slow car 1 moves over for it
+}
+
+
+def lane_changes_of(trace: np.ndarray, initial_lanes) -> list[tuple[int, int, int]]:
+    """Every change of a target lane in ``trace`` (N, V, 5) as (step from 1, slot, new lane)."""
+    lanes = np.concatenate([np.asarray(initial_lanes, dtype=np.float64)[None], trace[..., 4]])
+    steps, slots = np.nonzero(np.diff(lanes, axis=0))
+    return sorted((int(step) + 1, int(slot), int(lanes[step + 1, slot])) for step, slot in zip(steps, slots))
+
+
+@pytest.mark.parametrize("scene", list(LANE_CHANGE_SCENES))
+def test_lane_changes_match_highway_env_for_20_seconds(scene):
+    rows, politeness, changes = LANE_CHANGE_SCENES[scene]
+    frequency = 10.0
+    commands = np.zeros((int(DURATION * frequency), 2))
+    expected = highway_env_run(rows, commands, frequency, lane_changes=True, politeness=politeness)
+    initial_lanes = [round(row[1] / 4.0) for row in rows]
+    assert lane_changes_of(expected, initial_lanes) == changes  # the scene does what it is named for
+    assert not expected[..., 3].any()
+    exact = sim_run(rows, commands, frequency, torch.float64, lane_changes=True, politeness=politeness)
+    assert lane_changes_of(exact, initial_lanes) == changes
+    # float64 measured at worst over every frame: 2.5e-15 m, 3.6e-15 m/s (the abort scene)
+    np.testing.assert_allclose(exact[..., :3], expected[..., :3], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(exact[..., 3:], expected[..., 3:])
+    single = sim_run(rows, commands, frequency, torch.float32, lane_changes=True, politeness=politeness)
+    assert lane_changes_of(single, initial_lanes) == changes  # the float64 timers keep the decision frames
+    np.testing.assert_allclose(single[..., :2], expected[..., :2], rtol=0, atol=FLOAT32_POSITION_TOLERANCE)
+    np.testing.assert_allclose(single[..., 2], expected[..., 2], rtol=0, atol=FLOAT32_SPEED_TOLERANCE)
+
+
+def test_default_lane_change_timer_is_highway_env_s():
+    scenario = ScenarioConfig(name="sim", lanes=LANES, frequency=10.0, duration=10.0, traffic=ScriptedTraffic(),
+                              ego=EgoConfig(lane=1))
+    episode = HighwayEpisode(scenario, seed=0)
+    positions = [(0.0, 0.0), (37.25, 4.0), (512.3, 8.1), (1e-3, 3.9)]
+    expected = [IDMVehicle(episode.unwrapped.road, list(position)).timer for position in positions]
+    episode.close()
+    table = torch.tensor([positions], dtype=torch.float64)
+    state = vehicle_state(table[..., 0], table[..., 1], config=SimConfig(lanes=LANES))
+    np.testing.assert_array_equal(state.lane_change_timer[0].numpy(), expected)
 
 
 def random_rectangle_pairs(count: int, seed: int = 0) -> np.ndarray:
@@ -195,6 +283,7 @@ def test_deterministic_and_preserves_shapes_and_dtypes(dtype):
         assert torch.equal(a, b), name
         assert a.shape == getattr(state, name).shape and a.dtype == getattr(state, name).dtype, name
     assert first.crashed.any() and not first.crashed.all()  # the scene exercises collisions
+    assert (first.target_lane != state.target_lane).any()  # and lane changes
     padding = ~state.alive
     assert torch.equal(first.x[padding], state.x[padding]) and not first.crashed[padding].any()
 

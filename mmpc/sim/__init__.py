@@ -1,34 +1,39 @@
 """A batched highway simulator in torch: E environments x V vehicles stepped at once, on CPU
 or CUDA, in float32 or float64, deterministic, written from highway-env's equations.
 
-What this first slice covers:
+What it covers:
 
-- the state (:class:`VehicleState`): position, heading, speed, size, lanes, target speed, a presence mask;
+- the state (:class:`VehicleState`): position, heading, speed, size, lanes, target speed, lane-change timer, a presence mask;
 - highway-env's kinematic bicycle with its command limits (:mod:`mmpc.sim.kinematics`);
 - IDM car following and lane keeping of the other vehicles on straight lanes (:mod:`mmpc.sim.idm`);
+- their MOBIL lane changes with highway-env's timers, safety and politeness criteria, left/right
+  order and abort rule, and steering to the target lane (:mod:`mmpc.sim.mobil`);
 - the ego driven by (acceleration, steering) commands mapped as the project's highway-env path maps them (:mod:`mmpc.sim.ego`);
 - rectangle collisions by separating axes, with highway-env's pre-check, pushes and crash braking (:mod:`mmpc.sim.collision`).
 
 Not there yet:
 
-- MOBIL lane changes (target lanes stay as given);
+- routes (the route-constrained branch of highway-env's MOBIL);
 - the window that recycles vehicles around the ego;
 - resets and random traffic placement;
 - scenarios built from :class:`mmpc.scenario.ScenarioConfig`;
 - the gymnasium vector environment (observations, rewards, termination);
-- the end of highway-env's 10 km lanes (lanes here are unbounded).
+- lane ends: highway-env's lanes run from x = 0 to 10 km, here they are unbounded (behind x = 0 a
+  vehicle here still changes lane and counts as a neighbour; in highway-env it does neither).
 """
 
 from mmpc.sim.collision import PolygonTest, handle_collisions, pair_collisions, polygons_intersecting, rectangle_corners
 from mmpc.sim.config import SimConfig
 from mmpc.sim.ego import ego_action
-from mmpc.sim.idm import idm_acceleration, lane_keeping_steering, traffic_command, vehicle_ahead
+from mmpc.sim.idm import idm_acceleration, idm_between, lane_keeping_steering, traffic_command, vehicle_ahead, vehicle_behind
 from mmpc.sim.kinematics import bicycle_step, limit_command
+from mmpc.sim.mobil import abort_blockers, advance_timers, change_lanes, mobil_accepts
 from mmpc.sim.simulator import HighwaySimulator
 from mmpc.sim.state import VehicleState, check_state, lane_of, vehicle_state
 
 __all__ = [
-    "HighwaySimulator", "PolygonTest", "SimConfig", "VehicleState", "bicycle_step", "check_state", "ego_action",
-    "handle_collisions", "idm_acceleration", "lane_keeping_steering", "lane_of", "limit_command", "pair_collisions",
-    "polygons_intersecting", "rectangle_corners", "traffic_command", "vehicle_ahead", "vehicle_state",
+    "HighwaySimulator", "PolygonTest", "SimConfig", "VehicleState", "abort_blockers", "advance_timers", "bicycle_step",
+    "change_lanes", "check_state", "ego_action", "handle_collisions", "idm_acceleration", "idm_between",
+    "lane_keeping_steering", "lane_of", "limit_command", "mobil_accepts", "pair_collisions", "polygons_intersecting",
+    "rectangle_corners", "traffic_command", "vehicle_ahead", "vehicle_behind", "vehicle_state",
 ]

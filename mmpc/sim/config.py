@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from mmpc.config import require, require_positive
+from mmpc.config import require, require_non_negative, require_positive
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,14 @@ class SimConfig:
         kp_lateral: lane keeping, lateral position gain [1/s].
         kp_heading: lane keeping, heading gain [1/s].
         max_steering: IDM vehicles' steering bound [rad].
+        politeness: MOBIL's weight of the followers' acceleration changes against the
+            vehicle's own (highway-env's ``POLITENESS``, 0 selfish .. 1 altruistic) [-].
+        lane_change_min_acc_gain: MOBIL changes lane only for a weighted acceleration gain of
+            at least this [m/s^2].
+        lane_change_max_braking_imposed: MOBIL refuses a change that makes the new follower
+            brake harder than this [m/s^2] (positive).
+        lane_change_delay: a vehicle on its target lane evaluates MOBIL once its timer
+            exceeds this, then restarts the timer [s].
     """
 
     simulation_frequency: float = 10.0
@@ -54,6 +62,10 @@ class SimConfig:
     kp_lateral: float = 1 / 0.6
     kp_heading: float = 1 / 0.2
     max_steering: float = math.pi / 3
+    politeness: float = 0.0
+    lane_change_min_acc_gain: float = 0.2
+    lane_change_max_braking_imposed: float = 2.0
+    lane_change_delay: float = 1.0
 
     def __post_init__(self) -> None:
         require_positive(
@@ -61,7 +73,9 @@ class SimConfig:
             lane_width=self.lane_width, speed_limit=self.speed_limit, max_speed=self.max_speed, acc_max=self.acc_max,
             comfort_acc_max=self.comfort_acc_max, distance_wanted=self.distance_wanted, time_wanted=self.time_wanted,
             kp_lateral=self.kp_lateral, kp_heading=self.kp_heading, max_steering=self.max_steering,
+            lane_change_max_braking_imposed=self.lane_change_max_braking_imposed, lane_change_delay=self.lane_change_delay,
         )
+        require_non_negative("SimConfig", politeness=self.politeness, lane_change_min_acc_gain=self.lane_change_min_acc_gain)
         require(isinstance(self.lanes, int) and self.lanes >= 1, f"SimConfig: `lanes` must be an int >= 1; got {self.lanes!r}")
         require(self.lane_margin >= 0, f"SimConfig: `lane_margin` must be >= 0 m; got {self.lane_margin}")
         require(self.min_speed < self.max_speed,

@@ -57,19 +57,72 @@ def vehicle_ahead(state: VehicleState, lane: torch.Tensor, config: SimConfig) ->
     return index.clamp(min=0), index >= 0
 
 
+def vehicle_behind(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every vehicle, the nearest other present vehicle behind on lane ``lane`` (E, V) int64:
+    on the lane as in :func:`vehicle_ahead`, behind meaning ``x_other < x`` (strictly); on equal
+    ``x`` the earlier slot wins, as in highway-env's ``Road.neighbour_vehicles``. The ego counts.
+
+    Returns:
+        index: (E, V) int64 slot of the vehicle behind (0 where there is none).
+        found: (E, V) bool.
+    """
+    num_vehicles = state.x.shape[1]
+    slots = torch.arange(num_vehicles, device=state.x.device)
+    centre = lane.to(state.y.dtype) * config.lane_width
+    on_lane = (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+    behind = state.x[:, None, :] < state.x[:, :, None]  # (E, V, V): [e, i, j] j is behind i
+    candidate = on_lane & behind & state.alive[:, None, :]
+    position = torch.where(candidate, state.x[:, None, :], torch.full_like(candidate, -torch.inf, dtype=state.x.dtype))
+    nearest = position.max(dim=2, keepdim=True).values
+    winners = torch.where(candidate & (position == nearest), slots, num_vehicles)
+    index = winners.min(dim=2).values
+    return torch.where(index < num_vehicles, index, 0), index < num_vehicles
+
+
+def idm_between(
+    state: VehicleState,
+    follower: torch.Tensor,
+    has_follower: torch.Tensor,
+    front: torch.Tensor,
+    has_front: torch.Tensor,
+    delta: torch.Tensor,
+    target_speed: torch.Tensor,
+    config: SimConfig,
+) -> torch.Tensor:
+    """IDM acceleration [m/s^2] (unclipped) of slot ``follower`` behind slot ``front``, as
+    highway-env's ``IDMVehicle.acceleration(ego_vehicle=follower, front_vehicle=front)``
+    evaluated by a vehicle whose exponent is ``delta``: 0 without a follower, the free-road
+    term alone without a front vehicle.
+
+    Args:
+        state: the vehicles.
+        follower, front: (E, V) int64 slots. has_follower, has_front: (E, V) bool.
+        delta: (E, V) IDM exponent of the evaluating vehicle (not the follower's own).
+        target_speed: (E, V) target speed [m/s] of every slot, read at ``follower``.
+
+    Returns:
+        (E, V) acceleration [m/s^2].
+    """
+    speed, heading, x, target = (torch.gather(field, 1, follower) for field in
+                                 (state.speed, state.heading, state.x, target_speed))
+    target = target.clamp(0.0, config.speed_limit)
+    free = config.comfort_acc_max * (1 - torch.pow(speed.clamp(min=0.0) / not_zero(target).abs(), delta))
+    front_x, front_speed, front_heading = (torch.gather(field, 1, front) for field in (state.x, state.speed, state.heading))
+    cos, sin = torch.cos(heading), torch.sin(heading)
+    closing = ((speed * cos - front_speed * torch.cos(front_heading)) * cos
+               + (speed * sin - front_speed * torch.sin(front_heading)) * sin)
+    ab = -config.comfort_acc_max * config.comfort_acc_min
+    desired_gap = config.distance_wanted + speed * config.time_wanted + speed * closing / (2 * ab ** 0.5)
+    interaction = config.comfort_acc_max * torch.pow(desired_gap / not_zero(front_x - x), 2)
+    acceleration = torch.where(has_front, free - interaction, free)
+    return torch.where(has_follower, acceleration, torch.zeros_like(acceleration))
+
+
 def idm_acceleration(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> torch.Tensor:
     """(E, V) IDM acceleration [m/s^2] of every vehicle behind its vehicle ahead on ``lane`` (E, V), unclipped."""
-    target = state.target_speed.clamp(0.0, config.speed_limit)
-    free = config.comfort_acc_max * (1 - torch.pow(state.speed.clamp(min=0.0) / not_zero(target).abs(), state.idm_delta))
+    own = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape)
     index, found = vehicle_ahead(state, lane, config)
-    front_x, front_speed, front_heading = (torch.gather(field, 1, index) for field in (state.x, state.speed, state.heading))
-    cos, sin = torch.cos(state.heading), torch.sin(state.heading)
-    closing = ((state.speed * cos - front_speed * torch.cos(front_heading)) * cos
-               + (state.speed * sin - front_speed * torch.sin(front_heading)) * sin)
-    ab = -config.comfort_acc_max * config.comfort_acc_min
-    desired_gap = config.distance_wanted + state.speed * config.time_wanted + state.speed * closing / (2 * ab ** 0.5)
-    interaction = config.comfort_acc_max * torch.pow(desired_gap / not_zero(front_x - state.x), 2)
-    return torch.where(found, free - interaction, free)
+    return idm_between(state, own, torch.ones_like(found), index, found, state.idm_delta, state.target_speed, config)
 
 
 def lane_keeping_steering(state: VehicleState, config: SimConfig) -> torch.Tensor:
@@ -87,7 +140,8 @@ def lane_keeping_steering(state: VehicleState, config: SimConfig) -> torch.Tenso
 
 
 def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every vehicle's IDM command (``IDMVehicle.act`` without lane changes): (acceleration
+    """Every vehicle's IDM command (``IDMVehicle.act`` after the lane-change decision of
+    :func:`mmpc.sim.mobil.change_lanes`, towards ``target_lane``): (acceleration
     [m/s^2], steering [rad]), each (E, V). Slot 0 (the ego) is computed too; the caller replaces it."""
     acceleration = idm_acceleration(state, state.lane, config)
     changing = state.lane != state.target_lane

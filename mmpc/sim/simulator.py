@@ -9,16 +9,18 @@ from mmpc.sim.config import SimConfig
 from mmpc.sim.ego import ego_action
 from mmpc.sim.idm import traffic_command
 from mmpc.sim.kinematics import bicycle_step
+from mmpc.sim.mobil import advance_timers, change_lanes
 from mmpc.sim.state import VehicleState, check_state
 
 
 class HighwaySimulator:
     """E highway environments x V vehicles stepped together, as highway-env steps one.
 
-    Each frame: every IDM vehicle decides from the current state (IDM behind its vehicle
-    ahead, lane keeping), the ego holds its command, all vehicles move
-    (:func:`mmpc.sim.kinematics.bicycle_step`), then every pair is checked for collisions
-    (:func:`mmpc.sim.collision.handle_collisions`).
+    Each frame: every IDM vehicle decides from the current state (its target lane by MOBIL,
+    :func:`mmpc.sim.mobil.change_lanes`; then IDM behind its vehicle ahead and lane keeping
+    towards the target lane), the ego holds its command, all vehicles move
+    (:func:`mmpc.sim.kinematics.bicycle_step`) and their lane-change timers grow, then every
+    pair is checked for collisions (:func:`mmpc.sim.collision.handle_collisions`).
 
     Args:
         config: road, model and behaviour constants; ``config.dt`` is the frame.
@@ -76,8 +78,9 @@ class HighwaySimulator:
 
     def frame(self, state: VehicleState, ego_acceleration: torch.Tensor, ego_steering: torch.Tensor) -> VehicleState:
         """One simulation frame with the ego's applied (acceleration [m/s^2], steering [rad]), each (E,)."""
+        state = change_lanes(state, self.config)
         acceleration, steering = traffic_command(state, self.config)
         acceleration = torch.cat([ego_acceleration[:, None], acceleration[:, 1:]], dim=1)
         steering = torch.cat([ego_steering[:, None], steering[:, 1:]], dim=1)
-        state = bicycle_step(state, acceleration, steering, self.config)
+        state = advance_timers(bicycle_step(state, acceleration, steering, self.config), self.config)
         return handle_collisions(state, self.config.dt)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Optional, Union
 
 import torch
@@ -15,7 +16,9 @@ FLOAT_FIELDS = ("x", "y", "heading", "speed", "length", "width", "target_speed",
 #: Integer (lane) fields, int64 (E, V).
 LANE_FIELDS = ("lane", "target_lane")
 #: Boolean fields (E, V).
-FLAG_FIELDS = ("alive", "crashed", "impact_pending")
+FLAG_FIELDS = ("alive", "crashed", "impact_pending", "lane_change_enabled")
+#: Fields kept in float64 whatever the state's dtype, (E, V).
+DOUBLE_FIELDS = ("lane_change_timer",)
 
 
 class VehicleState(NamedTuple):
@@ -23,6 +26,10 @@ class VehicleState(NamedTuple):
     highway-env's ``road.vehicles`` order (which decides the order collisions are handled in).
 
     Shapes: every field (E, V) except ``impact`` (E, V, 2).
+
+    ``lane_change_timer`` is float64 in a float32 state too: MOBIL runs when it exceeds
+    ``SimConfig.lane_change_delay``, and ten float32 additions of 0.1 s exceed 1 s one frame
+    earlier than highway-env's float64 ones.
     """
 
     x: torch.Tensor  # (E, V) float, position along the road [m]
@@ -39,6 +46,8 @@ class VehicleState(NamedTuple):
     crashed: torch.Tensor  # (E, V) bool, crashed vehicles brake to rest with straight wheels
     impact: torch.Tensor  # (E, V, 2) float, push [m] from a predicted collision, applied at the next frame
     impact_pending: torch.Tensor  # (E, V) bool, ``impact`` is to be applied (highway-env's ``impact is not None``)
+    lane_change_enabled: torch.Tensor  # (E, V) bool, the vehicle may change lane by MOBIL (highway-env's ``enable_lane_change``)
+    lane_change_timer: torch.Tensor  # (E, V) float64, time since the last MOBIL evaluation (highway-env's ``timer``) [s]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -66,6 +75,8 @@ def vehicle_state(
     target_speed: Optional[Number] = None,
     idm_delta: Number = 4.0,
     alive: Optional[torch.Tensor] = None,
+    lane_change_enabled: Union[bool, torch.Tensor] = True,
+    lane_change_timer: Optional[torch.Tensor] = None,
 ) -> VehicleState:
     """Build a validated state; ``x`` decides E, V, dtype and device, numbers and tensors broadcast.
 
@@ -76,6 +87,11 @@ def vehicle_state(
         target_speed: [m/s]; default: the initial speed (highway-env's ``ControlledVehicle``).
         idm_delta: IDM exponent (highway-env's class value 4).
         alive: bool (E, V); default: all present.
+        lane_change_enabled: bool (E, V), whether each IDM vehicle may change lane by MOBIL
+            (highway-env's default: yes); slot 0, the ego, never decides by MOBIL.
+        lane_change_timer: (E, V) seconds since each vehicle's last MOBIL evaluation, cast to
+            float64; default: highway-env's creation value ``(x + y) * pi mod lane_change_delay``
+            (a function of the initial position, not a random draw).
 
     Example:
         >>> state = vehicle_state(torch.tensor([[0.0, 30.0]]), torch.tensor([[4.0, 4.0]]), speed=20.0)
@@ -114,6 +130,9 @@ def vehicle_state(
         crashed=torch.zeros(x.shape, dtype=torch.bool, device=x.device),
         impact=torch.zeros((*x.shape, 2), dtype=x.dtype, device=x.device),
         impact_pending=torch.zeros(x.shape, dtype=torch.bool, device=x.device),
+        lane_change_enabled=full("lane_change_enabled", lane_change_enabled, torch.bool),
+        lane_change_timer=(torch.remainder((x.double() + y.double()) * math.pi, config.lane_change_delay)
+                           if lane_change_timer is None else full("lane_change_timer", lane_change_timer, torch.float64)),
     )
     check_state(state, config)
     return state
@@ -121,7 +140,7 @@ def vehicle_state(
 
 def check_state(state: VehicleState, config: SimConfig) -> None:
     """Raise ``ValueError`` naming the field unless ``state`` is consistent: one (E, V) shape,
-    one float dtype and one device, int64 lanes within the road, bool flags, finite numbers
+    one float dtype (float64 timers) and one device, int64 lanes within the road, bool flags, finite numbers
     and positive sizes. Reads the values (a host synchronisation)."""
     if not isinstance(state, VehicleState):
         raise ValueError(f"`state` must be a VehicleState; got {type(state).__name__}")
@@ -133,6 +152,7 @@ def check_state(state: VehicleState, config: SimConfig) -> None:
     expected = {name: dtype for name in FLOAT_FIELDS}
     expected.update({name: torch.int64 for name in LANE_FIELDS})
     expected.update({name: torch.bool for name in FLAG_FIELDS})
+    expected.update({name: torch.float64 for name in DOUBLE_FIELDS})
     expected["impact"] = dtype
     for name, field_dtype in expected.items():
         value = getattr(state, name)
@@ -143,7 +163,7 @@ def check_state(state: VehicleState, config: SimConfig) -> None:
             raise ValueError(f"`state.{name}` must be {field_dtype}; got {value.dtype}")
         if value.device != device:
             raise ValueError(f"`state.{name}` is on {value.device}; `state.x` is on {device}")
-        if field_dtype == dtype and not bool(torch.isfinite(value).all()):
+        if field_dtype.is_floating_point and not bool(torch.isfinite(value).all()):
             bad = torch.nonzero(~torch.isfinite(value))[:3, 0].tolist()
             raise ValueError(f"`state.{name}` holds NaN or inf (environments {bad}...)")
     for name in LANE_FIELDS:
