@@ -33,6 +33,13 @@ def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
     return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
 
 
+def _on_lane(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> torch.Tensor:
+    """(E, V, V) bool: [e, i, j] vehicle j is within ``lane_width / 2 + lane_margin`` of the centre
+    of lane ``lane[e, i]`` (the lane searched for vehicle i)."""
+    centre = lane.to(state.y.dtype) * config.lane_width
+    return (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+
+
 def vehicle_ahead(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """For every vehicle, the nearest other present vehicle ahead on lane ``lane`` (E, V) int64.
 
@@ -44,10 +51,8 @@ def vehicle_ahead(state: VehicleState, lane: torch.Tensor, config: SimConfig) ->
         index: (E, V) int64 slot of the vehicle ahead (0 where there is none).
         found: (E, V) bool.
     """
-    num_vehicles = state.x.shape[1]
-    slots = torch.arange(num_vehicles, device=state.x.device)
-    centre = lane.to(state.y.dtype) * config.lane_width  # (E, V) the searched lane of each vehicle
-    on_lane = (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
+    on_lane = _on_lane(state, lane, config)
     ahead = state.x[:, None, :] >= state.x[:, :, None]  # (E, V, V): [e, i, j] j is ahead of i
     candidate = on_lane & ahead & state.alive[:, None, :] & (slots[:, None] != slots[None, :])
     distance = torch.where(candidate, state.x[:, None, :], torch.full_like(candidate, torch.inf, dtype=state.x.dtype))
@@ -68,8 +73,7 @@ def vehicle_behind(state: VehicleState, lane: torch.Tensor, config: SimConfig) -
     """
     num_vehicles = state.x.shape[1]
     slots = torch.arange(num_vehicles, device=state.x.device)
-    centre = lane.to(state.y.dtype) * config.lane_width
-    on_lane = (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+    on_lane = _on_lane(state, lane, config)
     behind = state.x[:, None, :] < state.x[:, :, None]  # (E, V, V): [e, i, j] j is behind i
     candidate = on_lane & behind & state.alive[:, None, :]
     position = torch.where(candidate, state.x[:, None, :], torch.full_like(candidate, -torch.inf, dtype=state.x.dtype))
