@@ -57,7 +57,7 @@ import torch
 
 from mmpc.config import from_dict, to_dict
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.highway.runner import stack_observations
+from mmpc.highway.worlds import stack_observations
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import atomic_write, atomic_write_text

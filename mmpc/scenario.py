@@ -348,6 +348,24 @@ class EgoConfig:
                  f"ego: `lane` must be null or an int >= 0; got {self.lane!r}")
 
 
+#: The worlds a scenario runs in (``ScenarioConfig.sim``), and the highway-env environments the
+#: batched simulator reproduces.
+SIMULATORS = ("highway-env", "batched")
+BATCHED_ENV_IDS = ("highway-v0", "highway-fast-v0")
+
+
+def batched_unsupported(scenario: "ScenarioConfig") -> Optional[str]:
+    """Why the batched simulator cannot run ``scenario`` (``None``: it can): it runs IDM traffic
+    on the straight highways of :data:`BATCHED_ENV_IDS`."""
+    if not isinstance(scenario.traffic, IDMTraffic):
+        return (f"the batched simulator runs IDM traffic only, not {scenario.traffic.kind!r} traffic: "
+                "run it with --sim highway-env")
+    if scenario.env_id not in BATCHED_ENV_IDS:
+        return (f"the batched simulator reproduces {list(BATCHED_ENV_IDS)}, not env_id {scenario.env_id!r}: "
+                "run it with --sim highway-env")
+    return None
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """One closed-loop scenario. Defaults: the paper's cruise scenario in dense slow traffic.
@@ -361,6 +379,9 @@ class ScenarioConfig:
             first frame of a step, so the two are equal and the MPC commands every frame.
         seeds: evaluation seeds.
         env_id: highway-env environment (``highway-v0`` checks collisions between all vehicles).
+        sim: the world the episodes run in: ``highway-env`` (the reference, with video) or
+            ``batched`` (:mod:`mmpc.sim`, thousands of environments stepped at once; IDM
+            traffic on ``highway-v0`` or ``highway-fast-v0`` only, see :func:`batched_unsupported`).
         ego: the controlled vehicle at the start.
         traffic: the other vehicles.
         vehicle_size: (length, width) of every vehicle, the ego included [m]; ``None`` keeps
@@ -386,6 +407,7 @@ class ScenarioConfig:
     frequency: float = 10.0
     seeds: tuple[int, ...] = tuple(range(20))
     env_id: str = "highway-v0"
+    sim: str = "highway-env"
     ego: EgoConfig = field(default_factory=EgoConfig)
     traffic: Traffic = field(default_factory=IDMTraffic)
     vehicle_size: Optional[tuple[float, float]] = None
@@ -407,6 +429,10 @@ class ScenarioConfig:
         require_positive(where, duration=self.duration, frequency=self.frequency)
         require(isinstance(self.seeds, tuple) and len(self.seeds) > 0 and all(isinstance(s, int) and s >= 0 for s in self.seeds),
                  f"{where}: `seeds` must be a non-empty list of ints >= 0; got {self.seeds!r}")
+        require(self.sim in SIMULATORS, f"{where}: `sim` must be one of {list(SIMULATORS)}; got {self.sim!r}")
+        if self.sim == "batched":
+            reason = batched_unsupported(self)
+            require(reason is None, f"{where}: {reason}")
         require(self.ego.lane is None or self.ego.lane < self.lanes,
                  f"{where}: `ego.lane` must be < lanes={self.lanes}; got {self.ego.lane}")
         if isinstance(self.traffic, ScriptedTraffic):

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from mmpc.highway.runner import stack_observations
+from mmpc.highway.worlds import stack_observations
 from mmpc.drivers import Observation
 from mmpc.highway import HighwayEpisode, road_state
 from mmpc.config import from_dict

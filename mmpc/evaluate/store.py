@@ -157,8 +157,12 @@ _CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run wi
 
 
 def scenario_fingerprint(scenario: ScenarioConfig) -> str:
-    """A short hash of every setting of a scenario (:func:`mmpc.config.to_dict`)."""
-    return hashlib.sha256(json.dumps(to_dict(scenario), sort_keys=True).encode()).hexdigest()[:16]
+    """A short hash of every setting of a scenario (:func:`mmpc.config.to_dict`); ``sim`` counts
+    only when it is not highway-env, so that folders written before the batched simulator resume."""
+    settings = to_dict(scenario)
+    if settings.get("sim") == "highway-env":
+        del settings["sim"]
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
 #: ``format`` of ``scenarios.json``; files without it come from mmpc before 2026-11-23, whose

@@ -3,6 +3,8 @@ highway-env or pygame.
 
 :mod:`~mmpc.highway.episode` turns a scenario into a highway-env episode seen in the road frame;
 :mod:`~mmpc.highway.traffic` drives the other vehicles (IDM/MOBIL, scripted, NGSIM replay);
+:mod:`~mmpc.highway.worlds` holds the environments of a run: highway-env episodes, or the batched
+simulator (:mod:`mmpc.sim`) when the scenario says ``sim: batched``;
 :mod:`~mmpc.highway.runner` is the one episode loop (lockstep, with observers);
 :mod:`~mmpc.highway.video` draws the driver's candidates into the rendered frames.
 """
@@ -24,12 +26,12 @@ from mmpc.highway.runner import (
     Step,
     run_episode,
     run_lockstep,
-    stack_observations,
     write_outputs,
 )
+from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld, World, make_world, stack_observations
 
 __all__ = [
     "ACCELERATION_RANGE", "STEERING_RANGE", "EpisodeResult", "HighwayEpisode", "Observer", "RoadFrame", "RoadState",
     "command_to_action", "env_config", "road_state", "run_episode", "Step", "run_lockstep", "stack_observations",
-    "vehicle_motion", "write_outputs",
+    "vehicle_motion", "write_outputs", "BatchedWorld", "HighwayEnvWorld", "World", "make_world",
 ]

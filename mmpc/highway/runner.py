@@ -1,7 +1,8 @@
 """Run closed-loop episodes of a scenario with a driver and write their outputs.
 
-:func:`run_lockstep` is mmpc's one episode loop: it drives one highway-env episode per seed
-with a driver (default: the multi-modal MPC), one driver call per control step for all of them,
+:func:`run_lockstep` is mmpc's one episode loop: it drives one episode per seed in the
+scenario's world (highway-env, or the batched simulator: :mod:`mmpc.highway.worlds`) with a
+driver (default: the multi-modal MPC), one driver call per control step for all of them,
 for the scenario's duration (or until the first collision), calls its :class:`Observer` hooks
 and returns the per-step records and the episode metrics; :func:`run_episode` is one seed of it;
 :func:`write_outputs` writes ``metrics.json``, ``steps.csv`` and the top-down plot ``topdown.png``
@@ -16,11 +17,11 @@ import logging
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence
 
-import numpy as np
 import torch
 
 from mmpc.drivers import Decision, Driver, Observation, make_driver
 from mmpc.highway.episode import HighwayEpisode
+from mmpc.highway.worlds import World, make_world
 from mmpc.metrics import StepRecord, episode_metrics
 from mmpc.plotting import plot_episode
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
@@ -105,9 +106,10 @@ class Step(NamedTuple):
 
     Fields:
         index: the environment's position in the runner's ``seeds``.
-        episode: its episode, after the command was applied.
-        observation: what it observed before the command (E = 1, as :meth:`HighwayEpisode.observe`
-            returned it).
+        episode: its episode, after the command was applied (a :class:`HighwayEpisode`, or on
+            the batched simulator a view of its environment with the same ``scenario``, ``seed``,
+            ``ego.crashed``, ``ego.on_road``, ``done`` and ``observe()``).
+        observation: what it observed before the command (E = 1).
         batch: the lockstep observation the driver decided from (one row per running environment).
         decision: the driver's decision for ``batch``.
         row: this environment's row in ``batch`` and ``decision``.
@@ -180,7 +182,7 @@ def run_episode(
 
     Args:
         scenario: the scenario (its ``duration`` sets the length).
-        seed: the episode's seed (highway-env and the traffic controller).
+        seed: the episode's seed (the traffic, the ego's lane).
         driver: who drives (default: the scenario's multi-modal MPC, ``make_driver("mpc")``).
         video: write the episode, with the driver's candidates drawn, to this ``.mp4`` / ``.gif``.
         observers: per-step hooks (:class:`Observer`).
@@ -210,7 +212,7 @@ def run_lockstep(
     products may round differently, and a closed loop can amplify that over many steps).
 
     Args:
-        scenario: the scenario.
+        scenario: the scenario; ``scenario.sim`` chooses the world (:func:`mmpc.highway.worlds.make_world`).
         seeds: one episode per seed (distinct, at least one).
         driver: who drives (default: the scenario's multi-modal MPC).
         video: with a single seed only: write the episode's video here.
@@ -227,60 +229,43 @@ def run_lockstep(
     if driver is None:
         driver = make_driver("mpc", scenario)
     observers = list(observers)
-    episodes: list[HighwayEpisode] = []
+    world: Optional[World] = None
     records: list[list[StepRecord]] = [[] for _ in seeds]
     try:
         if video is not None:
             observers.insert(0, _VideoObserver(video, scenario.frequency))
-        episodes = [HighwayEpisode(scenario, seed, render=video is not None) for seed in seeds]
+        world = make_world(scenario, seeds, render=video is not None)
+        episodes = world.episodes
         for observer in observers:
             observer.start(episodes)
         driver.reset(len(episodes))
-        active = [i for i, episode in enumerate(episodes) if not episode.done]
+        ended = world.done()
+        active = [i for i in range(len(episodes)) if not ended[i]]
         for i in sorted(set(range(len(episodes))) - set(active)):  # ended at reset (e.g. a crash on spawning)
             for observer in observers:
                 observer.finished(i, episodes[i])
         while active:
-            singles = [episodes[i].observe() for i in active]
-            observation = stack_observations(singles, active)
+            observation, singles = world.observe(active)
             decision = driver.decide(observation)
             for observer in observers:
                 observer.decided(observation, decision, active)
+            world.apply(active, decision.acceleration, decision.steering)
+            ended = world.done()
             for row, i in enumerate(active):
-                episodes[i].apply(float(decision.acceleration[row]), float(decision.steering[row]))
                 records[i].append(_record(len(records[i]), episodes[i], observation, decision, row))
                 step = Step(i, episodes[i], singles[row], observation, decision, row, records[i][-1])
                 for observer in observers:
                     observer.applied(step)
-                if episodes[i].done:
+                if ended[i]:
                     for observer in observers:
                         observer.finished(i, episodes[i])
-            active = [i for i in active if not episodes[i].done]
+            active = [i for i in active if not ended[i]]
     finally:
         for observer in observers:
             observer.close()
-        for episode in episodes:
-            episode.close()
+        if world is not None:
+            world.close()
     return [_result(scenario, seed, rows) for seed, rows in zip(seeds, records)]
-
-
-def stack_observations(observations: Sequence[Observation], env_ids: Sequence[int]) -> Observation:
-    """Single-environment observations -> one batch; vehicle rows padded to the largest count
-    (padding masked out)."""
-    count = max(o.vehicles.shape[1] for o in observations)
-    vehicles = observations[0].vehicles.new_zeros(len(observations), count, 4)
-    mask = torch.zeros(len(observations), count, dtype=torch.bool)
-    for row, o in enumerate(observations):
-        present = o.vehicles.shape[1]
-        vehicles[row, :present] = o.vehicles[0]
-        mask[row, :present] = True if o.vehicle_mask is None else o.vehicle_mask[0]
-    kinematics = None
-    if all(o.kinematics is not None for o in observations):
-        kinematics = np.concatenate([o.kinematics for o in observations], axis=0)
-    return Observation(
-        torch.cat([o.ego for o in observations], dim=0), vehicles, mask, kinematics,
-        torch.as_tensor(list(env_ids), dtype=torch.long),
-    )
 
 
 def write_outputs(result: EpisodeResult, out: Path) -> list[Path]:

@@ -89,8 +89,8 @@ def polygons_intersecting(
 
 
 def pair_collisions(state: VehicleState, dt: float) -> PolygonTest:
-    """Every pair's test after a frame, (E, V, V) ([e, i, j], i < j; False elsewhere): the
-    bounding-circle pre-check, then :func:`polygons_intersecting` of i (as ``a``) and j."""
+    """Every pair's test after a frame, (E, V, V) ([e, i, j], i < j; False elsewhere): pairs
+    where either vehicle checks collisions, the bounding-circle pre-check, then :func:`polygons_intersecting` of i (as ``a``) and j."""
     corners = rectangle_corners(state.x, state.y, state.heading, state.length, state.width)  # (E, V, 4, 2)
     velocity = state.speed[..., None] * torch.stack([torch.cos(state.heading), torch.sin(state.heading)], dim=-1)
     test = polygons_intersecting(corners[:, :, None], corners[:, None], (velocity * dt)[:, :, None], (velocity * dt)[:, None])
@@ -100,7 +100,8 @@ def pair_collisions(state: VehicleState, dt: float) -> PolygonTest:
     reach = (diagonal[:, :, None] + diagonal[:, None, :]) / 2 + (state.speed * dt)[:, :, None]
     num_vehicles = state.x.shape[1]
     upper = torch.ones(num_vehicles, num_vehicles, dtype=torch.bool, device=state.x.device).triu(1)
-    checked = upper & state.alive[:, :, None] & state.alive[:, None, :] & ~(torch.sqrt(dx * dx + dy * dy) > reach)
+    checking = state.check_collisions[:, :, None] | state.check_collisions[:, None, :]
+    checked = upper & checking & state.alive[:, :, None] & state.alive[:, None, :] & ~(torch.sqrt(dx * dx + dy * dy) > reach)
     return PolygonTest(test.intersecting & checked, test.will_intersect & checked,
                        torch.where((test.will_intersect & checked)[..., None], test.translation, 0.0))
 

@@ -139,8 +139,10 @@ def lane_keeping_steering(state: VehicleState, config: SimConfig) -> torch.Tenso
     lateral_speed = -config.kp_lateral * offset
     heading_reference = torch.asin((lateral_speed / speed).clamp(-1, 1)).clamp(-torch.pi / 4, torch.pi / 4)
     heading_rate = config.kp_heading * wrap_to_pi(heading_reference - state.heading)
-    slip = torch.asin((state.length / 2 / speed * heading_rate).clamp(-1, 1))
-    return torch.atan(2 * torch.tan(slip)).clamp(-config.max_steering, config.max_steering)
+    sin_slip = (state.length / 2 / speed * heading_rate).clamp(-1, 1)
+    # atan(2 tan(asin(s))) written with atan2: tan(asin(+-1)) in float32 can come out with the wrong sign
+    steering = torch.atan2(2 * sin_slip, torch.sqrt(1 - sin_slip * sin_slip))
+    return steering.clamp(-config.max_steering, config.max_steering)
 
 
 def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:

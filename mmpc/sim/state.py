@@ -16,7 +16,7 @@ FLOAT_FIELDS = ("x", "y", "heading", "speed", "length", "width", "target_speed",
 #: Integer (lane) fields, int64 (E, V).
 LANE_FIELDS = ("lane", "target_lane")
 #: Boolean fields (E, V).
-FLAG_FIELDS = ("alive", "crashed", "impact_pending", "lane_change_enabled")
+FLAG_FIELDS = ("alive", "crashed", "impact_pending", "lane_change_enabled", "check_collisions")
 #: Fields kept in float64 whatever the state's dtype, (E, V).
 DOUBLE_FIELDS = ("lane_change_timer",)
 
@@ -48,6 +48,7 @@ class VehicleState(NamedTuple):
     impact_pending: torch.Tensor  # (E, V) bool, ``impact`` is to be applied (highway-env's ``impact is not None``)
     lane_change_enabled: torch.Tensor  # (E, V) bool, the vehicle may change lane by MOBIL (highway-env's ``enable_lane_change``)
     lane_change_timer: torch.Tensor  # (E, V) float64, time since the last MOBIL evaluation (highway-env's ``timer``) [s]
+    check_collisions: torch.Tensor  # (E, V) bool, pairs are tested when either vehicle checks (highway-env's ``check_collisions``)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -77,6 +78,7 @@ def vehicle_state(
     alive: Optional[torch.Tensor] = None,
     lane_change_enabled: Union[bool, torch.Tensor] = True,
     lane_change_timer: Optional[torch.Tensor] = None,
+    check_collisions: Union[bool, torch.Tensor] = True,
 ) -> VehicleState:
     """Build a validated state; ``x`` decides E, V, dtype and device, numbers and tensors broadcast.
 
@@ -133,6 +135,7 @@ def vehicle_state(
         lane_change_enabled=full("lane_change_enabled", lane_change_enabled, torch.bool),
         lane_change_timer=(torch.remainder((x.double() + y.double()) * math.pi, config.lane_change_delay)
                            if lane_change_timer is None else full("lane_change_timer", lane_change_timer, torch.float64)),
+        check_collisions=full("check_collisions", check_collisions, torch.bool),
     )
     check_state(state, config)
     return state

@@ -1,0 +1,161 @@
+"""The worlds the episode runner drives in: highway-env episodes one by one (the reference), or
+all of them at once on the batched simulator (:mod:`mmpc.sim`); ``ScenarioConfig.sim`` chooses.
+
+A world holds one environment per seed and answers the runner at every control step: what the
+running environments observe (one batch for the driver), apply their commands, which episodes
+are over; its ``episodes`` are what observers and step records read of each environment.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional, Protocol, Sequence
+
+import numpy as np
+import torch
+
+from mmpc.drivers import Observation
+from mmpc.highway.episode import HighwayEpisode
+from mmpc.scenario import ScenarioConfig
+from mmpc.sim import SimEpisodes
+
+
+class World(Protocol):
+    """E environments of one scenario stepped by the runner."""
+
+    episodes: Sequence  # one view per environment: scenario, seed, ego.crashed, ego.on_road, done, observe()
+
+    def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
+        """The batch the driver decides from (one row per ``active`` environment) and each row alone (E = 1)."""
+
+    def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
+        """Apply one command per ``active`` environment, (A,) each [m/s^2], [rad]."""
+
+    def done(self) -> list[bool]:
+        """Per environment: its episode is over."""
+
+    def close(self) -> None:
+        """Release the environments."""
+
+
+def make_world(scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False) -> World:
+    """The world of ``scenario.sim`` with one environment per seed (``render``: highway-env only)."""
+    if scenario.sim == "batched":
+        if render:
+            raise ValueError(f"scenario {scenario.name!r}: videos are drawn by highway-env; run it with --sim highway-env")
+        return BatchedWorld(scenario, seeds)
+    return HighwayEnvWorld(scenario, seeds, render=render)
+
+
+class HighwayEnvWorld:
+    """One highway-env episode per seed (:class:`mmpc.highway.HighwayEpisode`), stepped one after another."""
+
+    def __init__(self, scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False) -> None:
+        self.episodes: list[HighwayEpisode] = []
+        try:
+            for seed in seeds:
+                self.episodes.append(HighwayEpisode(scenario, seed, render=render))
+        except BaseException:
+            self.close()
+            raise
+
+    def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
+        singles = [self.episodes[i].observe() for i in active]
+        return stack_observations(singles, active), singles
+
+    def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
+        for row, i in enumerate(active):
+            self.episodes[i].apply(float(acceleration[row]), float(steering[row]))
+
+    def done(self) -> list[bool]:
+        return [episode.done for episode in self.episodes]
+
+    def close(self) -> None:
+        for episode in self.episodes:
+            episode.close()
+
+
+class EgoStatus(NamedTuple):
+    """What a step record reads of the ego (as highway-env's vehicle attributes)."""
+
+    crashed: bool
+    on_road: bool
+
+
+class SimEpisodeView:
+    """Environment ``index`` of a :class:`BatchedWorld`, read as a :class:`mmpc.highway.HighwayEpisode` is."""
+
+    def __init__(self, world: "BatchedWorld", index: int) -> None:
+        self.world = world
+        self.index = index
+        self.scenario = world.scenario
+        self.seed = int(world.sim.seeds[index])
+
+    @property
+    def ego(self) -> EgoStatus:
+        return EgoStatus(self.world.crashed[self.index], self.world.on_road[self.index])
+
+    @property
+    def done(self) -> bool:
+        return self.world.ended[self.index]
+
+    def observe(self) -> Observation:
+        """The environment's current state for a driver (E = 1)."""
+        return self.world.observe([self.index])[1][0]
+
+
+class BatchedWorld:
+    """One batched-simulator environment per seed (:class:`mmpc.sim.SimEpisodes`), all stepped
+    by one simulator call; finished episodes stay as they ended."""
+
+    def __init__(self, scenario: ScenarioConfig, seeds: Sequence[int], *, dtype: torch.dtype = torch.float32) -> None:
+        self.scenario = scenario
+        self.sim = SimEpisodes(scenario, list(seeds), dtype=dtype)
+        self.episodes = [SimEpisodeView(self, i) for i in range(self.sim.num_envs)]
+        self._read_status()
+
+    def _read_status(self) -> None:
+        self.ended: list[bool] = self.sim.done.tolist()
+        self.crashed: list[bool] = self.sim.crashed.tolist()
+        self.on_road: list[bool] = self.sim.on_road.tolist()
+
+    def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
+        rows = torch.as_tensor(list(active), dtype=torch.long)
+        ego, vehicles, mask = self.sim.road_state()
+        batch = Observation(ego[rows], vehicles[rows], mask[rows], None, rows)
+        singles = [Observation(e, v, m) for e, v, m in zip(batch.ego.split(1), batch.vehicles.split(1), batch.vehicle_mask.split(1))]
+        return batch, singles
+
+    def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
+        rows = torch.as_tensor(list(active), dtype=torch.long)
+        dtype = self.sim.state.x.dtype
+        command = torch.zeros(self.sim.num_envs, 2, dtype=dtype)
+        command[rows] = torch.stack([acceleration, steering], dim=1).to(dtype)
+        running = torch.zeros(self.sim.num_envs, dtype=torch.bool)
+        running[rows] = True
+        self.sim.step(command, running)
+        self._read_status()
+
+    def done(self) -> list[bool]:
+        return self.ended
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def stack_observations(observations: Sequence[Observation], env_ids: Sequence[int]) -> Observation:
+    """Single-environment observations -> one batch; vehicle rows padded to the largest count
+    (padding masked out)."""
+    count = max(o.vehicles.shape[1] for o in observations)
+    vehicles = observations[0].vehicles.new_zeros(len(observations), count, 4)
+    mask = torch.zeros(len(observations), count, dtype=torch.bool)
+    for row, o in enumerate(observations):
+        present = o.vehicles.shape[1]
+        vehicles[row, :present] = o.vehicles[0]
+        mask[row, :present] = True if o.vehicle_mask is None else o.vehicle_mask[0]
+    kinematics: Optional[np.ndarray] = None
+    if all(o.kinematics is not None for o in observations):
+        kinematics = np.concatenate([o.kinematics for o in observations], axis=0)
+    return Observation(
+        torch.cat([o.ego for o in observations], dim=0), vehicles, mask, kinematics,
+        torch.as_tensor(list(env_ids), dtype=torch.long),
+    )

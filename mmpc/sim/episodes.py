@@ -1,0 +1,152 @@
+"""E episodes of one scenario on the batched simulator: the start drawn per seed, one command
+per environment per control step, the traffic window, time limits and per-environment resets.
+
+What highway-env's project path does per episode (:class:`mmpc.highway.HighwayEpisode`), for
+all environments at once: each control step applies the ego's command for the scenario's
+frame (:class:`mmpc.sim.HighwaySimulator`), then moves the vehicles that left the window
+(:func:`mmpc.sim.traffic.keep_in_window`); an episode is over when the ego crashed or its time
+reached the scenario's duration.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence, Union
+
+import torch
+
+from mmpc.scenario import ScenarioConfig
+from mmpc.sim.ego import ego_action
+from mmpc.sim.simulator import HighwaySimulator
+from mmpc.sim.state import VehicleState, lane_of
+from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim_config
+
+Seeds = Union[Sequence[int], torch.Tensor]
+
+
+class SimEpisodes:
+    """E episodes of ``scenario`` stepped together, each from its own seed.
+
+    Args:
+        scenario: an IDM-traffic scenario on highway-env's straight highway
+            (:func:`mmpc.sim.traffic.check_supported` says why another is refused).
+        seeds: E episode seeds (ints).
+        dtype: float32 or float64 state.
+        device: where the state lives.
+
+    Example:
+        >>> from mmpc.scenario import ScenarioConfig
+        >>> episodes = SimEpisodes(ScenarioConfig(duration=1.0), seeds=[0, 1, 2])
+        >>> episodes.step(torch.zeros(3, 2))
+        >>> episodes.time.tolist(), episodes.done.tolist()
+        ([0.1, 0.1, 0.1], [False, False, False])
+    """
+
+    def __init__(self, scenario: ScenarioConfig, seeds: Seeds, *, dtype: torch.dtype = torch.float32, device=None) -> None:
+        check_supported(scenario)
+        self.scenario = scenario
+        self.config = sim_config(scenario)
+        self.simulator = HighwaySimulator(self.config)
+        self.seeds = _seed_tensor(seeds, device)
+        if self.seeds.numel() == 0:
+            raise ValueError("`seeds` must hold at least one seed (E >= 1)")
+        self.state: VehicleState = initial_state(scenario, self.seeds, dtype=dtype)
+        self.steps = torch.zeros_like(self.seeds)
+        #: (E, 2) the ego's applied acceleration [m/s^2] and steering [rad] (zero before the first command).
+        self.applied = torch.zeros(self.num_envs, 2, dtype=dtype, device=self.seeds.device)
+
+    @property
+    def num_envs(self) -> int:
+        return self.seeds.shape[0]
+
+    @property
+    def time(self) -> torch.Tensor:
+        """(E,) each episode's time [s]."""
+        return self.steps.to(self.state.x.dtype) / self.scenario.frequency
+
+    @property
+    def crashed(self) -> torch.Tensor:
+        """(E,) bool, the ego crashed."""
+        return self.state.crashed[:, 0]
+
+    @property
+    def on_road(self) -> torch.Tensor:
+        """(E,) bool, the ego's centre lies on a lane (highway-env's ``on_road`` of a straight road)."""
+        y = self.state.y[:, 0]
+        centre = lane_of(y, self.config).to(y.dtype) * self.config.lane_width
+        return (y - centre).abs() <= 0.5 * self.config.lane_width
+
+    @property
+    def done(self) -> torch.Tensor:
+        """(E,) bool, the ego crashed or the scenario's duration is over."""
+        return self.crashed | (self.time >= self.scenario.duration - 1e-9)
+
+    def step(self, command: torch.Tensor, running: Optional[torch.Tensor] = None) -> None:
+        """Apply one control step's commands.
+
+        Args:
+            command: (E, 2) the egos' acceleration [m/s^2] and steering [rad]; checked as
+                :meth:`mmpc.sim.HighwaySimulator.step` checks it.
+            running: (E,) bool, the environments that move; the others keep their state
+                (finished episodes in a lockstep batch). Default: all.
+        """
+        before = self.state
+        after = self.simulator.step(before, command)
+        window = self.scenario.traffic.window
+        if window is not None:
+            after = keep_in_window(after, window, self.seeds, self.steps, self.config)
+        command = command.to(before.x.dtype)
+        applied = torch.stack(ego_action(command[:, 0], command[:, 1], before.speed[:, 0], self.config), dim=1)
+        if running is None:
+            self.state, self.applied, self.steps = after, applied, self.steps + 1
+            return
+        running = running.to(device=self.seeds.device, dtype=torch.bool)
+        if running.shape != (self.num_envs,):
+            raise ValueError(f"`running` must have shape ({self.num_envs},); got {tuple(running.shape)}")
+        self.state = VehicleState(*(torch.where(running.view(-1, *([1] * (new.dim() - 1))), new, old)
+                                    for new, old in zip(after, before)))
+        self.applied = torch.where(running[:, None], applied, self.applied)
+        self.steps = self.steps + running.to(self.steps.dtype)
+
+    def reset(self, envs: torch.Tensor, seeds: Seeds) -> None:
+        """Start new episodes in environments ``envs`` ((R,) long) from ``seeds`` (R); the others keep running."""
+        envs = torch.as_tensor(envs, dtype=torch.int64, device=self.seeds.device)
+        seeds = _seed_tensor(seeds, self.seeds.device)
+        if envs.shape != seeds.shape or envs.dim() != 1:
+            raise ValueError(f"`envs` and `seeds` must be two (R,) sequences; got {tuple(envs.shape)} and {tuple(seeds.shape)}")
+        if envs.numel() and (int(envs.min()) < 0 or int(envs.max()) >= self.num_envs):
+            raise ValueError(f"`envs` must lie in [0, {self.num_envs - 1}]; got {envs.tolist()}")
+        fresh = initial_state(self.scenario, seeds, dtype=self.state.x.dtype)
+        self.state = VehicleState(*(field.index_copy(0, envs, new) for field, new in zip(self.state, fresh)))
+        self.seeds = self.seeds.index_copy(0, envs, seeds)
+        self.steps = self.steps.index_fill(0, envs, 0)
+        self.applied = self.applied.index_fill(0, envs, 0.0)
+
+    def road_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The egos and the other vehicles in the road frame, as the MPC takes them.
+
+        Returns:
+            ego: (E, 6) as :data:`mmpc.EGO_FIELDS`: x, y [m], psi (direction of motion: heading
+                plus the slip angle of the applied steering) [rad], v [m/s], a (applied) [m/s^2],
+                psidot (turn rate of the applied steering) [rad/s].
+            vehicles: (E, V - 1, 4) the other vehicles' x, y [m], vx, vy [m/s] (along their heading).
+            mask: (E, V - 1) bool, the slots that hold a vehicle.
+        """
+        state = self.state
+        beta = torch.atan(0.5 * torch.tan(self.applied[:, 1]))
+        speed = state.speed[:, 0]
+        turn_rate = speed * torch.sin(beta) / (state.length[:, 0] / 2)
+        ego = torch.stack([state.x[:, 0], state.y[:, 0], state.heading[:, 0] + beta, speed, self.applied[:, 0], turn_rate], dim=1)
+        heading, others_speed = state.heading[:, 1:], state.speed[:, 1:]
+        vehicles = torch.stack([state.x[:, 1:], state.y[:, 1:], others_speed * torch.cos(heading),
+                                others_speed * torch.sin(heading)], dim=2)
+        return ego, vehicles, state.alive[:, 1:]
+
+
+def _seed_tensor(seeds: Seeds, device) -> torch.Tensor:
+    values = torch.as_tensor(seeds, device=device)
+    if values.dim() != 1 or values.is_floating_point() or values.dtype == torch.bool:
+        raise ValueError(f"`seeds` must be a sequence of ints; got {values.dtype} of shape {tuple(values.shape)}")
+    if values.numel() and int(values.min()) < 0:
+        raise ValueError(f"`seeds` must be >= 0; got {values.min().item()}")
+    return values.to(torch.int64)
+
