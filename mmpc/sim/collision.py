@@ -90,10 +90,9 @@ def polygons_intersecting(
 
 def pair_collisions(state: VehicleState, dt: float) -> PolygonTest:
     """Every pair's test after a frame, (E, V, V) ([e, i, j], i < j; False elsewhere): pairs
-    where either vehicle checks collisions, the bounding-circle pre-check, then :func:`polygons_intersecting` of i (as ``a``) and j."""
-    corners = rectangle_corners(state.x, state.y, state.heading, state.length, state.width)  # (E, V, 4, 2)
-    velocity = state.speed[..., None] * torch.stack([torch.cos(state.heading), torch.sin(state.heading)], dim=-1)
-    test = polygons_intersecting(corners[:, :, None], corners[:, None], (velocity * dt)[:, :, None], (velocity * dt)[:, None])
+    where either vehicle checks collisions, the bounding-circle pre-check, then
+    :func:`polygons_intersecting` of i (as ``a``) and j, computed for the pairs that pass the
+    pre-check only (a few per environment in traffic; the host learns how many)."""
     dx = state.x[:, None, :] - state.x[:, :, None]
     dy = state.y[:, None, :] - state.y[:, :, None]
     diagonal = torch.sqrt(state.length ** 2 + state.width ** 2)
@@ -102,8 +101,22 @@ def pair_collisions(state: VehicleState, dt: float) -> PolygonTest:
     upper = torch.ones(num_vehicles, num_vehicles, dtype=torch.bool, device=state.x.device).triu(1)
     checking = state.check_collisions[:, :, None] | state.check_collisions[:, None, :]
     checked = upper & checking & state.alive[:, :, None] & state.alive[:, None, :] & ~(torch.sqrt(dx * dx + dy * dy) > reach)
-    return PolygonTest(test.intersecting & checked, test.will_intersect & checked,
-                       torch.where((test.will_intersect & checked)[..., None], test.translation, 0.0))
+    env, first, second = checked.nonzero(as_tuple=True)
+    corners = rectangle_corners(state.x[env[:, None], torch.stack([first, second], dim=1)],
+                                state.y[env[:, None], torch.stack([first, second], dim=1)],
+                                state.heading[env[:, None], torch.stack([first, second], dim=1)],
+                                state.length[env[:, None], torch.stack([first, second], dim=1)],
+                                state.width[env[:, None], torch.stack([first, second], dim=1)])  # (P, 2, 4, 2)
+    speed, heading = state.speed[env[:, None], torch.stack([first, second], dim=1)], state.heading[env[:, None], torch.stack([first, second], dim=1)]
+    travel = (speed * dt)[..., None] * torch.stack([torch.cos(heading), torch.sin(heading)], dim=-1)  # (P, 2, 2)
+    test = polygons_intersecting(corners[:, 0], corners[:, 1], travel[:, 0], travel[:, 1])
+    intersecting = torch.zeros_like(checked)
+    will_intersect = torch.zeros_like(checked)
+    translation = state.x.new_zeros((*checked.shape, 2))
+    intersecting[env, first, second] = test.intersecting
+    will_intersect[env, first, second] = test.will_intersect
+    translation[env, first, second] = test.translation
+    return PolygonTest(intersecting, will_intersect, translation)
 
 
 def handle_collisions(state: VehicleState, dt: float) -> VehicleState:

@@ -144,6 +144,8 @@ class SimEpisodes:
 
 def _seed_tensor(seeds: Seeds, device) -> torch.Tensor:
     values = torch.as_tensor(seeds, device=device)
+    if values.numel() == 0:  # an empty list reads as float
+        values = values.to(torch.int64)
     if values.dim() != 1 or values.is_floating_point() or values.dtype == torch.bool:
         raise ValueError(f"`seeds` must be a sequence of ints; got {values.dtype} of shape {tuple(values.shape)}")
     if values.numel() and int(values.min()) < 0:

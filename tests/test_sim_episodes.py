@@ -1,0 +1,222 @@
+"""Episodes on the batched simulator: traffic placed like highway-env's, the window, time
+limits, per-environment resets, the runner's batched world, and refused scenarios."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from mmpc.config import to_dict
+from mmpc.evaluate.store import scenario_fingerprint
+from mmpc.highway import HighwayEpisode, run_lockstep
+from mmpc.highway.worlds import BatchedWorld, make_world
+from mmpc.scenario import IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle, load_scenario
+from mmpc.sim import SimConfig, SimEpisodes, lane_keeping_steering, pair_collisions, vehicle_state
+from mmpc.sim.random import integers, uniform
+from mmpc.sim.traffic import PLACEMENT_GAP, initial_state, keep_in_window, sim_config
+
+CRUISE = load_scenario("cruise")
+
+
+def test_draws_depend_on_seed_and_indices_only():
+    seeds = torch.arange(6)[:, None]
+    draws = uniform(seeds, 3, torch.arange(1000))
+    assert torch.equal(draws[2], uniform(torch.tensor([[2]]), 3, torch.arange(1000))[0])  # alone = in a batch
+    assert not torch.equal(draws[0], draws[1]) and not torch.equal(draws[0], uniform(seeds, 4, torch.arange(1000))[0])
+    assert 0.0 <= float(draws.min()) and float(draws.max()) < 1.0
+    assert abs(float(draws.mean()) - 0.5) < 0.01 and abs(float(draws.std()) - 12 ** -0.5) < 0.01
+    counts = torch.bincount(integers(seeds, 0, torch.arange(6000), high=6).flatten(), minlength=6)
+    assert int(counts.min()) > 5500 and int(counts.max()) < 6500  # 6000 expected each
+
+
+def _placement_statistics(states: list[tuple[float, int, np.ndarray, np.ndarray, np.ndarray]]) -> dict[str, float]:
+    """Per-start summaries: ego x, ego lane, vehicles ahead of the ego, their mean gap, their speeds."""
+    ego_x = np.array([s[0] for s in states])
+    ahead = np.array([float((s[2] > s[0]).mean()) for s in states])
+    spread = np.array([float(s[2].max() - s[2].min()) for s in states])
+    speeds = np.concatenate([s[4] for s in states])
+    lanes = np.concatenate([s[3] for s in states])
+    return {"ego_x": ego_x.mean(), "ahead": ahead.mean(), "spread": spread.mean(), "speed": speeds.mean(),
+            "lane_spread": np.bincount(lanes, minlength=CRUISE.lanes).std() / len(lanes)}
+
+
+def test_initial_traffic_is_distributed_as_highway_env_places_it():
+    """100 starts of the cruise scenario in each: the same means within a few standard errors."""
+    seeds = list(range(100))
+    highway = []
+    for seed in seeds:
+        episode = HighwayEpisode(CRUISE, seed)
+        others = [v for v in episode.unwrapped.road.vehicles if v is not episode.ego]
+        highway.append((float(episode.ego.position[0]), int(episode.ego.lane_index[2]), np.array([v.position[0] for v in others]),
+                        np.array([v.lane_index[2] for v in others]), np.array([v.speed for v in others])))
+        episode.close()
+    state = initial_state(CRUISE, torch.tensor(seeds), dtype=torch.float64)
+    batched = [(float(state.x[e, 0]), int(state.lane[e, 0]), state.x[e, 1:].numpy(), state.lane[e, 1:].numpy(),
+                state.speed[e, 1:].numpy()) for e in range(len(seeds))]
+    reference, ours = _placement_statistics(highway), _placement_statistics(batched)
+    assert ours["ego_x"] == pytest.approx(reference["ego_x"], abs=2.0)  # 3 o U(0.9, 1.1) + o: sd ~1.5 m, se 0.15 m
+    assert ours["ahead"] == pytest.approx(reference["ahead"], abs=0.03)
+    assert ours["spread"] == pytest.approx(reference["spread"], rel=0.05)
+    assert ours["speed"] == pytest.approx(reference["speed"], abs=0.15)  # U(7, 12): se 0.035 m/s
+    assert ours["lane_spread"] == pytest.approx(reference["lane_spread"], abs=0.02)
+
+
+def test_start_keeps_the_ego_lane_clear_ahead():
+    state = initial_state(CRUISE, torch.arange(500))
+    gap = state.x[:, 1:] - state.x[:, :1]
+    same_lane = state.lane[:, 1:] == state.lane[:, :1]
+    clearance = CRUISE.traffic.initial_clearance
+    assert not bool((same_lane & (gap > -0.5 * clearance) & (gap < clearance)).any())
+    assert bool((state.speed[:, 0] == CRUISE.ego.speed).all())
+    assert float(state.speed[:, 1:].min()) >= 7.0 and float(state.speed[:, 1:].max()) <= 12.0
+    assert bool((state.target_speed[:, 1:] == state.speed[:, 1:]).all())
+
+
+def test_window_moves_a_vehicle_left_behind_into_a_free_gap_ahead():
+    config = SimConfig(lanes=3)
+    x = torch.tensor([[100.0, 20.0, 150.0, 400.0]], dtype=torch.float64)
+    y = torch.tensor([[4.0, 4.0, 0.0, 8.0]], dtype=torch.float64)
+    state = vehicle_state(x, y, speed=10.0, config=config)
+    moved = keep_in_window(state, (60.0, 200.0), torch.tensor([7]), torch.tensor([0]), config)
+    # slot 1 was 80 m behind: now in the last quarter ahead; slot 3 was 300 m ahead: now behind
+    assert 100.0 + 150.0 <= float(moved.x[0, 1]) <= 100.0 + 200.0
+    assert 100.0 - 60.0 <= float(moved.x[0, 3]) <= 100.0 - 45.0
+    assert float(moved.x[0, 2]) == 150.0 and float(moved.x[0, 0]) == 100.0
+    for slot in (1, 3):
+        lane = int(moved.lane[0, slot])
+        assert float(moved.y[0, slot]) == 4.0 * lane and lane == int(moved.target_lane[0, slot])
+        others = [k for k in range(4) if k != slot]
+        near = [(abs(float(moved.x[0, k] - moved.x[0, slot])) < PLACEMENT_GAP) and abs(float(moved.y[0, k]) - 4.0 * lane) < 4.0
+                for k in others]
+        assert not any(near)
+
+
+def test_episode_ends_at_its_duration_and_running_mask_freezes_the_others():
+    scenario = dataclasses.replace(CRUISE, duration=0.5)
+    episodes = SimEpisodes(scenario, [3, 4], dtype=torch.float64)
+    frozen = SimEpisodes(scenario, [4], dtype=torch.float64).state
+    for _ in range(5):
+        assert not bool(episodes.done[0])
+        episodes.step(torch.zeros(2, 2), running=torch.tensor([True, False]))
+    assert episodes.done.tolist() == [True, False] and episodes.time.tolist() == [0.5, 0.0]
+    assert all(torch.equal(a[1:], b) for a, b in zip(episodes.state, frozen))
+
+
+def test_reset_starts_one_environment_and_leaves_the_others():
+    episodes = SimEpisodes(CRUISE, [0, 1, 2])
+    for _ in range(3):
+        episodes.step(torch.zeros(3, 2))
+    before = episodes.state
+    episodes.reset(torch.tensor([1]), [9])
+    fresh = initial_state(CRUISE, torch.tensor([9]))
+    assert all(torch.equal(a[1], b[0]) for a, b in zip(episodes.state, fresh))
+    assert all(torch.equal(a[[0, 2]], b[[0, 2]]) for a, b in zip(episodes.state, before))
+    assert episodes.steps.tolist() == [3, 0, 3] and episodes.seeds.tolist() == [0, 9, 2]
+
+
+def test_an_environment_runs_the_same_episode_alone_or_in_a_batch():
+    commands = 0.3 * torch.sin(torch.arange(60, dtype=torch.float64))[:, None] * torch.tensor([1.0, 0.01], dtype=torch.float64)
+    batch, alone = SimEpisodes(CRUISE, [5, 11, 12], dtype=torch.float64), SimEpisodes(CRUISE, [11], dtype=torch.float64)
+    for command in commands:
+        batch.step(command.expand(3, 2).clone())
+        alone.step(command[None].clone())
+    assert all(torch.equal(a[1], b[0]) for a, b in zip(batch.state, alone.state))
+
+
+def test_road_state_is_the_mpc_s_frame():
+    episodes = SimEpisodes(CRUISE, [0, 1])
+    episodes.step(torch.tensor([[1.0, 0.05], [0.0, 0.0]]))
+    ego, vehicles, mask = episodes.road_state()
+    beta = math.atan(0.5 * math.tan(float(episodes.applied[0, 1])))
+    assert float(ego[0, 2]) == pytest.approx(float(episodes.state.heading[0, 0]) + beta, abs=1e-6)
+    assert float(ego[0, 4]) == pytest.approx(1.0, abs=1e-6)
+    assert float(ego[0, 5]) == pytest.approx(float(ego[0, 3]) * math.sin(beta) / 2.5, abs=1e-5)
+    assert vehicles.shape == (2, CRUISE.traffic.vehicles_count, 4) and bool(mask.all())
+    state = episodes.state
+    assert torch.allclose(vehicles[..., 2], state.speed[:, 1:] * torch.cos(state.heading[:, 1:]))
+
+
+def test_fast_highway_checks_the_ego_s_collisions_only():
+    fast = dataclasses.replace(load_scenario("rl_highway_fast"), sim="batched")
+    state = initial_state(fast, torch.tensor([0]))
+    assert state.check_collisions[0].tolist() == [True] + [False] * fast.traffic.vehicles_count
+    x, y = torch.tensor([[0.0, 50.0, 52.0, 1.0]]), torch.tensor([[0.0, 4.0, 4.0, 0.5]])
+    for others_check, expected in ((False, [[0, 3]]), (True, [[0, 3], [1, 2]])):
+        overlapping = vehicle_state(x, y, speed=10.0, check_collisions=torch.tensor([[True, others_check, others_check, others_check]]))
+        pairs = pair_collisions(overlapping, 0.1).intersecting[0]
+        assert pairs.nonzero().tolist() == expected
+
+
+def test_lane_keeping_turns_towards_the_target_lane_in_float32_when_the_slip_saturates():
+    """tan(asin(1)) in float32 is a large negative number: the steering must still point to the target lane."""
+    for dtype in (torch.float32, torch.float64):
+        state = vehicle_state(torch.tensor([[0.0, 10.0]], dtype=dtype), torch.tensor([[0.0, 10.76]], dtype=dtype),
+                              heading=torch.tensor([[0.0, -0.445]], dtype=dtype), speed=8.12, config=SimConfig(lanes=6),
+                              target_lane=torch.tensor([[0, 4]]))
+        steering = lane_keeping_steering(state, SimConfig(lanes=6))
+        assert float(steering[0, 1]) == pytest.approx(math.pi / 3, abs=1e-6)
+
+
+@pytest.mark.parametrize("traffic", [ScriptedTraffic(vehicles=(ScriptedVehicle(lane=1, x=30.0, speed=10.0),)),
+                                     NGSIMTraffic(path="recording.csv")])
+def test_a_scenario_the_batched_simulator_cannot_run_is_refused_naming_highway_env(traffic):
+    with pytest.raises(ValueError, match="--sim highway-env"):
+        ScenarioConfig(traffic=traffic, sim="batched", vehicle_size=None)
+    with pytest.raises(ValueError, match="--sim highway-env"):
+        SimEpisodes(ScenarioConfig(traffic=traffic), [0])
+
+
+def test_unknown_world_and_env_id_are_refused():
+    with pytest.raises(ValueError, match="`sim` must be one of"):
+        ScenarioConfig(sim="carla")
+    with pytest.raises(ValueError, match="--sim highway-env"):
+        ScenarioConfig(env_id="merge-v0", sim="batched")
+
+
+@pytest.mark.parametrize("seeds, message", [([], "at least one seed"), ([0.5], "sequence of ints"), ([-1], ">= 0")])
+def test_bad_seeds_are_refused(seeds, message):
+    with pytest.raises(ValueError, match=message):
+        SimEpisodes(CRUISE, seeds)
+
+
+def test_bad_running_mask_and_reset_are_refused():
+    episodes = SimEpisodes(CRUISE, [0, 1])
+    with pytest.raises(ValueError, match=r"`running` must have shape \(2,\)"):
+        episodes.step(torch.zeros(2, 2), running=torch.tensor([True]))
+    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
+        episodes.reset(torch.tensor([2]), [5])
+    with pytest.raises(ValueError, match="NaN or inf"):
+        episodes.step(torch.full((2, 2), float("nan")))
+
+
+def test_the_runner_drives_the_mpc_on_the_batched_simulator():
+    scenario = dataclasses.replace(CRUISE, sim="batched", duration=3.0)
+    results = run_lockstep(scenario, [0, 1, 2])
+    for result in results:
+        assert result.metrics["steps"] == 30 and result.metrics["collisions"] == 0
+        assert result.records[-1].v > 10.0 and 0 <= result.records[-1].lane < scenario.lanes
+    world = make_world(scenario, [4])
+    assert isinstance(world, BatchedWorld) and world.episodes[0].seed == 4 and not world.episodes[0].done
+    with pytest.raises(ValueError, match="--sim highway-env"):
+        make_world(scenario, [4], render=True)
+
+
+def test_the_settings_hash_counts_the_world_only_when_batched():
+    reference = CRUISE
+    assert reference.sim == "highway-env"
+    settings = to_dict(reference)
+    del settings["sim"]
+    assert scenario_fingerprint(reference) == hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    assert scenario_fingerprint(dataclasses.replace(reference, sim="batched")) != scenario_fingerprint(reference)
+
+
+def test_the_sim_config_follows_the_scenario():
+    scenario = ScenarioConfig(lanes=3, frequency=15.0, traffic=IDMTraffic(vehicles_count=4))
+    config = sim_config(scenario)
+    assert (config.lanes, config.simulation_frequency, config.policy_frequency) == (3, 15.0, 15.0)
