@@ -42,6 +42,11 @@ BASE_KEY = "from"
 TYPE_KEY = "type"
 
 
+class ConfigError(ValueError):
+    """A config (file, mapping, override or dataclass field) is invalid; the message says which
+    value came and what was expected. The command line prints it without a traceback."""
+
+
 def from_dict(cls: type[T], values: Any, *, where: str = "") -> T:
     """Build the config dataclass ``cls`` from ``values`` (parsed YAML), by its field types.
 
@@ -167,9 +172,9 @@ def read_config_yaml(cls: type, name_or_path: str | Path) -> tuple[Path, dict]:
     with open(path, encoding="utf-8") as handle:
         values = yaml.safe_load(handle)
     if values is None:
-        raise ValueError(f"{cls.__name__} file {path} is empty; expected a mapping of settings (key: value lines)")
+        raise ConfigError(f"{cls.__name__} file {path} is empty; expected a mapping of settings (key: value lines)")
     if not isinstance(values, dict):
-        raise ValueError(f"{cls.__name__} file {path} must hold a mapping of settings (key: value lines); "
+        raise ConfigError(f"{cls.__name__} file {path} must hold a mapping of settings (key: value lines); "
                          f"got a {type(values).__name__}")
     return path, values
 
@@ -181,15 +186,15 @@ def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...]) -> T:
     if isinstance(values, (str, Path)):
         values = {BASE_KEY: values}
     if not isinstance(values, Mapping):
-        raise ValueError(f"{where} must be a mapping (key: value lines) or the name or path of a "
+        raise ConfigError(f"{where} must be a mapping (key: value lines) or the name or path of a "
                          f"{cls.__name__}; got {values!r}")
     values = dict(values)
     if BASE_KEY in values:
         base = values.pop(BASE_KEY)
         if not isinstance(base, (str, Path)):
-            raise ValueError(f"{where}: `{BASE_KEY}` must name a shipped {cls.__name__} or a YAML path; got {base!r}")
+            raise ConfigError(f"{where}: `{BASE_KEY}` must name a shipped {cls.__name__} or a YAML path; got {base!r}")
         if str(base) in chain:
-            raise ValueError(f"{where}: `{BASE_KEY}: {base}` reads itself (through {list(chain)})")
+            raise ConfigError(f"{where}: `{BASE_KEY}: {base}` reads itself (through {list(chain)})")
         path, loaded = read_config_yaml(cls, base)
         resolved = to_dict(_build(cls, loaded, f"{cls.__name__} {path}", chain + (str(base),)), complete=True)
         values = _merge(resolved, values)
@@ -197,14 +202,14 @@ def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...]) -> T:
     if isinstance(kind, str) and TYPE_KEY in values:
         given = values.pop(TYPE_KEY)
         if given != kind:
-            raise ValueError(f"{where}: `{TYPE_KEY}` is {given!r}; expected {kind!r}")
+            raise ConfigError(f"{where}: `{TYPE_KEY}` is {given!r}; expected {kind!r}")
     upgrade = getattr(cls, "upgrade", None)
     if upgrade is not None:
         values = upgrade(values, where)
     fields = {field.name: field for field in dataclasses.fields(cls) if field.init}  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(fields), key=str)
     if unknown:
-        raise ValueError(f"unknown key(s) {unknown} in {where}; allowed keys: {sorted(fields)}")
+        raise ConfigError(f"unknown key(s) {unknown} in {where}; allowed keys: {sorted(fields)}")
     hints = typing.get_type_hints(cls)
     return cls(**{name: _convert(hints[name], value, f"{where}: {name}", chain) for name, value in values.items()})
 
@@ -254,10 +259,10 @@ def _variant(configs: list[type], value: Any, where: str, chain: tuple[str, ...]
         return _build(configs[0], value, where, chain)
     registry = {cls.kind: cls for cls in configs}  # type: ignore[attr-defined]
     if not isinstance(value, Mapping) or TYPE_KEY not in value:
-        raise ValueError(f"{where} must be a mapping with a `{TYPE_KEY}` key, one of {sorted(registry)}; got {value!r}")
+        raise ConfigError(f"{where} must be a mapping with a `{TYPE_KEY}` key, one of {sorted(registry)}; got {value!r}")
     kind = value[TYPE_KEY]
     if kind not in registry:
-        raise ValueError(f"{where}: unknown type {kind!r}; expected one of {sorted(registry)}")
+        raise ConfigError(f"{where}: unknown type {kind!r}; expected one of {sorted(registry)}")
     return _build(registry[kind], value, f"{where} {kind}", chain)
 
 
@@ -306,7 +311,7 @@ def _override(cls: Any, values: dict, dotted: str, value: Any, where: str) -> No
         elif current is None:
             current = {}
         if not isinstance(current, Mapping):
-            raise ValueError(f"override {dotted!r}: {'.'.join(sections[:depth + 1])!r} is not a section of {where} "
+            raise ConfigError(f"override {dotted!r}: {'.'.join(sections[:depth + 1])!r} is not a section of {where} "
                              f"(it holds {current!r})")
         current = dict(current)
         target[section] = current
@@ -340,9 +345,9 @@ def _section_class(field: Optional[dataclasses.Field], section: Mapping) -> Any:
 
 
 def require(condition: bool, message: str) -> None:
-    """Raise ``ValueError(message)`` unless ``condition``: the check every config validator uses."""
+    """Raise :class:`ConfigError` ``(message)`` unless ``condition``: the check every config validator uses."""
     if not condition:
-        raise ValueError(message)
+        raise ConfigError(message)
 
 
 def is_finite_number(value: Any) -> bool:

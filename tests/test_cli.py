@@ -45,3 +45,23 @@ def test_bench_solver_writes_json_rows(tmp_path):
 def test_bad_arguments_exit_with_usage_error():
     with pytest.raises(SystemExit):
         bench_solver.main(["--batches", "a,b"])
+
+
+def test_drive_on_the_batched_simulator_writes_the_episode_without_a_video(tmp_path, capsys):
+    assert main(["drive", "--sim", "batched", "--duration", "1", "--compile", "off", "--out", str(tmp_path)]) == 0
+    assert "no video on the batched simulator" in capsys.readouterr().err
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["steps"] == 10 and metrics["collisions"] == 0
+    assert not (tmp_path / "episode.mp4").exists()
+
+
+def test_a_scenario_the_batched_simulator_cannot_run_is_a_usage_error(tmp_path, capsys):
+    assert main(["drive", "--scenario", "cruise_ngsim", "--sim", "batched", "--out", str(tmp_path)]) == 2
+    assert "mmpc drive: error: scenario 'cruise_ngsim'" in capsys.readouterr().err
+    assert main(["evaluate", "--sim", "batched", "--episode-outputs", "--collision-videos", "--out", str(tmp_path)]) == 2
+    assert "--sim highway-env" in capsys.readouterr().err
+
+
+def test_a_bad_override_is_a_usage_error_without_a_traceback(tmp_path, capsys):
+    assert main(["drive", "--set", "lanes=0", "--out", str(tmp_path)]) == 2
+    assert "mmpc drive: error: scenario 'cruise': `lanes` must be an int >= 1; got 0" in capsys.readouterr().err

@@ -65,6 +65,23 @@ def add_set(parser: argparse.ArgumentParser, what: str, example: str = "") -> No
                         help=f"override a value of the {what} (dotted key, YAML value; repeatable){example}")
 
 
+def add_sim(parser: argparse.ArgumentParser) -> None:
+    """``--sim highway-env|batched``: the world the scenarios run in (``args.sim``, see :func:`scenario_overrides`)."""
+    from mmpc.scenario import SIMULATORS
+
+    parser.add_argument("--sim", choices=SIMULATORS, default=None,
+                        help="the world: highway-env (the reference, with video) or batched (mmpc.sim: all episodes "
+                             "stepped at once in torch, IDM traffic only); default: the scenario's (highway-env)")
+
+
+def scenario_overrides(args: argparse.Namespace, pairs: Optional[list[tuple[str, Any]]] = None) -> dict[str, Any]:
+    """The scenario overrides of a verb: its ``--set`` pairs (or ``pairs``), then ``--sim``."""
+    overrides = dict(args.set if pairs is None else pairs)
+    if getattr(args, "sim", None) is not None:
+        overrides["sim"] = args.sim
+    return overrides
+
+
 def add_compile(parser: argparse.ArgumentParser) -> None:
     """``--compile auto|on|off`` for verbs that build an MPC (:func:`apply_compile`)."""
     parser.add_argument("--compile", choices=tuple(COMPILE_CHOICES), default="auto",

@@ -1,4 +1,4 @@
-"""``mmpc drive``: one closed-loop highway-env episode (metrics, steps.csv, video, top-down plot), or
+"""``mmpc drive``: one closed-loop episode (highway-env by default) (metrics, steps.csv, video, top-down plot), or
 with ``--seeds`` an evaluation over seeds with one folder per episode."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import add_compile, add_set, apply_compile, seed_list, unwritable
+from mmpc.cli.arguments import add_compile, add_set, add_sim, apply_compile, scenario_overrides, seed_list, unwritable
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     apply_compile(args.compile)
     scenarios = []
     for name in args.scenario.split(","):
-        scenario = load_scenario(name, dict(args.set))
+        scenario = load_scenario(name, scenario_overrides(args))
         if args.duration is not None:
             scenario = scenario.replace(duration=args.duration)
         scenarios.append(scenario)
@@ -40,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
 
         episodes = len(scenarios) * len(args.seeds)
         config = EvaluationConfig(drivers=(args.driver,), seeds=args.seeds, workers=args.workers, threads=args.threads,
-                                  episode_layout="{scenario}/seed_{seed}", collision_videos=True, report=False)
+                                  episode_layout="{scenario}/seed_{seed}", report=False,
+                                  collision_videos=all(s.sim == "highway-env" for s in scenarios))
         with tqdm(total=episodes, desc="episodes", unit="ep") as bar:
             def progress(row: dict) -> None:
                 bar.update(1)
@@ -68,7 +69,9 @@ def run(args: argparse.Namespace) -> int:
     scenario = scenarios[0]
     driver = make_driver(args.driver, scenario)
     seed = scenario.seeds[0] if args.seed is None else args.seed
-    video = None if args.no_video else out / "episode.mp4"
+    video = None if args.no_video or scenario.sim == "batched" else out / "episode.mp4"
+    if video is None and not args.no_video:
+        print("mmpc drive: no video on the batched simulator (highway-env draws it; --sim highway-env)", file=sys.stderr)
     steps = round(scenario.duration * scenario.frequency)
     with tqdm(total=steps, desc=f"{scenario.name} seed {seed}", unit="step") as bar:
         result = run_episode(scenario, seed, driver=driver, video=video, observers=[Progress()])
@@ -95,6 +98,7 @@ def add_subcommand(sub: argparse._SubParsersAction) -> None:
     drive.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
     add_set(drive, "scenario", example=", e.g. highway-env's own faster traffic: "
                                        "--set traffic.target_speeds=null --set name=cruise_default_traffic")
+    add_sim(drive)
     add_compile(drive)
     drive.add_argument("--no-video", action="store_true", help="skip episode.mp4 (single episode)")
     drive.add_argument("--workers", type=int, default=1, help="parallel episodes with --seeds (default 1)")

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mmpc.cli.arguments import add_compile, add_set, apply_compile, driver_specs, seed_list
+from mmpc.cli.arguments import add_compile, add_set, add_sim, apply_compile, driver_specs, scenario_overrides, seed_list
 
 
 def run(args: argparse.Namespace) -> int:
@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     scenarios = []
     for name in (n for n in args.scenarios.split(",") if n):
-        scenario = load_scenario(name, dict(args.set))
+        scenario = load_scenario(name, scenario_overrides(args))
         scenarios.append(scenario if args.duration is None else scenario.replace(duration=args.duration))
     if not scenarios:
         print("mmpc evaluate: error: --scenarios needs at least one scenario", file=sys.stderr)
@@ -32,6 +32,10 @@ def run(args: argparse.Namespace) -> int:
         args.workers = 1
     if args.collision_videos and not args.episode_outputs:
         print("mmpc evaluate: error: --collision-videos needs --episode-outputs", file=sys.stderr)
+        return 2
+    if args.collision_videos and any(s.sim == "batched" for s in scenarios):
+        print("mmpc evaluate: error: --collision-videos replays episodes in highway-env; the batched simulator "
+              "draws none (run with --sim highway-env, or without --collision-videos)", file=sys.stderr)
         return 2
     try:
         config = EvaluationConfig(
@@ -99,6 +103,7 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
                         help="re-runs of a group whose worker process died before it is recorded as errors (default 1)")
     parser.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
     add_set(parser, "scenarios", example=", as in mmpc drive")
+    add_sim(parser)
     add_compile(parser)
     parser.add_argument("--episode-outputs", action="store_true",
                         help="also write metrics.json, steps.csv and topdown.png per episode under OUT/episodes/")

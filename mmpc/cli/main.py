@@ -42,7 +42,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if getattr(args, "duration", None) is not None and not args.duration > 0:
         print("mmpc: error: --duration must be > 0 s", file=sys.stderr)
         return 2
-    return int(args.func(args))
+    from mmpc.config import ConfigError
+
+    try:
+        return int(args.func(args))
+    except ConfigError as error:  # a bad config, --set or --sim: the message says what came and what was expected
+        print(f"mmpc {args.command}: error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
