@@ -1,0 +1,218 @@
+"""Benchmark: the batched simulator (:mod:`mmpc.sim`) against highway-env, side by side in one run.
+
+Three tables, one torch thread unless ``--threads``:
+
+1. **world alone**: environment-steps per second of one control step (the ego's command applied,
+   the traffic moved, the window kept, the road-frame state read back for the driver) on the
+   batched simulator for each E, and on highway-env (one episode after another, as the runner
+   steps it: ``HighwayEpisode.apply`` + ``observe``), with constant commands;
+2. **MPC in the loop**: the runner's world + the multi-modal MPC (one optimizer call for all E
+   environments per step) on both worlds at each E: environment-steps per second, their ratio
+   and the solve's share of the step;
+3. **memory**: the simulator state's bytes per environment and the peak resident memory of a
+   fresh process stepping E environments, per environment (the peak above a process that imports
+   the same modules and steps one environment).
+
+Every row is written to ``OUT/bench_sim.json`` with the machine and settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+import torch
+
+from mmpc.cli.arguments import int_list
+from mmpc.scenario import ScenarioConfig, load_scenario
+
+#: The world table's command of every ego, (acceleration [m/s^2], steering [rad]): a world's cost
+#: does not depend on who drives (egos that crash keep being stepped in both worlds).
+CONSTANT_COMMAND = (0.0, 0.0)
+
+
+def _world_steps_per_second(world, num_envs: int, steps: int) -> float:
+    """Environment-steps per second of ``world`` (a :mod:`mmpc.highway.worlds` world) under constant commands."""
+    active = list(range(num_envs))
+    acceleration = torch.full((num_envs,), CONSTANT_COMMAND[0])
+    steering = torch.full((num_envs,), CONSTANT_COMMAND[1])
+    world.observe(active)
+    world.apply(active, acceleration, steering)  # warm-up
+    start = time.perf_counter()
+    for _ in range(steps):
+        world.observe(active)
+        world.apply(active, acceleration, steering)
+    return num_envs * steps / (time.perf_counter() - start)
+
+
+def world_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, highway_envs: int) -> list[dict]:
+    """Table 1: the batched world per E, and highway-env's per-environment rate."""
+    from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld
+
+    highway = HighwayEnvWorld(scenario, list(range(highway_envs)))
+    try:
+        reference = _world_steps_per_second(highway, highway_envs, steps)
+    finally:
+        highway.close()
+    rows = [{"table": "world", "world": "highway-env", "num_envs": highway_envs, "env_steps_per_s": reference,
+             "speedup": 1.0}]
+    for num_envs in envs:
+        rate = _world_steps_per_second(BatchedWorld(scenario, list(range(num_envs))), num_envs, steps)
+        rows.append({"table": "world", "world": "batched", "num_envs": num_envs, "env_steps_per_s": rate,
+                     "speedup": rate / reference})
+    return rows
+
+
+def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float]:
+    """(seconds per step, solve seconds per step) of the runner's loop body, after one warm-up step."""
+    active = list(range(num_envs))
+    driver.reset(num_envs)
+    total = solve = 0.0
+    for step in range(steps + 1):
+        ended = world.done()
+        running = [i for i in active if not ended[i]]
+        if not running:
+            break
+        start = time.perf_counter()
+        observation, _ = world.observe(running)
+        decided = time.perf_counter()
+        decision = driver.decide(observation)
+        solved = time.perf_counter()
+        world.apply(running, decision.acceleration, decision.steering)
+        if step > 0:
+            total += (time.perf_counter() - start) * num_envs / len(running)
+            solve += (solved - decided) * num_envs / len(running)
+    return total / steps, solve / steps
+
+
+def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int) -> list[dict]:
+    """Table 2: both worlds with the MPC in the loop at each E (same driver, same seeds)."""
+    from mmpc.drivers import make_driver
+    from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld
+
+    driver = make_driver("mpc", scenario)
+    rows = []
+    for num_envs in envs:
+        seeds = list(range(num_envs))
+        measured = {}
+        for name, build in (("highway-env", HighwayEnvWorld), ("batched", BatchedWorld)):
+            world = build(scenario, seeds)
+            try:
+                measured[name] = _closed_loop(world, driver, num_envs, steps)
+            finally:
+                world.close()
+        reference = num_envs / measured["highway-env"][0]
+        for name, (step_s, solve_s) in measured.items():
+            rate = num_envs / step_s
+            rows.append({"table": "mpc", "world": name, "num_envs": num_envs, "step_s": step_s, "solve_s": solve_s,
+                         "solve_share": solve_s / step_s, "env_steps_per_s": rate, "speedup": rate / reference})
+    return rows
+
+
+def _peak_rss_bytes() -> int:
+    scale = 1 if sys.platform == "darwin" else 1024  # ru_maxrss: bytes on macOS, KiB on Linux
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
+
+
+def memory_probe(scenario_name: str, num_envs: int, steps: int) -> dict:
+    """Step ``num_envs`` environments in this process; the state's bytes and the peak RSS."""
+    from mmpc.highway.worlds import BatchedWorld
+
+    world = BatchedWorld(load_scenario(scenario_name, {"sim": "batched"}), list(range(num_envs)))
+    for _ in range(steps):
+        world.observe(list(range(num_envs)))
+        world.apply(list(range(num_envs)), torch.zeros(num_envs), torch.zeros(num_envs))
+    state_bytes = sum(field.element_size() * field.numel() for field in world.sim.state)
+    return {"state_bytes": state_bytes, "peak_rss_bytes": _peak_rss_bytes()}
+
+
+def _probe(scenario_name: str, num_envs: int, steps: int) -> dict:
+    command = [sys.executable, __file__, "--memory-probe", str(num_envs), "--scenario", scenario_name, "--steps", str(steps)]
+    output = subprocess.run(command, check=True, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    return json.loads(output.stdout.strip().splitlines()[-1])
+
+
+def memory_rows(scenario_name: str, envs: Sequence[int], steps: int) -> list[dict]:
+    """Table 3: per-environment bytes of the state and of the peak resident memory above E = 1's."""
+    baseline = _probe(scenario_name, 1, steps)
+    rows = []
+    for num_envs in envs:
+        probe = _probe(scenario_name, num_envs, steps)
+        rows.append({"table": "memory", "num_envs": num_envs, "state_bytes_per_env": probe["state_bytes"] / num_envs,
+                     "peak_rss_mib": probe["peak_rss_bytes"] / 2 ** 20,
+                     "peak_above_one_env_bytes_per_env": (probe["peak_rss_bytes"] - baseline["peak_rss_bytes"]) / num_envs})
+    return rows
+
+
+def format_rows(rows: Sequence[dict]) -> str:
+    lines = ["world alone (constant commands): env-steps/s",
+             f"{'world':<12} {'E':>6} {'env-steps/s':>12} {'x highway-env':>14}"]
+    lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['env_steps_per_s']:>12.0f} {r['speedup']:>14.1f}"
+              for r in rows if r["table"] == "world"]
+    mpc = [r for r in rows if r["table"] == "mpc"]
+    if mpc:
+        lines += ["", "MPC in the loop: env-steps/s, the solve's share of the step",
+                  f"{'world':<12} {'E':>6} {'s/step':>8} {'env-steps/s':>12} {'solve share':>12} {'x highway-env':>14}"]
+        lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['step_s']:>8.3f} {r['env_steps_per_s']:>12.1f} "
+                  f"{r['solve_share']:>12.0%} {r['speedup']:>14.1f}" for r in mpc]
+    memory = [r for r in rows if r["table"] == "memory"]
+    if memory:
+        lines += ["", "memory per environment",
+                  f"{'E':>6} {'state [B/env]':>14} {'peak RSS [MiB]':>15} {'peak above E=1 [KiB/env]':>25}"]
+        lines += [f"{r['num_envs']:>6} {r['state_bytes_per_env']:>14.0f} {r['peak_rss_mib']:>15.0f} "
+                  f"{r['peak_above_one_env_bytes_per_env'] / 1024:>25.1f}" for r in memory]
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenario", default="cruise", help="an IDM-traffic scenario (default cruise)")
+    parser.add_argument("--envs", type=int_list, default=(1, 16, 256, 1024, 4096), help="E of the world table")
+    parser.add_argument("--mpc-envs", type=int_list, default=(1, 16, 256), help="E of the MPC table (empty: skip)")
+    parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
+    parser.add_argument("--mpc-steps", type=int, default=3, help="timed steps per MPC row (default 3)")
+    parser.add_argument("--highway-envs", type=int, default=8, help="highway-env episodes timed for its rate (default 8)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--no-mpc", action="store_true", help="skip the MPC table")
+    parser.add_argument("--no-memory", action="store_true", help="skip the memory table")
+    parser.add_argument("--memory-probe", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--out", default="runs/bench_sim", help="output folder (default runs/bench_sim)")
+    args = parser.parse_args(argv)
+    if args.memory_probe is not None:
+        print(json.dumps(memory_probe(args.scenario, args.memory_probe, args.steps)))
+        return 0
+    if min(args.steps, args.mpc_steps, args.highway_envs, args.threads) < 1:
+        parser.error("--steps, --mpc-steps, --highway-envs and --threads must be >= 1")
+    torch.set_num_threads(args.threads)
+    scenario = load_scenario(args.scenario, {"sim": "batched"})  # refused here if the batched simulator cannot run it
+    rows = world_rows(scenario, args.envs, args.steps, args.highway_envs)
+    if not args.no_mpc:
+        rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps)
+    if not args.no_memory:
+        rows += memory_rows(args.scenario, args.memory_envs, max(2, args.steps // 4))
+    print(format_rows(rows))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                    "torch": torch.__version__, "threads": args.threads},
+        "settings": {key: value for key, value in vars(args).items() if key != "memory_probe"},
+        "compile": os.environ.get("MMPC_COMPILE", "auto"),
+        "rows": rows,
+    }
+    (out / "bench_sim.json").write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out / 'bench_sim.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
