@@ -239,3 +239,26 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     assert "MPC in the loop" in capsys.readouterr().out
     with pytest.raises(ValueError, match="--sim highway-env"):
         bench_sim.main(["--scenario", "cruise_ngsim", "--out", str(tmp_path)])
+
+
+def test_reward_is_highway_env_s_along_episodes_that_crash_or_leave_the_road():
+    from mmpc.sim.reward import highway_reward
+
+    scenario = dataclasses.replace(CRUISE, lanes=3, traffic=IDMTraffic(vehicles_count=6, window=None))
+    config = sim_config(scenario)
+    compared = crashed_or_off = 0
+    for seed, steering in ((0, 0.02), (1, -0.02), (2, 0.0)):
+        episode = HighwayEpisode(scenario, seed)
+        for _ in range(60):
+            episode.apply(4.0, steering)
+            ego = episode.ego
+            state = vehicle_state(torch.tensor([[ego.position[0]]], dtype=torch.float64), torch.tensor([[ego.position[1]]], dtype=torch.float64),
+                                  heading=float(ego.heading), speed=float(ego.speed), config=config)
+            state = state._replace(crashed=torch.tensor([[bool(ego.crashed)]]))
+            assert float(highway_reward(state, config)[0]) == pytest.approx(episode.reward, abs=1e-9)
+            compared += 1
+            crashed_or_off += bool(ego.crashed) or not ego.on_road
+            if episode.done:
+                break
+        episode.close()
+    assert compared > 60 and crashed_or_off > 0

@@ -17,6 +17,7 @@ from mmpc.drivers import Observation
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim import SimEpisodes
+from mmpc.sim.reward import highway_reward
 
 
 class World(Protocol):
@@ -98,6 +99,11 @@ class SimEpisodeView:
     def done(self) -> bool:
         return self.world.ended[self.index]
 
+    @property
+    def reward(self) -> float:
+        """highway-env's reward of the current state (:func:`mmpc.sim.reward.highway_reward`)."""
+        return self.world.rewards[self.index]
+
     def observe(self) -> Observation:
         """The environment's current state for a driver (E = 1)."""
         return self.world.observe([self.index])[1][0]
@@ -117,6 +123,7 @@ class BatchedWorld:
         self.ended: list[bool] = self.sim.done.tolist()
         self.crashed: list[bool] = self.sim.crashed.tolist()
         self.on_road: list[bool] = self.sim.on_road.tolist()
+        self.rewards: list[float] = highway_reward(self.sim.state, self.sim.config).tolist()
 
     def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
         rows = torch.as_tensor(list(active), dtype=torch.long)

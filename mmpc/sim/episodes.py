@@ -17,7 +17,7 @@ import torch
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim.ego import ego_action
 from mmpc.sim.simulator import HighwaySimulator
-from mmpc.sim.state import VehicleState, lane_of
+from mmpc.sim.state import VehicleState, on_road
 from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim_config
 
 Seeds = Union[Sequence[int], torch.Tensor]
@@ -71,9 +71,7 @@ class SimEpisodes:
     @property
     def on_road(self) -> torch.Tensor:
         """(E,) bool, the ego's centre lies on a lane (highway-env's ``on_road`` of a straight road)."""
-        y = self.state.y[:, 0]
-        centre = lane_of(y, self.config).to(y.dtype) * self.config.lane_width
-        return (y - centre).abs() <= 0.5 * self.config.lane_width
+        return on_road(self.state.y[:, 0], self.config)
 
     @property
     def done(self) -> torch.Tensor:

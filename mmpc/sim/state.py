@@ -63,6 +63,12 @@ def lane_of(y: torch.Tensor, config: SimConfig) -> torch.Tensor:
     return index.clamp(0, config.lanes - 1).to(torch.int64)
 
 
+def on_road(y: torch.Tensor, config: SimConfig) -> torch.Tensor:
+    """Whether lateral positions ``y`` [m] lie on their nearest lane (bool, same shape):
+    highway-env's ``on_road`` on a straight road, within half a lane width of its centre."""
+    return (y - lane_of(y, config).to(y.dtype) * config.lane_width).abs() <= 0.5 * config.lane_width
+
+
 def vehicle_state(
     x: torch.Tensor,
     y: torch.Tensor,
