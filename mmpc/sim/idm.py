@@ -13,6 +13,8 @@ the result is clipped to +-acc_max. Divisors near zero become +-0.01 as highway-
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from mmpc.sim.config import SimConfig
@@ -33,53 +35,57 @@ def wrap_to_pi(angle: torch.Tensor) -> torch.Tensor:
     return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
 
 
-def _on_lane(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> torch.Tensor:
-    """(E, V, V) bool: [e, i, j] vehicle j is within ``lane_width / 2 + lane_margin`` of the centre
-    of lane ``lane[e, i]`` (the lane searched for vehicle i)."""
+def _search(state: VehicleState, lane: torch.Tensor, query, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The searching vehicles' slots (E, Q), and (E, Q, V): [e, q, j] vehicle j is present, not
+    the searcher, and within ``lane_width / 2 + lane_margin`` of the centre of lane ``lane[e, q]``."""
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
+    query = slots.expand(state.x.shape) if query is None else query
     centre = lane.to(state.y.dtype) * config.lane_width
-    return (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+    on_lane = (state.y[:, None, :] - centre[:, :, None]).abs() <= config.lane_width / 2 + config.lane_margin
+    return query, torch.gather(state.x, 1, query), on_lane & state.alive[:, None, :] & (slots != query[:, :, None])
 
 
-def vehicle_ahead(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """For every vehicle, the nearest other present vehicle ahead on lane ``lane`` (E, V) int64.
+def vehicle_ahead(
+    state: VehicleState, lane: torch.Tensor, config: SimConfig, query: Optional[torch.Tensor] = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every vehicle (or the slots ``query``), the nearest other present vehicle ahead on lane ``lane``.
 
     A vehicle is on a lane within ``lane_width / 2 + lane_margin`` of its centre (so one
     between two lanes counts on both); ahead means ``x_other >= x`` (equal counts); on equal
     ``x`` the later slot wins, as in highway-env's ``Road.neighbour_vehicles``. The ego counts.
 
+    Args:
+        lane: (E, V) int64, or (E, Q) with ``query``: the lane searched for each vehicle.
+        query: (E, Q) int64 slots of the searching vehicles; default: every slot (Q = V).
+
     Returns:
-        index: (E, V) int64 slot of the vehicle ahead (0 where there is none).
-        found: (E, V) bool.
+        index: (E, Q) int64 slot of the vehicle ahead (0 where there is none).
+        found: (E, Q) bool.
     """
-    slots = torch.arange(state.x.shape[1], device=state.x.device)
-    on_lane = _on_lane(state, lane, config)
-    ahead = state.x[:, None, :] >= state.x[:, :, None]  # (E, V, V): [e, i, j] j is ahead of i
-    candidate = on_lane & ahead & state.alive[:, None, :] & (slots[:, None] != slots[None, :])
+    query, x, candidate = _search(state, lane, query, config)
+    candidate = candidate & (state.x[:, None, :] >= x[:, :, None])
     distance = torch.where(candidate, state.x[:, None, :], torch.full_like(candidate, torch.inf, dtype=state.x.dtype))
     nearest = distance.min(dim=2, keepdim=True).values
-    winners = torch.where(candidate & (distance == nearest), slots, -1)
-    index = winners.max(dim=2).values
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
+    index = torch.where(candidate & (distance == nearest), slots, -1).max(dim=2).values
     return index.clamp(min=0), index >= 0
 
 
-def vehicle_behind(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """For every vehicle, the nearest other present vehicle behind on lane ``lane`` (E, V) int64:
-    on the lane as in :func:`vehicle_ahead`, behind meaning ``x_other < x`` (strictly); on equal
-    ``x`` the earlier slot wins, as in highway-env's ``Road.neighbour_vehicles``. The ego counts.
-
-    Returns:
-        index: (E, V) int64 slot of the vehicle behind (0 where there is none).
-        found: (E, V) bool.
+def vehicle_behind(
+    state: VehicleState, lane: torch.Tensor, config: SimConfig, query: Optional[torch.Tensor] = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every vehicle (or the slots ``query``), the nearest other present vehicle behind on
+    lane ``lane``: on the lane as in :func:`vehicle_ahead`, behind meaning ``x_other < x``
+    (strictly); on equal ``x`` the earlier slot wins, as in highway-env's
+    ``Road.neighbour_vehicles``. The ego counts. Shapes as :func:`vehicle_ahead`.
     """
     num_vehicles = state.x.shape[1]
-    slots = torch.arange(num_vehicles, device=state.x.device)
-    on_lane = _on_lane(state, lane, config)
-    behind = state.x[:, None, :] < state.x[:, :, None]  # (E, V, V): [e, i, j] j is behind i
-    candidate = on_lane & behind & state.alive[:, None, :]
+    query, x, candidate = _search(state, lane, query, config)
+    candidate = candidate & (state.x[:, None, :] < x[:, :, None])
     position = torch.where(candidate, state.x[:, None, :], torch.full_like(candidate, -torch.inf, dtype=state.x.dtype))
     nearest = position.max(dim=2, keepdim=True).values
-    winners = torch.where(candidate & (position == nearest), slots, num_vehicles)
-    index = winners.min(dim=2).values
+    slots = torch.arange(num_vehicles, device=state.x.device)
+    index = torch.where(candidate & (position == nearest), slots, num_vehicles).min(dim=2).values
     return torch.where(index < num_vehicles, index, 0), index < num_vehicles
 
 
@@ -100,12 +106,12 @@ def idm_between(
 
     Args:
         state: the vehicles.
-        follower, front: (E, V) int64 slots. has_follower, has_front: (E, V) bool.
-        delta: (E, V) IDM exponent of the evaluating vehicle (not the follower's own).
+        follower, front: (E, Q) int64 slots. has_follower, has_front: (E, Q) bool.
+        delta: (E, Q) IDM exponent of the evaluating vehicle (not the follower's own).
         target_speed: (E, V) target speed [m/s] of every slot, read at ``follower``.
 
     Returns:
-        (E, V) acceleration [m/s^2].
+        (E, Q) acceleration [m/s^2].
     """
     speed, heading, x, target = (torch.gather(field, 1, follower) for field in
                                  (state.speed, state.heading, state.x, target_speed))
@@ -122,11 +128,14 @@ def idm_between(
     return torch.where(has_follower, acceleration, torch.zeros_like(acceleration))
 
 
-def idm_acceleration(state: VehicleState, lane: torch.Tensor, config: SimConfig) -> torch.Tensor:
-    """(E, V) IDM acceleration [m/s^2] of every vehicle behind its vehicle ahead on ``lane`` (E, V), unclipped."""
-    own = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape)
-    index, found = vehicle_ahead(state, lane, config)
-    return idm_between(state, own, torch.ones_like(found), index, found, state.idm_delta, state.target_speed, config)
+def idm_acceleration(state: VehicleState, lane: torch.Tensor, config: SimConfig,
+                     query: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(E, Q) IDM acceleration [m/s^2], unclipped, of every vehicle (or the slots ``query``, (E, Q)
+    int64) behind its vehicle ahead on ``lane`` (E, Q)."""
+    own = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape) if query is None else query
+    index, found = vehicle_ahead(state, lane, config, own)
+    delta = torch.gather(state.idm_delta, 1, own)
+    return idm_between(state, own, torch.ones_like(found), index, found, delta, state.target_speed, config)
 
 
 def lane_keeping_steering(state: VehicleState, config: SimConfig) -> torch.Tensor:
@@ -151,6 +160,10 @@ def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tenso
     [m/s^2], steering [rad]), each (E, V). Slot 0 (the ego) is computed too; the caller replaces it."""
     acceleration = idm_acceleration(state, state.lane, config)
     changing = state.lane != state.target_lane
-    acceleration = torch.where(changing, torch.minimum(acceleration, idm_acceleration(state, state.target_lane, config)),
-                               acceleration)
+    changing[:, 0] = False
+    env, slot = changing.nonzero(as_tuple=True)  # the few vehicles changing lane, each with a copy of its environment
+    if env.numel():
+        copies = VehicleState(*(field[env] for field in state))
+        on_target = idm_acceleration(copies, state.target_lane[env, slot][:, None], config, slot[:, None])[:, 0]
+        acceleration[env, slot] = torch.minimum(acceleration[env, slot], on_target)
     return acceleration.clamp(-config.acc_max, config.acc_max), lane_keeping_steering(state, config)

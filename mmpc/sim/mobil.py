@@ -32,6 +32,8 @@ Every vehicle's timer then grows by dt with the frame (:func:`advance_timers`).
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 
 from mmpc.sim.config import SimConfig
@@ -39,20 +41,22 @@ from mmpc.sim.idm import idm_between, vehicle_ahead, vehicle_behind
 from mmpc.sim.state import VehicleState
 
 
-def mobil_accepts(state: VehicleState, candidate: torch.Tensor, config: SimConfig) -> torch.Tensor:
-    """(E, V) bool: MOBIL recommends lane ``candidate`` (E, V) int64 (any value; lanes off the
-    road, out of reach or a vehicle below 1 m/s are refused) to each vehicle."""
-    num_vehicles = state.x.shape[1]
-    own = torch.arange(num_vehicles, device=state.x.device).expand(state.x.shape)
-    everyone = torch.ones_like(state.alive)
-    delta = state.idm_delta
+def mobil_accepts(state: VehicleState, candidate: torch.Tensor, config: SimConfig,
+                  query: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(E, Q) bool: MOBIL recommends lane ``candidate`` (E, Q) int64 (any value; lanes off the
+    road, out of reach or a vehicle below 1 m/s are refused) to each vehicle of ``query`` (E, Q)
+    int64 slots (default: every slot, Q = V)."""
+    own = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape) if query is None else query
+    everyone = torch.ones_like(own, dtype=torch.bool)
+    delta = torch.gather(state.idm_delta, 1, own)
     target_speed = torch.cat([torch.zeros_like(state.target_speed[:, :1]), state.target_speed[:, 1:]], dim=1)
     on_road = (candidate >= 0) & (candidate < config.lanes)
     lane = candidate.clamp(0, config.lanes - 1)
-    new_leader, has_new_leader = vehicle_ahead(state, lane, config)
-    new_follower, has_new_follower = vehicle_behind(state, lane, config)
-    old_leader, has_old_leader = vehicle_ahead(state, state.lane, config)
-    old_follower, has_old_follower = vehicle_behind(state, state.lane, config)
+    current_lane = torch.gather(state.lane, 1, own)
+    new_leader, has_new_leader = vehicle_ahead(state, lane, config, own)
+    new_follower, has_new_follower = vehicle_behind(state, lane, config, own)
+    old_leader, has_old_leader = vehicle_ahead(state, current_lane, config, own)
+    old_follower, has_old_follower = vehicle_behind(state, current_lane, config, own)
 
     def idm(follower, has_follower, leader, has_leader):
         return idm_between(state, follower, has_follower, leader, has_leader, delta, target_speed, config)
@@ -66,8 +70,9 @@ def mobil_accepts(state: VehicleState, candidate: torch.Tensor, config: SimConfi
     gain = self_after - self_before + config.politeness * (
         new_follower_after - new_follower_before + old_follower_after - old_follower_before)
     safe = new_follower_after >= -config.lane_change_max_braking_imposed
-    reachable = (state.y - lane.to(state.y.dtype) * config.lane_width).abs() <= 2 * config.lane_width
-    return on_road & reachable & (state.speed.abs() >= 1) & safe & (gain >= config.lane_change_min_acc_gain)
+    y, speed = torch.gather(state.y, 1, own), torch.gather(state.speed, 1, own)
+    reachable = (y - lane.to(y.dtype) * config.lane_width).abs() <= 2 * config.lane_width
+    return on_road & reachable & (speed.abs() >= 1) & safe & (gain >= config.lane_change_min_acc_gain)
 
 
 def abort_blockers(state: VehicleState, config: SimConfig) -> torch.Tensor:
@@ -96,9 +101,7 @@ def change_lanes(state: VehicleState, config: SimConfig) -> VehicleState:
     deciding = state.alive & ~state.crashed & state.lane_change_enabled & (slots > 0)
     changing = state.lane != state.target_lane
     evaluating = deciding & ~changing & (state.lane_change_timer > config.lane_change_delay)
-    both_sides = VehicleState(*(torch.cat([field, field]) for field in state))  # (2E, V): left, then right
-    left, right = mobil_accepts(both_sides, torch.cat([state.lane - 1, state.lane + 1]), config).chunk(2)
-    decided = torch.where(right, state.lane + 1, torch.where(left, state.lane - 1, state.lane))
+    decided = _mobil_decisions(state, evaluating, config)
     blockers = abort_blockers(state, config)
     aborting = deciding & changing
     target = state.target_lane.clone()
@@ -109,6 +112,22 @@ def change_lanes(state: VehicleState, config: SimConfig) -> VehicleState:
                                       torch.where(abort, state.lane[:, slot], target[:, slot]))
     timer = torch.where(evaluating, torch.zeros_like(state.lane_change_timer), state.lane_change_timer)
     return state._replace(target_lane=target, lane_change_timer=timer)
+
+
+def _mobil_decisions(state: VehicleState, evaluating: torch.Tensor, config: SimConfig) -> torch.Tensor:
+    """(E, V) the lane MOBIL picks (left, then right, the later accepted winning; else the
+    current lane) for the ``evaluating`` vehicles, the current lane elsewhere. Only the P
+    evaluating vehicles are asked, each with a copy of its environment (P x V work, not E x V^2)."""
+    env, slot = evaluating.nonzero(as_tuple=True)
+    decided = state.lane.clone()
+    if env.numel() == 0:
+        return decided
+    copies = VehicleState(*(torch.cat([field[env], field[env]]) for field in state))  # (2P, V): left, then right
+    lane = state.lane[env, slot]
+    query = torch.cat([slot, slot])[:, None]
+    left, right = mobil_accepts(copies, torch.cat([lane - 1, lane + 1])[:, None], config, query)[:, 0].chunk(2)
+    decided[env, slot] = torch.where(right, lane + 1, torch.where(left, lane - 1, lane))
+    return decided
 
 
 def advance_timers(state: VehicleState, config: SimConfig) -> VehicleState:

@@ -151,6 +151,20 @@ def relocate(
     Returns:
         The state, and (E,) bool: moved (False where no free spot was found or not ``moving``).
     """
+    rows = moving.nonzero()[:, 0]  # the search runs on the moving environments only
+    moved = torch.zeros_like(moving)
+    if rows.numel() == 0:
+        return state, moved
+    draw = tuple(index[rows] if isinstance(index, torch.Tensor) and index.dim() > 0 else index for index in draw)
+    part, moved_part = _relocate_rows(VehicleState(*(field[rows] for field in state)), slot[rows], low[rows], high[rows],
+                                      seeds[rows], draw, config, keep_lane)
+    moved[rows] = moved_part
+    return VehicleState(*(field.index_copy(0, rows, new) for field, new in zip(state, part))), moved
+
+
+def _relocate_rows(state: VehicleState, slot: torch.Tensor, low: torch.Tensor, high: torch.Tensor, seeds: torch.Tensor,
+                   draw: tuple, config: SimConfig, keep_lane: bool) -> tuple[VehicleState, torch.Tensor]:
+    """:func:`relocate` where every environment moves its vehicle."""
     tries = torch.arange(PLACEMENT_TRIES, device=slot.device)
     seed = seeds[:, None]
     current_lane = state.lane.gather(1, slot[:, None])
@@ -161,7 +175,7 @@ def relocate(
     near_along = (state.x[:, None, :] - s[:, :, None]).abs() < PLACEMENT_GAP
     free = ~(near_across & near_along & others[:, None, :]).any(dim=2)  # (E, T)
     first = free.to(torch.int8).argmax(dim=1, keepdim=True)
-    moved = moving & free.any(dim=1)
+    moved = free.any(dim=1)
     target = moved[:, None] & (torch.arange(state.x.shape[1], device=slot.device) == slot[:, None])  # (E, V)
     new_lane = lane.gather(1, first)
     new_x = s.gather(1, first).to(state.x.dtype)
