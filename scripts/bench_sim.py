@@ -9,9 +9,9 @@ Three tables, one torch thread unless ``--threads``:
 2. **MPC in the loop**: the runner's world + the multi-modal MPC (one optimizer call for all E
    environments per step) on both worlds at each E: environment-steps per second, their ratio
    and the solve's share of the step;
-3. **memory**: the simulator state's bytes per environment and the peak resident memory of a
-   fresh process stepping E environments, per environment (the peak above a process that imports
-   the same modules and steps one environment).
+3. **memory** (Linux): the simulator state's bytes per environment, and in a fresh process per E
+   the peak resident memory while stepping E environments, whole and per environment above
+   what the process held before building them.
 
 Every row is written to ``OUT/bench_sim.json`` with the machine and settings.
 """
@@ -22,7 +22,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import time
@@ -117,21 +116,34 @@ def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int) -> list[
     return rows
 
 
-def _peak_rss_bytes() -> int:
-    scale = 1 if sys.platform == "darwin" else 1024  # ru_maxrss: bytes on macOS, KiB on Linux
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
+def _rss_bytes(field: str) -> int:
+    """``VmRSS`` (now) or ``VmHWM`` (peak since the last reset) of this process, from Linux's /proc."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"/proc/self/status has no {field}")
 
 
 def memory_probe(scenario_name: str, num_envs: int, steps: int) -> dict:
-    """Step ``num_envs`` environments in this process; the state's bytes and the peak RSS."""
+    """Step ``num_envs`` environments in this process (after a warm-up with one): the state's
+    bytes, the resident memory before building them and the peak while stepping them."""
     from mmpc.highway.worlds import BatchedWorld
 
-    world = BatchedWorld(load_scenario(scenario_name, {"sim": "batched"}), list(range(num_envs)))
-    for _ in range(steps):
-        world.observe(list(range(num_envs)))
-        world.apply(list(range(num_envs)), torch.zeros(num_envs), torch.zeros(num_envs))
+    scenario = load_scenario(scenario_name, {"sim": "batched"})
+
+    def run(count: int) -> BatchedWorld:
+        world = BatchedWorld(scenario, list(range(count)))
+        for _ in range(steps):
+            world.observe(list(range(count)))
+            world.apply(list(range(count)), torch.zeros(count), torch.zeros(count))
+        return world
+
+    run(1)  # imports, lazy initialisation
+    Path("/proc/self/clear_refs").write_text("5")  # resets the peak (VmHWM) to the current RSS
+    before = _rss_bytes("VmRSS")
+    world = run(num_envs)
     state_bytes = sum(field.element_size() * field.numel() for field in world.sim.state)
-    return {"state_bytes": state_bytes, "peak_rss_bytes": _peak_rss_bytes()}
+    return {"state_bytes": state_bytes, "rss_before_bytes": before, "peak_rss_bytes": _rss_bytes("VmHWM")}
 
 
 def _probe(scenario_name: str, num_envs: int, steps: int) -> dict:
@@ -141,14 +153,14 @@ def _probe(scenario_name: str, num_envs: int, steps: int) -> dict:
 
 
 def memory_rows(scenario_name: str, envs: Sequence[int], steps: int) -> list[dict]:
-    """Table 3: per-environment bytes of the state and of the peak resident memory above E = 1's."""
-    baseline = _probe(scenario_name, 1, steps)
+    """Table 3 (Linux): per-environment bytes of the state and of the peak resident memory above
+    the process's memory before the environments were built; each E in a fresh process."""
     rows = []
     for num_envs in envs:
         probe = _probe(scenario_name, num_envs, steps)
         rows.append({"table": "memory", "num_envs": num_envs, "state_bytes_per_env": probe["state_bytes"] / num_envs,
                      "peak_rss_mib": probe["peak_rss_bytes"] / 2 ** 20,
-                     "peak_above_one_env_bytes_per_env": (probe["peak_rss_bytes"] - baseline["peak_rss_bytes"]) / num_envs})
+                     "peak_added_bytes_per_env": (probe["peak_rss_bytes"] - probe["rss_before_bytes"]) / num_envs})
     return rows
 
 
@@ -166,9 +178,9 @@ def format_rows(rows: Sequence[dict]) -> str:
     memory = [r for r in rows if r["table"] == "memory"]
     if memory:
         lines += ["", "memory per environment",
-                  f"{'E':>6} {'state [B/env]':>14} {'peak RSS [MiB]':>15} {'peak above E=1 [KiB/env]':>25}"]
-        lines += [f"{r['num_envs']:>6} {r['state_bytes_per_env']:>14.0f} {r['peak_rss_mib']:>15.0f} "
-                  f"{r['peak_above_one_env_bytes_per_env'] / 1024:>25.1f}" for r in memory]
+                  f"{'E':>6} {'state [B/env]':>14} {'process peak RSS [MiB]':>23} {'peak added [KiB/env]':>21}"]
+        lines += [f"{r['num_envs']:>6} {r['state_bytes_per_env']:>14.0f} {r['peak_rss_mib']:>23.0f} "
+                  f"{r['peak_added_bytes_per_env'] / 1024:>21.1f}" for r in memory]
     return "\n".join(lines)
 
 
@@ -176,7 +188,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenario", default="cruise", help="an IDM-traffic scenario (default cruise)")
     parser.add_argument("--envs", type=int_list, default=(1, 16, 256, 1024, 4096), help="E of the world table")
-    parser.add_argument("--mpc-envs", type=int_list, default=(1, 16, 256), help="E of the MPC table (empty: skip)")
+    parser.add_argument("--mpc-envs", type=int_list, default=(1, 16, 256, 1024), help="E of the MPC table (empty: skip)")
     parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
     parser.add_argument("--mpc-steps", type=int, default=3, help="timed steps per MPC row (default 3)")
