@@ -74,6 +74,76 @@ class WallTime(float):
     __hash__ = float.__hash__
 
 
+def action_space(config: SafeEnvConfig, continuous: bool) -> spaces.Space:
+    """Box ``[-1, 1]^2`` goal commands, or the discrete grid ``lane_offsets x speeds``."""
+    if continuous:
+        return spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+    return spaces.Discrete(config.num_discrete_goals)
+
+
+def observation_space(config: SafeEnvConfig) -> spaces.Box:
+    """The flat observation: kinematics rows, then (with ``solver_features``) the goal features."""
+    size = config.kinematics_vehicles * len(KINEMATICS_FEATURES)
+    if config.solver_features:
+        size += config.num_discrete_goals * FEATURES_PER_GOAL
+    return spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
+
+
+def observation_vectors(kinematics: np.ndarray, features: Optional[np.ndarray], config: SafeEnvConfig) -> np.ndarray:
+    """(E, rows, 5) Kinematics observations and (E, A, 3) solver features -> (E, size) float32
+    observations, clipped to [-1, 1]."""
+    expected = (config.kinematics_vehicles, len(KINEMATICS_FEATURES))
+    if kinematics.shape[1:] != expected:
+        raise RuntimeError(f"the Kinematics observation has shape {kinematics.shape[1:]}; expected {expected}")
+    parts = [kinematics.reshape(kinematics.shape[0], -1)]
+    if config.solver_features:
+        parts.append(np.asarray(features, dtype=np.float32).reshape(kinematics.shape[0], -1))
+    return np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
+
+
+def check_action(action: Any, config: SafeEnvConfig, continuous: bool) -> Any:
+    """``action`` checked against the safe environments' action space: the goal index as an int
+    (a Python or numpy integer, or a 0-d integer array: SB3's vectorized environments pass numpy
+    int64, ``predict`` of one observation a 0-d array), or the (2,) array of finite numbers
+    (values outside [-1, 1] are clipped later).
+
+    Raises:
+        ValueError: anything else (a float index such as 2.7, an array of indices, a wrong
+            shape, NaN), naming what came and what is expected.
+    """
+    if continuous:
+        try:
+            values = np.asarray(action)
+        except ValueError as error:  # ragged nesting
+            raise ValueError(f"`action` must be an array of 2 numbers; got {action!r}") from error
+        if values.dtype.kind not in "iuf":
+            raise ValueError(f"`action` must be an array of 2 numbers; got dtype {values.dtype} ({action!r})")
+        if values.shape != (2,):
+            raise ValueError(f"`action` must have shape (2,); got {values.shape}")
+        if not np.isfinite(values).all():
+            raise ValueError(f"`action` must be finite numbers (in [-1, 1]); got {values.tolist()}")
+        return values
+    count = config.num_discrete_goals
+    if isinstance(action, np.ndarray) and action.shape == ():
+        action = action[()]
+    if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
+        came = (f"an array of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray)
+                else f"{action!r} ({type(action).__name__})")
+        raise ValueError(f"`action` must be an int in [0, {count}) (a goal of the grid lane_offsets x speeds); "
+                         f"got {came}")
+    if not 0 <= action < count:
+        raise ValueError(f"`action` must be an int in [0, {count}); got {action}")
+    return int(action)
+
+
+def goal_commands(layer: SafetyLayer, ego: torch.Tensor, actions: Sequence[Any], continuous: bool) -> torch.Tensor:
+    """Checked actions (:func:`check_action`) -> (E, 2) goal commands (y [m], v [m/s]) at the egos ``ego`` (E, 6)."""
+    if continuous:
+        return layer.continuous_commands(ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
+    indices = [int(np.asarray(a).reshape(-1)[0]) for a in actions]
+    return layer.discrete_commands(ego, torch.as_tensor(indices, dtype=torch.long))
+
+
 class StepOutcome(NamedTuple):
     """What one agent step gave one environment (gymnasium's ``step`` tuple)."""
 
@@ -136,14 +206,8 @@ class SafeHighwayEnv(gym.Env):
             raise ValueError("`layer` was built for other environment settings than `config`")
         if self.layer.road != scenario.road:
             raise ValueError(f"`layer` plans on {self.layer.road}, the scenario's road is {scenario.road}")
-        if self.continuous:
-            self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-        else:
-            self.action_space = spaces.Discrete(self.config.num_discrete_goals)
-        size = self.config.kinematics_vehicles * len(KINEMATICS_FEATURES)
-        if self.config.solver_features:
-            size += self.config.num_discrete_goals * FEATURES_PER_GOAL
-        self.observation_space = spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
+        self.action_space = action_space(self.config, self.continuous)
+        self.observation_space = observation_space(self.config)
         self.episode: Optional[HighwayEpisode] = None
         self.episode_seed: Optional[int] = None
 
@@ -182,15 +246,8 @@ class SafeHighwayEnv(gym.Env):
         """The observation vector: kinematics rows flattened, then the solver features (A, 3)."""
         if self.episode is None:
             raise RuntimeError("call reset() before observing")
-        kinematics = self._kinematics.compute()
-        rows = self.config.kinematics_vehicles * len(KINEMATICS_FEATURES)
-        if kinematics.size != rows:
-            raise RuntimeError(f"highway-env's Kinematics observation has shape {kinematics.shape}; expected "
-                               f"({self.config.kinematics_vehicles}, {len(KINEMATICS_FEATURES)})")
-        parts = [kinematics.reshape(-1)]
-        if self.config.solver_features:
-            parts.append(np.asarray(features, dtype=np.float32).reshape(-1))
-        return np.clip(np.concatenate(parts), -1.0, 1.0).astype(np.float32)
+        return observation_vectors(self._kinematics.compute()[None], None if features is None else features[None],
+                                   self.config)[0]
 
     def road_state(self) -> Observation:
         """The current road-frame state for the safety layer (E = 1, no kinematics)."""
@@ -198,45 +255,12 @@ class SafeHighwayEnv(gym.Env):
         return Observation(state.ego, state.vehicles)
 
     def check_action(self, action: Any) -> Any:
-        """``action`` checked against the action space: the goal index as an int (a Python or
-        numpy integer, or a 0-d integer array: SB3's vectorized environments pass numpy int64,
-        ``predict`` of one observation a 0-d array), or the (2,) array of finite numbers
-        (values outside [-1, 1] are clipped later).
-
-        Raises:
-            ValueError: anything else (a float index such as 2.7, an array of indices, a wrong
-                shape, NaN), naming what came and what is expected.
-        """
-        if self.continuous:
-            try:
-                values = np.asarray(action)
-            except ValueError as error:  # ragged nesting
-                raise ValueError(f"`action` must be an array of 2 numbers; got {action!r}") from error
-            if values.dtype.kind not in "iuf":
-                raise ValueError(f"`action` must be an array of 2 numbers; got dtype {values.dtype} ({action!r})")
-            if values.shape != (2,):
-                raise ValueError(f"`action` must have shape (2,); got {values.shape}")
-            if not np.isfinite(values).all():
-                raise ValueError(f"`action` must be finite numbers (in [-1, 1]); got {values.tolist()}")
-            return values
-        count = self.config.num_discrete_goals
-        if isinstance(action, np.ndarray) and action.shape == ():
-            action = action[()]
-        if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
-            came = (f"an array of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray)
-                    else f"{action!r} ({type(action).__name__})")
-            raise ValueError(f"`action` must be an int in [0, {count}) (a goal of the grid lane_offsets x speeds); "
-                             f"got {came}")
-        if not 0 <= action < count:
-            raise ValueError(f"`action` must be an int in [0, {count}); got {action}")
-        return int(action)
+        """``action`` checked against the action space (:func:`check_action`)."""
+        return check_action(action, self.config, self.continuous)
 
     def commands(self, ego: torch.Tensor, actions: Sequence[Any]) -> torch.Tensor:
         """Actions of this environment type -> (E, 2) goal commands at the egos ``ego`` (E, 6)."""
-        if self.continuous:
-            return self.layer.continuous_commands(ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
-        indices = [int(np.asarray(a).reshape(-1)[0]) for a in actions]
-        return self.layer.discrete_commands(ego, torch.as_tensor(indices, dtype=torch.long))
+        return goal_commands(self.layer, ego, actions, self.continuous)
 
     @staticmethod
     def _features(envs: Sequence["SafeHighwayEnv"]) -> tuple[list[Optional[np.ndarray]], float]:
