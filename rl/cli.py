@@ -11,7 +11,7 @@ from pathlib import Path
 
 def add_subcommands(sub: argparse._SubParsersAction) -> None:
     """Add ``mmpc rl {train, evaluate, report}``."""
-    from mmpc.cli.arguments import add_compile, add_config, add_set
+    from mmpc.cli.arguments import add_compile, add_config, add_set, add_sim
     from mmpc.rl.config import ALGORITHMS
 
     rl = sub.add_parser("rl", help="safe RL: train, evaluate and report stable-baselines3 agents behind the layer")
@@ -20,6 +20,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
         "train", help="train an SB3 agent on the safe layer (or plain highway-env): TensorBoard, checkpoints, eval.json")
     train.add_argument("--algo", choices=sorted(ALGORITHMS), required=True, help="dqn, ppo or sac")
     add_config(train, "RL config (mmpc.rl.config.RLConfig; scenario keys as scenario.KEY)")
+    add_sim(train)
     add_compile(train)
     train.add_argument("--timesteps", type=int, required=True, help="agent steps, summed over the vectorized environments")
     train.add_argument("--out", required=True, help="run directory (config.yaml, tb/, checkpoints/, model.zip, eval.json)")
@@ -55,7 +56,14 @@ def _train(args: argparse.Namespace) -> int:
         print("mmpc rl train: error: --timesteps must be >= 1", file=sys.stderr)
         return 2
     apply_compile(args.compile)
-    config = load_config(RLConfig, args.config, dict(args.set))
+    overrides = dict(args.set)
+    if args.sim is not None:
+        if args.env == "highway" and args.sim == "batched":
+            print("mmpc rl train: error: --env highway trains on plain highway-env; the batched simulator runs the "
+                  "safe environments only (--env safe)", file=sys.stderr)
+            return 2
+        overrides["scenario.sim"] = args.sim
+    config = load_config(RLConfig, args.config, overrides)
     if args.eval_episodes is not None:
         if args.eval_episodes < 1:
             print("mmpc rl train: error: --eval-episodes must be >= 1", file=sys.stderr)

@@ -134,7 +134,8 @@ def evaluate(
     lockstep: int = 10,
     on_episode: Optional[Callable[[EpisodeRow], None]] = None,
 ) -> dict:
-    """Run one episode per seed with a policy and summarize them (:func:`summarize`).
+    """Run one episode per seed with a policy and summarize them (:func:`summarize`), in
+    highway-env, the reference world, whichever world the agent trained in (``scenario.sim``).
 
     Args:
         policy: ``observations (B, obs) -> actions (B, ...)`` (e.g. a model's deterministic
@@ -232,11 +233,16 @@ class _EpisodeStats:
 
 
 def make_training_env(config: RLConfig, *, env_kind: str, continuous: bool, seed: int):
-    """The vectorized training environment (``train.n_envs`` environments, monitored)."""
+    """The vectorized training environment (``train.n_envs`` environments, monitored): the safe
+    environments on the scenario's world (``scenario.sim``), or plain highway-env."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     n_envs = config.train.n_envs
-    if env_kind == "safe":
+    if env_kind == "safe" and config.scenario.sim == "batched":
+        from mmpc.rl.sim_vec_env import SafeSimVecEnv
+
+        venv = SafeSimVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous, seed=seed)
+    elif env_kind == "safe":
         from mmpc.rl.vec_env import SafeHighwayVecEnv
 
         venv = SafeHighwayVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous)

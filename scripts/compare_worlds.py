@@ -1,0 +1,119 @@
+"""Do two evaluations agree? Per (driver, scenario): collisions, mean speed and meta cost with
+their 95 % intervals in each folder, and the 95 % interval of the difference.
+
+Made for the batched simulator against highway-env, same driver, scenarios and seeds::
+
+    mmpc evaluate --scenarios cruise,high_speed --seeds 0-199 --out runs/worlds/highway-env
+    mmpc evaluate --scenarios cruise,high_speed --seeds 0-199 --lockstep 200 --sim batched --out runs/worlds/batched
+    python scripts/compare_worlds.py runs/worlds/highway-env runs/worlds/batched --out runs/worlds
+
+Episodes are the units: a metric's interval is mean +- 1.96 standard errors over episodes (for
+collisions, the share of episodes with one, Wilson's interval); two worlds agree on a metric
+when the interval of the difference of means (Welch) holds 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+from mmpc.evaluate import read_episodes
+
+#: The metrics compared: (episodes.csv column, label).
+METRICS = (("collisions", "episodes with a collision"), ("mean_speed", "mean speed [m/s]"),
+           ("meta_cost_mean", "meta cost (mean per step)"))
+Z95 = 1.959963984540054
+
+
+def mean_interval(values: Sequence[float]) -> tuple[float, float, float]:
+    """(mean, low, high): mean +- 1.96 standard errors."""
+    mean = statistics.fmean(values)
+    half = Z95 * statistics.stdev(values) / math.sqrt(len(values)) if len(values) > 1 else math.inf
+    return mean, mean - half, mean + half
+
+
+def wilson_interval(successes: int, count: int) -> tuple[float, float, float]:
+    """(share, low, high): Wilson's 95 % interval of a binomial share."""
+    share = successes / count
+    denominator = 1 + Z95 ** 2 / count
+    centre = (share + Z95 ** 2 / (2 * count)) / denominator
+    half = Z95 * math.sqrt(share * (1 - share) / count + Z95 ** 2 / (4 * count ** 2)) / denominator
+    return share, centre - half, centre + half
+
+
+def difference_interval(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float]:
+    """(mean(b) - mean(a), low, high): Welch's normal 95 % interval of the difference."""
+    difference = statistics.fmean(b) - statistics.fmean(a)
+    half = Z95 * math.sqrt(statistics.variance(a) / len(a) + statistics.variance(b) / len(b))
+    return difference, difference - half, difference + half
+
+
+def compare(reference: Path, other: Path) -> list[dict]:
+    """One row per (driver, scenario, metric) present with ``status == ok`` episodes in both folders."""
+    def groups(folder: Path) -> dict[tuple[str, str], list[dict]]:
+        rows: dict[tuple[str, str], list[dict]] = {}
+        for row in read_episodes(folder / "episodes.csv"):
+            if row["status"] == "ok":
+                rows.setdefault((row["driver"], row["scenario"]), []).append(row)
+        return rows
+
+    first, second = groups(reference), groups(other)
+    results = []
+    for key in sorted(set(first) & set(second)):
+        for column, label in METRICS:
+            a = [float(r[column] > 0) if column == "collisions" else float(r[column]) for r in first[key]]
+            b = [float(r[column] > 0) if column == "collisions" else float(r[column]) for r in second[key]]
+            if column == "collisions":
+                interval_a, interval_b = wilson_interval(int(sum(a)), len(a)), wilson_interval(int(sum(b)), len(b))
+            else:
+                interval_a, interval_b = mean_interval(a), mean_interval(b)
+            difference = difference_interval(a, b) if len(a) > 1 and len(b) > 1 else (math.nan, -math.inf, math.inf)
+            results.append({
+                "driver": key[0], "scenario": key[1], "metric": column, "label": label,
+                "episodes": [len(a), len(b)], "reference": interval_a, "other": interval_b, "difference": difference,
+                "agree": difference[1] <= 0.0 <= difference[2],
+            })
+    return results
+
+
+def format_table(rows: Sequence[dict], names: tuple[str, str]) -> str:
+    def cell(interval: Sequence[float], digits: int) -> str:
+        return f"{interval[0]:.{digits}f} [{interval[1]:.{digits}f}, {interval[2]:.{digits}f}]"
+
+    lines = [f"| driver | scenario | metric | episodes | {names[0]} | {names[1]} | difference | agree |", "|---" * 8 + "|"]
+    for row in rows:
+        digits = 3 if row["metric"] != "mean_speed" else 2
+        lines.append(f"| {row['driver']} | {row['scenario']} | {row['label']} | {row['episodes'][0]} / {row['episodes'][1]} | "
+                     f"{cell(row['reference'], digits)} | {cell(row['other'], digits)} | {cell(row['difference'], digits)} | "
+                     f"{'yes' if row['agree'] else 'no'} |")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("reference", type=Path, help="evaluation folder of the reference world (highway-env)")
+    parser.add_argument("other", type=Path, help="evaluation folder to compare (the batched simulator)")
+    parser.add_argument("--out", type=Path, default=None, help="write compare_worlds.json and .md here")
+    args = parser.parse_args(argv)
+    rows = compare(args.reference, args.other)
+    if not rows:
+        print(f"compare_worlds: error: no (driver, scenario) with finished episodes in both {args.reference} and {args.other}",
+              file=sys.stderr)
+        return 2
+    table = format_table(rows, (args.reference.name, args.other.name))
+    print(table)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "compare_worlds.json").write_text(json.dumps({"reference": str(args.reference), "other": str(args.other),
+                                                                  "rows": rows}, indent=2) + "\n")
+        (args.out / "compare_worlds.md").write_text(table + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
