@@ -12,13 +12,14 @@ What it covers:
 - rectangle collisions by separating axes, with highway-env's pre-check, pushes and crash braking (:mod:`mmpc.sim.collision`);
 - random IDM traffic of a scenario placed as highway-env places it, the window that keeps it
   around the ego (:mod:`mmpc.sim.traffic`, draws by :mod:`mmpc.sim.random`);
-- E episodes of a scenario with time limits and per-environment resets (:class:`SimEpisodes`).
+- E episodes of a scenario with time limits and per-environment resets (:class:`SimEpisodes`);
+- highway-env's ``Kinematics`` observation and reward of the egos (:mod:`mmpc.sim.observation`,
+  :mod:`mmpc.sim.reward`).
 
 Not there yet:
 
 - routes (the route-constrained branch of highway-env's MOBIL);
 - scripted and NGSIM traffic (refused: ``--sim highway-env``);
-- the gymnasium vector environment (observations, rewards, termination);
 - lane ends: highway-env's lanes run from x = 0 to 10 km, here they are unbounded (behind x = 0 a
   vehicle here still changes lane and counts as a neighbour; in highway-env it does neither).
 """
@@ -29,13 +30,15 @@ from mmpc.sim.ego import ego_action
 from mmpc.sim.episodes import SimEpisodes
 from mmpc.sim.idm import idm_acceleration, idm_between, lane_keeping_steering, traffic_command, vehicle_ahead, vehicle_behind
 from mmpc.sim.kinematics import bicycle_step, limit_command
+from mmpc.sim.observation import kinematics_observation
+from mmpc.sim.reward import highway_reward
 from mmpc.sim.mobil import abort_blockers, advance_timers, change_lanes, mobil_accepts
 from mmpc.sim.simulator import HighwaySimulator
 from mmpc.sim.state import VehicleState, check_state, lane_of, vehicle_state
 
 __all__ = [
     "HighwaySimulator", "PolygonTest", "SimConfig", "SimEpisodes", "VehicleState", "abort_blockers", "advance_timers", "bicycle_step",
-    "change_lanes", "check_state", "ego_action", "handle_collisions", "idm_acceleration", "idm_between",
-    "lane_keeping_steering", "lane_of", "limit_command", "mobil_accepts", "pair_collisions", "polygons_intersecting",
+    "change_lanes", "check_state", "ego_action", "handle_collisions", "highway_reward", "idm_acceleration", "idm_between",
+    "kinematics_observation", "lane_keeping_steering", "lane_of", "limit_command", "mobil_accepts", "pair_collisions", "polygons_intersecting",
     "rectangle_corners", "traffic_command", "vehicle_ahead", "vehicle_behind", "vehicle_state",
 ]
