@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import add_compile, add_config, add_set, apply_compile, split_overrides
+from mmpc.cli.arguments import add_compile, add_config, add_set, add_sim, apply_compile, scenario_overrides, split_overrides
 
 
 def _scenario(args: argparse.Namespace, overrides: dict):
@@ -35,7 +35,7 @@ def _demos(args: argparse.Namespace) -> int:
         print(f"mmpc imitate demos: error: --episodes must be >= 1; got {args.episodes}", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
-    scenario = _scenario(args, dict(args.set))
+    scenario = _scenario(args, scenario_overrides(args))
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
     bar = tqdm(total=len(seeds), desc=f"demos {scenario.name}", unit="ep")
 
@@ -94,14 +94,14 @@ def _dagger(args: argparse.Namespace) -> int:
     from mmpc.imitation.dagger import DaggerConfig, run_dagger
 
     torch.set_num_threads(args.threads)
-    overrides, scenario_overrides = split_overrides(args.set, "scenario")
+    overrides, routed_scenario = split_overrides(args.set, "scenario")
     if args.iterations is not None:
         overrides["iterations"] = args.iterations
     if args.duration is not None:
         overrides["duration"] = args.duration
     config = load_config(DaggerConfig, args.config, overrides)
     args.duration = None  # the config carries it
-    scenario = _scenario(args, scenario_overrides)
+    scenario = _scenario(args, scenario_overrides(args, list(routed_scenario.items())))
     with tqdm(total=config.iterations + 1, desc="dagger", unit="round") as bar:
         def on_round(entry: dict) -> None:
             bar.update(1)
@@ -148,6 +148,7 @@ def _scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default="cruise", help="scenario name in configs/scenarios or a YAML path (default cruise)")
     parser.add_argument("--duration", type=float, default=None, help="episode length [s] (default: the scenario's)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (per worker) (default 1)")
+    add_sim(parser)
     add_compile(parser)
 
 

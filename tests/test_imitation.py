@@ -603,3 +603,15 @@ def test_the_dagger_config_record_of_an_earlier_run_is_unchanged():
     scenario = load_scenario("cruise")
     old_scenario = {**to_dict(scenario), "mpc": {**to_dict(scenario)["mpc"], "wheelbase": 5.0, "compile": "auto"}}
     assert to_dict(from_dict(ScenarioConfig, old_scenario)) == to_dict(scenario)
+
+
+def test_demonstrations_on_the_batched_simulator_have_the_highway_env_layout(tmp_path):
+    scenario = short_cruise(1.0).replace(sim="batched")
+    report = generate_demonstrations(scenario, SEEDS, tmp_path, lockstep=3)
+    assert report.seeds == SEEDS
+    for seed in SEEDS:
+        episode = load_episode(tmp_path / "episodes" / f"seed_{seed:06d}.npz")
+        assert episode.observations.shape == (11, 5, 5) and episode.actions.shape == (10, 2)
+        assert episode.truncations[-1] and not episode.terminations.any() and (episode.rewards > 0).all()
+        np.testing.assert_allclose(episode.observations[:, 0, 3] * 80.0, episode.infos["ego"][:, 3], atol=0.05)
+        assert (episode.infos["goal_index"][:-1] >= 0).all()

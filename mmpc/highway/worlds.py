@@ -16,7 +16,7 @@ import torch
 from mmpc.drivers import Observation
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.scenario import ScenarioConfig
-from mmpc.sim import SimEpisodes
+from mmpc.sim import SimEpisodes, kinematics_observation
 from mmpc.sim.reward import highway_reward
 
 
@@ -108,6 +108,10 @@ class SimEpisodeView:
         """The environment's current state for a driver (E = 1)."""
         return self.world.observe([self.index])[1][0]
 
+    def kinematics(self) -> np.ndarray:
+        """highway-env's ``Kinematics`` observation of the current state, (rows, features) float32."""
+        return self.world.observe([self.index])[0].kinematics[0]
+
 
 class BatchedWorld:
     """One batched-simulator environment per seed (:class:`mmpc.sim.SimEpisodes`), all stepped
@@ -128,8 +132,10 @@ class BatchedWorld:
     def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
         rows = torch.as_tensor(list(active), dtype=torch.long)
         ego, vehicles, mask = self.sim.road_state()
-        batch = Observation(ego[rows], vehicles[rows], mask[rows], None, rows)
-        singles = [Observation(e, v, m) for e, v, m in zip(batch.ego.split(1), batch.vehicles.split(1), batch.vehicle_mask.split(1))]
+        kinematics = kinematics_observation(self.sim.state, self.sim.config)[rows].float().numpy()
+        batch = Observation(ego[rows], vehicles[rows], mask[rows], kinematics, rows)
+        singles = [Observation(e, v, m, k[None]) for e, v, m, k in
+                   zip(batch.ego.split(1), batch.vehicles.split(1), batch.vehicle_mask.split(1), kinematics)]
         return batch, singles
 
     def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
