@@ -1,6 +1,6 @@
 """Benchmark: the batched simulator (:mod:`mmpc.sim`) against highway-env, side by side in one run.
 
-Three tables, one torch thread unless ``--threads``:
+Four tables, one torch thread unless ``--threads``:
 
 1. **world alone**: environment-steps per second of one control step (the ego's command applied,
    the traffic moved, the window kept, the road-frame state read back for the driver) on the
@@ -9,7 +9,9 @@ Three tables, one torch thread unless ``--threads``:
 2. **MPC in the loop**: the runner's world + the multi-modal MPC (one optimizer call for all E
    environments per step) on both worlds at each E: environment-steps per second, their ratio
    and the solve's share of the step;
-3. **memory** (Linux): the simulator state's bytes per environment, and in a fresh process per E
+3. **safe RL**: agent steps per second of the safe vector environment (:mod:`mmpc.rl`) on
+   highway-env (``SafeHighwayVecEnv``) and on the batched simulator (``SafeSimVecEnv``);
+4. **memory** (Linux): the simulator state's bytes per environment, and in a fresh process per E
    the peak resident memory while stepping E environments, whole and per environment above
    what the process held before building them.
 
@@ -116,6 +118,41 @@ def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int) -> list[
     return rows
 
 
+def rl_rows(envs: Sequence[int], steps: int) -> list[dict]:
+    """Table 4: agent steps per second of the safe RL vector environment (the default RL config,
+    random discrete goals) on highway-env and on the batched simulator, same seeds."""
+    import numpy as np
+
+    from mmpc.config import load_config
+    from mmpc.rl.config import RLConfig
+    from mmpc.rl.sim_vec_env import SafeSimVecEnv
+    from mmpc.rl.vec_env import SafeHighwayVecEnv
+
+    config = load_config(RLConfig, None)
+    rows = []
+    for num_envs in envs:
+        rng = np.random.default_rng(0)
+        actions = [rng.integers(0, config.env.num_discrete_goals, num_envs) for _ in range(steps + 1)]
+        measured = {}
+        for name, build in (("highway-env", lambda: SafeHighwayVecEnv(num_envs, config.scenario, config.env, config.reward)),
+                            ("batched", lambda: SafeSimVecEnv(num_envs, config.scenario.replace(sim="batched"), config.env,
+                                                              config.reward))):
+            venv = build()
+            venv.seed(0)
+            venv.reset()
+            elapsed = 0.0
+            for step, action in enumerate(actions):
+                start = time.perf_counter()
+                venv.step(action)
+                elapsed += (time.perf_counter() - start) if step > 0 else 0.0  # step 0 warms up
+            venv.close()
+            measured[name] = num_envs * steps / elapsed
+        for name, rate in measured.items():
+            rows.append({"table": "rl", "world": name, "num_envs": num_envs, "agent_steps_per_s": rate,
+                         "speedup": rate / measured["highway-env"]})
+    return rows
+
+
 def _rss_bytes(field: str) -> int:
     """``VmRSS`` (now) or ``VmHWM`` (peak since the last reset) of this process, from Linux's /proc."""
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -175,6 +212,11 @@ def format_rows(rows: Sequence[dict]) -> str:
                   f"{'world':<12} {'E':>6} {'s/step':>8} {'env-steps/s':>12} {'solve share':>12} {'x highway-env':>14}"]
         lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['step_s']:>8.3f} {r['env_steps_per_s']:>12.1f} "
                   f"{r['solve_share']:>12.0%} {r['speedup']:>14.1f}" for r in mpc]
+    rl = [r for r in rows if r["table"] == "rl"]
+    if rl:
+        lines += ["", "safe RL vector environment: agent steps/s (5 frames each, one solve per frame for all E)",
+                  f"{'world':<12} {'E':>6} {'agent steps/s':>14} {'x highway-env':>14}"]
+        lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['agent_steps_per_s']:>14.1f} {r['speedup']:>14.1f}" for r in rl]
     memory = [r for r in rows if r["table"] == "memory"]
     if memory:
         lines += ["", "memory per environment",
@@ -189,6 +231,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--scenario", default="cruise", help="an IDM-traffic scenario (default cruise)")
     parser.add_argument("--envs", type=int_list, default=(1, 16, 256, 1024, 4096), help="E of the world table")
     parser.add_argument("--mpc-envs", type=int_list, default=(1, 16, 256, 1024), help="E of the MPC table (empty: skip)")
+    parser.add_argument("--rl-envs", type=int_list, default=(16, 64), help="E of the safe RL vector environment table")
+    parser.add_argument("--rl-steps", type=int, default=2, help="timed agent steps per RL row (default 2)")
+    parser.add_argument("--no-rl", action="store_true", help="skip the safe RL table")
     parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
     parser.add_argument("--mpc-steps", type=int, default=3, help="timed steps per MPC row (default 3)")
@@ -202,13 +247,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if args.memory_probe is not None:
         print(json.dumps(memory_probe(args.scenario, args.memory_probe, args.steps)))
         return 0
-    if min(args.steps, args.mpc_steps, args.highway_envs, args.threads) < 1:
-        parser.error("--steps, --mpc-steps, --highway-envs and --threads must be >= 1")
+    if min(args.steps, args.mpc_steps, args.rl_steps, args.highway_envs, args.threads) < 1:
+        parser.error("--steps, --mpc-steps, --rl-steps, --highway-envs and --threads must be >= 1")
     torch.set_num_threads(args.threads)
     scenario = load_scenario(args.scenario, {"sim": "batched"})  # refused here if the batched simulator cannot run it
     rows = world_rows(scenario, args.envs, args.steps, args.highway_envs)
     if not args.no_mpc:
         rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps)
+    if not args.no_rl:
+        rows += rl_rows(args.rl_envs, args.rl_steps)
     if not args.no_memory:
         rows += memory_rows(args.scenario, args.memory_envs, max(2, args.steps // 4))
     print(format_rows(rows))

@@ -225,14 +225,15 @@ def test_the_sim_config_follows_the_scenario():
 def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     import bench_sim
 
-    argv = ["--envs", "1,4", "--mpc-envs", "2", "--memory-envs", "4", "--steps", "2", "--mpc-steps", "1",
-            "--highway-envs", "1", "--out", str(tmp_path)]
+    argv = ["--envs", "1,4", "--mpc-envs", "2", "--rl-envs", "2", "--rl-steps", "1", "--memory-envs", "4", "--steps", "2",
+            "--mpc-steps", "1", "--highway-envs", "1", "--out", str(tmp_path)]
     assert bench_sim.main(argv) == 0
     rows = json.loads((tmp_path / "bench_sim.json").read_text())["rows"]
     assert [(r["table"], r["world"], r["num_envs"]) for r in rows if r["table"] != "memory"] == [
         ("world", "highway-env", 1), ("world", "batched", 1), ("world", "batched", 4),
-        ("mpc", "highway-env", 2), ("mpc", "batched", 2)]
-    assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] != "memory")
+        ("mpc", "highway-env", 2), ("mpc", "batched", 2), ("rl", "highway-env", 2), ("rl", "batched", 2)]
+    assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] in ("world", "mpc"))
+    assert all(r["agent_steps_per_s"] > 0 for r in rows if r["table"] == "rl")
     assert all(0 < r["solve_share"] <= 1 for r in rows if r["table"] == "mpc")
     memory = [r for r in rows if r["table"] == "memory"]
     assert memory[0]["num_envs"] == 4 and memory[0]["state_bytes_per_env"] > 20 * 4 * 16  # 20 vehicles x 16 fields
