@@ -34,6 +34,7 @@ from typing import Callable, Optional, Sequence
 
 from mmpc.cli.arguments import seed_list
 from mmpc.config import require_positive
+from mmpc.scenario import SIMULATORS
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +66,7 @@ class BenchSpec:
         scaling_repeats: timed calls per point of the scaling figure.
         nlp_workers: worker processes of the batch NLP in the scaling figure.
         threads: torch threads.
+        sim: the world the episodes run in (``highway-env``, the reference, or ``batched``).
     """
 
     scenarios: tuple[str, ...] = ("cruise", "high_speed")
@@ -76,6 +78,7 @@ class BenchSpec:
     scaling_repeats: int = 5
     nlp_workers: int = 2
     threads: int = 1
+    sim: str = "highway-env"
 
     def __post_init__(self) -> None:
         if not self.scenarios or not all(isinstance(s, str) and s for s in self.scenarios):
@@ -184,7 +187,7 @@ def run_bench(spec: BenchSpec, out: Path, log: Callable[[str], None] = print,
 
     torch.set_num_threads(spec.threads)
     out.mkdir(parents=True, exist_ok=True)
-    scenarios = [load_scenario(name).replace(duration=spec.duration) for name in spec.scenarios]
+    scenarios = [load_scenario(name, {"sim": spec.sim}).replace(duration=spec.duration) for name in spec.scenarios]
     report: dict = {
         "spec": asdict(spec),
         "machine": {"processor": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
@@ -394,12 +397,14 @@ def _bench(args: argparse.Namespace) -> int:
         values["duration"] = args.duration
     if args.nlp_workers is not None:
         values["nlp_workers"] = args.nlp_workers
+    if args.sim is not None:
+        values["sim"] = args.sim
     try:
         spec = BenchSpec(**values)
         from mmpc.scenario import load_scenario
 
         for name in spec.scenarios:  # fail before anything runs
-            load_scenario(name)
+            load_scenario(name, {"sim": spec.sim})
     except (ValueError, FileNotFoundError) as error:
         print(f"bench_closed_loop: error: {error}", file=sys.stderr)
         return 2
@@ -424,6 +429,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                        help=f"comma-separated driver specs (default {','.join(DEFAULT_METHODS)})")
     bench.add_argument("--duration", type=float, default=None, help="episode length [s] (default 15; --quick: 1)")
     bench.add_argument("--nlp-workers", type=int, default=None, help="batch-NLP processes in the scaling figure (default 2)")
+    bench.add_argument("--sim", choices=SIMULATORS, default=None,
+                       help="the world: highway-env (default, the reference) or batched (mmpc.sim)")
     bench.add_argument("--quick", action="store_true", help="a small run: one seed, 1 s episodes, small scaling figure")
     bench.add_argument("--out", default="runs/bench", help="output folder (default runs/bench)")
     return _bench(bench.parse_args(argv))
