@@ -93,3 +93,16 @@ def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="--sim highway-env"):
         SafeSimVecEnv(2, load_scenario("cruise_ngsim"), CONFIG, REWARD)
     assert torch.equal(venv.batch.sim.steps, torch.zeros(2, dtype=torch.long))  # the refused step moved nothing
+
+
+def test_rl_train_on_the_batched_simulator_records_the_world(tmp_path):
+    import yaml
+
+    from mmpc.cli.main import main
+
+    out = tmp_path / "run"
+    argv = ["rl", "train", "--algo", "dqn", "--config", "smoke", "--sim", "batched", "--timesteps", "32", "--no-eval",
+            "--compile", "off", "--out", str(out)]
+    assert main(argv) == 0
+    assert yaml.safe_load((out / "config.yaml").read_text())["config"]["scenario"]["sim"] == "batched"
+    assert (out / "model.zip").exists() and any((out / "tb").rglob("events.out.tfevents.*"))
