@@ -201,28 +201,35 @@ def memory_rows(scenario_name: str, envs: Sequence[int], steps: int) -> list[dic
     return rows
 
 
+#: The printed tables: (the rows' ``table``, title, columns (header, width, the cell of a row)).
+TABLES = (
+    ("world", "world alone (constant commands): env-steps/s", (
+        ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
+        ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.0f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
+    ("mpc", "MPC in the loop: env-steps/s, the solve's share of the step", (
+        ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),
+        ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.1f}"), ("solve share", 12, lambda r: f"{r['solve_share']:.0%}"),
+        ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
+    ("rl", "safe RL vector environment: agent steps/s (5 frames each, one solve per frame for all E)", (
+        ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
+        ("agent steps/s", 14, lambda r: f"{r['agent_steps_per_s']:.1f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
+    ("memory", "memory per environment", (
+        ("E", 6, lambda r: r["num_envs"]), ("state [B/env]", 14, lambda r: f"{r['state_bytes_per_env']:.0f}"),
+        ("process peak RSS [MiB]", 23, lambda r: f"{r['peak_rss_mib']:.0f}"),
+        ("peak added [KiB/env]", 21, lambda r: f"{r['peak_added_bytes_per_env'] / 1024:.1f}"))),
+)
+
+
 def format_rows(rows: Sequence[dict]) -> str:
-    lines = ["world alone (constant commands): env-steps/s",
-             f"{'world':<12} {'E':>6} {'env-steps/s':>12} {'x highway-env':>14}"]
-    lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['env_steps_per_s']:>12.0f} {r['speedup']:>14.1f}"
-              for r in rows if r["table"] == "world"]
-    mpc = [r for r in rows if r["table"] == "mpc"]
-    if mpc:
-        lines += ["", "MPC in the loop: env-steps/s, the solve's share of the step",
-                  f"{'world':<12} {'E':>6} {'s/step':>8} {'env-steps/s':>12} {'solve share':>12} {'x highway-env':>14}"]
-        lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['step_s']:>8.3f} {r['env_steps_per_s']:>12.1f} "
-                  f"{r['solve_share']:>12.0%} {r['speedup']:>14.1f}" for r in mpc]
-    rl = [r for r in rows if r["table"] == "rl"]
-    if rl:
-        lines += ["", "safe RL vector environment: agent steps/s (5 frames each, one solve per frame for all E)",
-                  f"{'world':<12} {'E':>6} {'agent steps/s':>14} {'x highway-env':>14}"]
-        lines += [f"{r['world']:<12} {r['num_envs']:>6} {r['agent_steps_per_s']:>14.1f} {r['speedup']:>14.1f}" for r in rl]
-    memory = [r for r in rows if r["table"] == "memory"]
-    if memory:
-        lines += ["", "memory per environment",
-                  f"{'E':>6} {'state [B/env]':>14} {'process peak RSS [MiB]':>23} {'peak added [KiB/env]':>21}"]
-        lines += [f"{r['num_envs']:>6} {r['state_bytes_per_env']:>14.0f} {r['peak_rss_mib']:>23.0f} "
-                  f"{r['peak_added_bytes_per_env'] / 1024:>21.1f}" for r in memory]
+    """The tables of :data:`TABLES` that have rows (a negative width aligns left)."""
+    lines: list[str] = []
+    for table, title, columns in TABLES:
+        mine = [r for r in rows if r["table"] == table]
+        if not mine:
+            continue
+        lines += ([""] if lines else []) + [title, " ".join(f"{header:{'<' if width < 0 else '>'}{abs(width)}}"
+                                                            for header, width, _ in columns)]
+        lines += [" ".join(f"{cell(r)!s:{'<' if width < 0 else '>'}{abs(width)}}" for _, width, cell in columns) for r in mine]
     return "\n".join(lines)
 
 
