@@ -615,3 +615,14 @@ def test_demonstrations_on_the_batched_simulator_have_the_highway_env_layout(tmp
         assert episode.truncations[-1] and not episode.terminations.any() and (episode.rewards > 0).all()
         np.testing.assert_allclose(episode.observations[:, 0, 3] * 80.0, episode.infos["ego"][:, 3], atol=0.05)
         assert (episode.infos["goal_index"][:-1] >= 0).all()
+
+
+def test_dagger_runs_on_the_batched_simulator(tmp_path):
+    scenario = short_cruise(0.5).replace(sim="batched")
+    config = DaggerConfig(iterations=1, initial_episodes=2, episodes_per_iteration=2, beta=0.5, noise=(0.3, 0.005),
+                          lockstep=2, label_batch=4, check_episodes=2,
+                          train=TrainConfig(epochs=2, batch_size=4, policy=PolicyConfig(hidden=(8,))))
+    report = run_dagger(scenario, tmp_path, config)
+    assert [r["source"] for r in report["rounds"]] == ["expert", "mixture"]
+    assert report["rounds"][1]["samples"] == 20 and all(r["check_steps"] == 10 for r in report["rounds"])
+    assert json.loads((tmp_path / "dagger.json").read_text())["scenario"]["sim"] == "batched"
