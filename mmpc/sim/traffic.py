@@ -58,16 +58,13 @@ def check_supported(scenario: ScenarioConfig) -> None:
         raise ValueError(f"scenario {scenario.name!r}: {reason}")
 
 
-def initial_state(
-    scenario: ScenarioConfig, seeds: torch.Tensor, *, dtype: torch.dtype = torch.float32, device=None
-) -> VehicleState:
+def initial_state(scenario: ScenarioConfig, seeds: torch.Tensor, *, dtype: torch.dtype = torch.float32) -> VehicleState:
     """The start of one episode per seed.
 
     Args:
         scenario: an IDM-traffic scenario (:func:`check_supported`).
-        seeds: (E,) int64 episode seeds.
+        seeds: (E,) int64 episode seeds; the state is built on their device.
         dtype: float32 or float64 state.
-        device: the state's device (default: the seeds').
 
     Returns:
         A :class:`VehicleState` of E x (1 + vehicles_count) slots, slot 0 the ego.
@@ -75,7 +72,7 @@ def initial_state(
     check_supported(scenario)
     traffic: IDMTraffic = scenario.traffic
     config = sim_config(scenario)
-    seeds = seeds.to(device=device if device is not None else seeds.device, dtype=torch.int64)
+    seeds = seeds.to(torch.int64)
     seed, count, lanes = seeds[:, None], traffic.vehicles_count, scenario.lanes
     slots = torch.arange(1, count + 1, device=seeds.device)
     crowding = math.exp(-5.0 / 40.0 * lanes)
@@ -134,11 +131,9 @@ def relocate(
     seeds: torch.Tensor,
     draw: tuple,
     config: SimConfig,
-    *,
-    keep_lane: bool = False,
 ) -> tuple[VehicleState, torch.Tensor]:
     """Move one vehicle per environment to the first of :data:`PLACEMENT_TRIES` random spots in
-    ``[low, high)`` along the road, on a random lane (its own with ``keep_lane``), with no other
+    ``[low, high)`` along the road, on a random lane, with no other
     vehicle within :data:`PLACEMENT_GAP` along the road and one lane width across; on the
     lane's centre, heading along it, speed and timer kept.
 
@@ -157,18 +152,17 @@ def relocate(
         return state, moved
     draw = tuple(index[rows] if isinstance(index, torch.Tensor) and index.dim() > 0 else index for index in draw)
     part, moved_part = _relocate_rows(VehicleState(*(field[rows] for field in state)), slot[rows], low[rows], high[rows],
-                                      seeds[rows], draw, config, keep_lane)
+                                      seeds[rows], draw, config)
     moved[rows] = moved_part
     return VehicleState(*(field.index_copy(0, rows, new) for field, new in zip(state, part))), moved
 
 
 def _relocate_rows(state: VehicleState, slot: torch.Tensor, low: torch.Tensor, high: torch.Tensor, seeds: torch.Tensor,
-                   draw: tuple, config: SimConfig, keep_lane: bool) -> tuple[VehicleState, torch.Tensor]:
+                   draw: tuple, config: SimConfig) -> tuple[VehicleState, torch.Tensor]:
     """:func:`relocate` where every environment moves its vehicle."""
     tries = torch.arange(PLACEMENT_TRIES, device=slot.device)
     seed = seeds[:, None]
-    current_lane = state.lane.gather(1, slot[:, None])
-    lane = current_lane.expand(-1, PLACEMENT_TRIES) if keep_lane else integers(seed, *draw, 0, tries, high=config.lanes)
+    lane = integers(seed, *draw, 0, tries, high=config.lanes)
     s = low[:, None].double() + (high - low)[:, None].double() * uniform(seed, *draw, 1, tries)  # (E, T)
     others = state.alive & (torch.arange(state.x.shape[1], device=slot.device) != slot[:, None])  # (E, V)
     near_across = (state.y[:, None, :] - lane[:, :, None] * config.lane_width).abs() < config.lane_width
@@ -209,10 +203,10 @@ def keep_in_window(
         mine = outside & (order == turn)
         moving = mine.any(dim=1)
         slot = mine.to(torch.int8).argmax(dim=1)
-        ahead_of_window = gap.gather(1, slot[:, None])[:, 0] < -behind
+        left_behind = gap.gather(1, slot[:, None])[:, 0] < -behind
         x_ego = ego_x[:, 0]
-        low = torch.where(ahead_of_window, x_ego + 0.75 * ahead, x_ego - behind)
-        high = torch.where(ahead_of_window, x_ego + ahead, x_ego - 0.75 * behind)
+        low = torch.where(left_behind, x_ego + 0.75 * ahead, x_ego - behind)
+        high = torch.where(left_behind, x_ego + ahead, x_ego - 0.75 * behind)
         state, _ = relocate(state, slot, moving, low, high, seeds, (_WINDOW, frame[:, None], slot[:, None]), config)
     return state
 
