@@ -62,8 +62,29 @@ class StepRecord(NamedTuple):
     on_road: bool
 
 
+#: Lane discipline: an ego farther than OFF_CENTRE from its nearest lane's centre is off-centre
+#: [m]; a lane change lasts from the last step within CENTRED of the old lane's centre to the
+#: first step within CENTRED of the new lane's [m].
+OFF_CENTRE = 1.0
+CENTRED = 0.5
+
+
 def _mean(values: Sequence[float]) -> float:
     return sum(values) / len(values) if values else float("nan")
+
+
+def lane_change_durations(records: Sequence[StepRecord], lane_width: float, dt: float) -> list[float]:
+    """Durations [s] of the completed lane changes: from leaving one lane's centre (the last
+    step within :data:`CENTRED` of it) to reaching another's (the first step within it)."""
+    durations = []
+    settled: Optional[tuple[int, int]] = None  # (lane, step) of the last centred step
+    for record in records:
+        if abs(record.y - record.lane * lane_width) > CENTRED:
+            continue
+        if settled is not None and record.lane != settled[0]:
+            durations.append((record.step - settled[1]) * dt)
+        settled = (record.lane, record.step)
+    return durations
 
 
 def episode_metrics(
@@ -72,7 +93,8 @@ def episode_metrics(
     dt: float,
     right_lane_y: float,
     v_cruise: Optional[float] = None,
-) -> dict[str, float | int]:
+    lane_width: float = 4.0,
+) -> dict[str, Optional[float | int]]:
     """Metrics of one episode.
 
     Args:
@@ -80,6 +102,7 @@ def episode_metrics(
         dt: control period [s], for the angular acceleration.
         right_lane_y: lateral position of the right lane's centre [m].
         v_cruise: cruise speed [m/s]; adds ``speed_residual_mean`` when given.
+        lane_width: [m]; lane k's centre is at ``y = k * lane_width``.
 
     Returns:
         ``collisions`` (0 or 1: an episode ends at the first one), ``offroad`` (steps off the
@@ -88,7 +111,9 @@ def episode_metrics(
         ``plan_cost_mean``, ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
         ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
         [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``,
-        ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``.
+        ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``,
+        ``off_centre_share`` (share of steps farther than :data:`OFF_CENTRE` from the nearest
+        lane centre), ``lane_change_s_mean`` (mean of :func:`lane_change_durations`; ``None`` without one).
     """
     if not records:
         raise ValueError("`records` must hold at least one step")
@@ -96,7 +121,7 @@ def episode_metrics(
         raise ValueError(f"`dt` must be > 0 s; got {dt}")
     speeds = [r.v for r in records]
     rates = [r.heading_rate for r in records]
-    metrics: dict[str, float | int] = {
+    metrics: dict[str, Optional[float | int]] = {
         "collisions": int(any(r.crashed for r in records)),
         "offroad": sum(not r.on_road for r in records),
         "steps": len(records),
@@ -117,5 +142,8 @@ def episode_metrics(
         lane_changes=sum(a.lane != b.lane for a, b in zip(records, records[1:])),
         fallback_steps=sum(r.fallback for r in records),
         min_clearance=min(r.clearance for r in records),
+        off_centre_share=_mean([float(abs(r.y - r.lane * lane_width) > OFF_CENTRE) for r in records]),
     )
+    durations = lane_change_durations(records, lane_width, dt)
+    metrics["lane_change_s_mean"] = _mean(durations) if durations else None  # None: an empty cell, as NaN != NaN
     return metrics

@@ -12,7 +12,7 @@ from mmpc.cli.arguments import seed_list
 from mmpc.cli.main import main
 from mmpc.highway.runner import run_episode, write_outputs
 from mmpc.evaluate import format_table, read_episodes, summarize
-from mmpc.metrics import StepRecord, episode_metrics
+from mmpc.metrics import StepRecord, episode_metrics, lane_change_durations
 from mmpc.scenario import ScenarioConfig, load_scenario
 
 REQUIRED_METRICS = {
@@ -131,3 +131,16 @@ def test_scenario_overrides_reach_nested_sections():
     assert scenario.traffic.target_speeds is None and scenario.mpc.num_obstacles == 4 and scenario.name == "x"
     with pytest.raises(ValueError, match="not a section"):
         load_scenario("cruise", {"name.first": "x"})
+
+
+def test_lane_discipline_metrics_time_the_changes_and_the_steps_off_centre():
+    # centred on lane 2 (y = 8), drift to lane 3 over 1.0 s, stay; then half a change back that never completes
+    ys = [8.0, 8.2, 8.4, 9.0, 9.8, 10.6, 11.2, 11.7, 12.0, 12.0, 11.5, 11.0, 10.6, 10.6]
+    records = [record(step, y=y, lane=round(y / 4.0)) for step, y in enumerate(ys)]
+    metrics = episode_metrics(records, dt=0.1, right_lane_y=20.0)
+    # last within 0.5 m of y = 8 at step 2 (8.4), first within 0.5 m of y = 12 at step 7 (11.7)
+    assert lane_change_durations(records, 4.0, 0.1) == pytest.approx([0.5])
+    assert metrics["lane_change_s_mean"] == pytest.approx(0.5)
+    off = [abs(y - round(y / 4.0) * 4.0) > 1.0 for y in ys]  # 9.8, 10.6 and the last two 10.6
+    assert sum(off) == 4 and metrics["off_centre_share"] == pytest.approx(4 / 14)
+    assert episode_metrics(records[:3], dt=0.1, right_lane_y=20.0)["lane_change_s_mean"] is None

@@ -25,6 +25,7 @@ from mmpc.files import file_slug
 MEAN_METRICS = (
     "mean_speed", "meta_cost_mean", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean",
     "lane_changes", "fallback_steps", "plan_cost_mean", "solve_ms_mean", "solve_ms_per_episode_mean",
+    "off_centre_share", "lane_change_s_mean",
 )
 
 #: Rows of the plain-text table: (key, header, format).
@@ -42,6 +43,8 @@ TABLE = (
     ("ang_acc_mean", "|psi''| [rad/s2]", "{:.3f}"),
     ("lane_changes", "lane changes", "{:.1f}"),
     ("fallback_steps", "fallback steps", "{:.1f}"),
+    ("off_centre_share", "off-centre > 1 m", "{:.3f}"),
+    ("lane_change_s_mean", "lane change [s]", "{:.2f}"),
     ("solve_ms_mean", "solve ms mean", "{:.1f}"),
     ("solve_ms_per_episode_mean", "solve ms / episode", "{:.1f}"),
     ("solve_ms_max", "solve ms max", "{:.1f}"),

@@ -36,6 +36,7 @@ METRIC_COLUMNS = (
     "steps", "duration", "collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
     "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "lane_changes", "fallback_steps", "min_clearance",
+    "off_centre_share", "lane_change_s_mean",
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "offroad", "lane_changes", "fallback_steps"})

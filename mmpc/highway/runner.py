@@ -95,7 +95,8 @@ def _record(step: int, episode: HighwayEpisode, observation: Observation, decisi
 
 def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord]) -> EpisodeResult:
     v_cruise = scenario.objective.v_cruise if isinstance(scenario.objective, CruiseObjective) else None
-    metrics = episode_metrics(records, dt=1.0 / scenario.frequency, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise)
+    metrics = episode_metrics(records, dt=1.0 / scenario.frequency, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
+                              lane_width=scenario.road.lane_width)
     if metrics["collisions"]:
         logger.warning("scenario %s seed %d: collision at t = %.1f s", scenario.name, seed, records[-1].time)
     return EpisodeResult(scenario, seed, records, {"scenario": scenario.name, "seed": seed, **metrics})
