@@ -153,6 +153,24 @@ class Plan(NamedTuple):
     compile_ms: float = 0.0
 
 
+class Scored(NamedTuple):
+    """The candidates of one solve, scored (:meth:`MPC.score`), before any selection.
+
+    Fields:
+        result: the solve, (E, G, ...), with :attr:`mmpc.Status.OFF_ROAD` set by the road filter.
+        cost: (E, G) meta cost.
+        violation: (E, G) ranking of infeasible candidates, drivable ones first (lower is better).
+        solve_ms: wall time of the optimizer call [ms], less ``compile_ms``.
+        compile_ms: what the call spent compiling new layouts [ms].
+    """
+
+    result: SolveResult
+    cost: torch.Tensor
+    violation: torch.Tensor
+    solve_ms: float
+    compile_ms: float = 0.0
+
+
 def nearest_obstacles(
     ego: torch.Tensor,
     vehicles: torch.Tensor,
@@ -367,7 +385,7 @@ class MPC:
     @torch.no_grad()
     def plan_problem(self, problem: ProblemBatch, selector: Optional[Selector] = None) -> Plan:
         """One MPC step for a problem batch built by the caller (e.g. :meth:`build_problem` with
-        goals of its own added), with an optional selection rule.
+        goals of its own added), with an optional selection rule: :meth:`score` then :meth:`choose`.
 
         Args:
             problem: E problems with G goals each.
@@ -380,6 +398,13 @@ class MPC:
         Returns:
             A :class:`Plan`, as :meth:`plan`.
         """
+        return self.choose(problem, self.score(problem), selector)
+
+    @torch.no_grad()
+    def score(self, problem: ProblemBatch) -> Scored:
+        """Solve every (problem, goal) of the batch and score it: road filter, meta cost and the
+        ranking of infeasible candidates. One optimizer call; :meth:`choose` may then pick from
+        the same scores more than once (e.g. for several agents' choices)."""
         start = time.perf_counter()
         result = self.optimizer(problem)
         if result.status.is_cuda:
@@ -388,7 +413,13 @@ class MPC:
         solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
         result, road_excess = self._keep_on_road(result, problem.ego)
         cost = self.meta_cost(result.trajectories, self.road)
-        violation = self._violation(result, road_excess)
+        return Scored(result, cost, self._violation(result, road_excess), solve_ms, compile_ms)
+
+    @torch.no_grad()
+    def choose(self, problem: ProblemBatch, scored: Scored, selector: Optional[Selector] = None) -> Plan:
+        """The :class:`Plan` of ``problem`` from its :meth:`score`: select a candidate per problem
+        (``selector``, as :meth:`plan_problem`) and the commands that execute it (:meth:`command`)."""
+        result, cost, violation = scored.result, scored.cost, scored.violation
         if selector is None:
             selection = select_best(result, cost, self.optimizer.config, violation=violation,
                                     **self.tie_break(result.trajectories, problem.ego))
@@ -401,7 +432,8 @@ class MPC:
             problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=problem.obstacles, mask=problem.obstacle_mask
         )
         return Plan(
-            problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, solve_ms, compile_ms
+            problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, scored.solve_ms,
+            scored.compile_ms,
         )
 
     def command(
@@ -444,10 +476,14 @@ class MPC:
         acceleration, heading_rate = self._fallback(
             ego, trajectory.times, feasible, drivable, acceleration, heading_rate, obstacles, mask
         )
+        return acceleration, self.steering(ego, heading_rate), heading_rate
+
+    def steering(self, ego: torch.Tensor, heading_rate: torch.Tensor) -> torch.Tensor:
+        """(E,) steering angle ``atan(L psidot / v)`` [rad] that turns the (E, 6) egos at
+        ``heading_rate`` (E,) [rad/s], clamped to ``max_steering`` (speeds below 1 m/s count as 1)."""
         speed = ego[:, EGO_V].clamp_min(1.0)
         steering = torch.atan(self.wheelbase * heading_rate / speed)
-        steering = steering.clamp(-self.config.max_steering, self.config.max_steering)
-        return acceleration, steering, heading_rate
+        return steering.clamp(-self.config.max_steering, self.config.max_steering)
 
     def _keep_on_road(self, result: SolveResult, ego: torch.Tensor) -> tuple[SolveResult, torch.Tensor]:
         """Flag candidates that leave the road as :attr:`Status.OFF_ROAD`.

@@ -21,7 +21,10 @@ from typing import Any, ClassVar, Mapping, Optional
 
 from mmpc.config import is_finite_number, require, require_non_negative, require_positive
 from mmpc.scenario import ScenarioConfig, load_scenario
+from mmpc.tracking import TrackingConfig
 
+#: When the safety layer solves: at every simulation frame, or at the agent's decisions (tracking between).
+REPLAN_MODES = ("frame", "decision")
 #: Algorithms ``mmpc rl train`` knows, with the action space each trains on by default.
 ALGORITHMS: dict[str, str] = {"dqn": "discrete", "ppo": "discrete", "sac": "continuous"}
 #: Action spaces each algorithm supports (stable-baselines3: DQN discrete only, SAC Box only).
@@ -103,8 +106,12 @@ class SafeEnvConfig:
     the goal ``(x_ego + v * horizon, y)`` together with the scenario's standard goals.
 
     Attributes:
-        decision_frames: k, simulation frames per agent step (the goal is held, the optimizer
-            replans every frame).
+        decision_frames: k, simulation frames per agent step (the goal is held).
+        replan: ``"frame"``: the optimizer replans at every frame of the agent step;
+            ``"decision"``: at the agent's decision only, and the plan is tracked over the other
+            frames (``tracking``), solved again where it would run into an obstacle as predicted
+            now or the ego has left it (:meth:`mmpc.rl.safety.SafetyLayer.frame`).
+        tracking: how ``replan: decision`` tracks the plan and when it gives it up.
         lane_offsets: discrete actions: target lanes relative to the ego's lane at decision time
             (clamped to the road).
         speeds: discrete actions: target average speeds [m/s]; actions are
@@ -126,6 +133,8 @@ class SafeEnvConfig:
     """
 
     decision_frames: int = 5
+    replan: str = "frame"
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     lane_offsets: tuple[int, ...] = (-1, 0, 1)
     speeds: tuple[float, ...] = (15.0, 20.0, 25.0, 28.0)
     lateral_range: float = 1.0
@@ -140,6 +149,7 @@ class SafeEnvConfig:
         where = "env"
         require(isinstance(self.decision_frames, int) and self.decision_frames >= 1,
                  f"{where}: `decision_frames` must be an int >= 1; got {self.decision_frames!r}")
+        require(self.replan in REPLAN_MODES, f"{where}: `replan` must be one of {list(REPLAN_MODES)}; got {self.replan!r}")
         require(isinstance(self.lane_offsets, tuple) and len(self.lane_offsets) > 0
                  and all(isinstance(o, int) and not isinstance(o, bool) for o in self.lane_offsets),
                  f"{where}: `lane_offsets` must be a non-empty list of ints; got {self.lane_offsets!r}")

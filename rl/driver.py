@@ -103,7 +103,7 @@ class SafeAgentDriver(Driver):
                           None if observation.vehicle_mask is None else observation.vehicle_mask[due])
         parts = [_flat_kinematics(observation, due, self.config.kinematics_vehicles)]
         if self.config.solver_features:
-            features, _ = self.layer.goal_features(sub)
+            features = self.layer.features(self.layer.decision_solve(sub))
             parts.append(features.reshape(len(due), -1))
         vector = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
         actions, _ = self.model.predict(vector, deterministic=True)

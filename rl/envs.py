@@ -7,7 +7,8 @@ One agent step lasts ``k = decision_frames`` simulation frames. highway-env appl
 the first frame of its own step only (DESIGN section 5), so the environment runs highway-env at
 one frame per ``env.step`` and drives the inner loop itself: the agent's goal command is held
 for the k frames while the safety layer (:class:`mmpc.rl.safety.SafetyLayer`) replans at every
-frame. Rewards are summed over the frames; the step ends early at a collision.
+frame, or at the decision only and tracks the plan in between (``SafeEnvConfig.replan``).
+Rewards are summed over the frames; the step ends early at a collision.
 
 Several environments advance together through :func:`advance`, which gathers their problems at
 every frame into ONE optimizer call; a single environment's :meth:`SafeHighwayEnv.step` is
@@ -170,7 +171,8 @@ class SafeHighwayEnv(gym.Env):
         render_mode: ``None`` or ``"rgb_array"``.
 
     ``info`` of a step: ``intervention`` (bool, some frame overrode the agent),
-    ``intervention_frames``, ``fallback_frames``, ``frames``, ``feasible_goals`` (feasible
+    ``intervention_frames``, ``fallback_frames``, ``solved_frames`` (frames a solve served the
+    environment; the others tracked the plan held), ``frames``, ``feasible_goals`` (feasible
     candidates at the last frame, the agent's included), ``agent_feasible`` (last frame),
     ``solve_ms`` (mean wall time of the optimizer calls of this step; in a vectorized batch
     one call serves every environment), ``residuals`` (the executed candidate's obstacle,
@@ -267,9 +269,9 @@ class SafeHighwayEnv(gym.Env):
         """Solver features of each environment's current state (one solve for all); ms of it."""
         if not envs[0].config.solver_features:
             return [None] * len(envs), 0.0
-        observation = stack_observations([env.road_state() for env in envs], range(len(envs)))
-        features, solve_ms = envs[0].layer.goal_features(observation)
-        return list(features), solve_ms
+        layer = envs[0].layer
+        solve = layer.decision_solve(stack_observations([env.road_state() for env in envs], range(len(envs))))
+        return list(layer.features(solve)), solve.scored.solve_ms
 
 
 def reset_many(envs: Sequence[SafeHighwayEnv], seeds: Sequence[Optional[int]]) -> list[tuple[np.ndarray, dict]]:
@@ -326,42 +328,48 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
         if env.episode.done:
             raise RuntimeError(f"environment {index}'s episode is over: call reset()")
     count = len(envs)
-    frames = envs[0].config.decision_frames
+    config = envs[0].config
     rewards = np.zeros(count)
     speeds: list[list[float]] = [[] for _ in envs]
     interventions = np.zeros(count, dtype=int)
     fallbacks = np.zeros(count, dtype=int)
+    solved = np.zeros(count, dtype=int)
     last: list[dict] = [{} for _ in envs]
     solve_ms: list[float] = []
-    commands: Optional[torch.Tensor] = None
-    for frame in range(frames):
+    observation = stack_observations([env.road_state() for env in envs], range(count))
+    commands = envs[0].commands(observation.ego, actions)
+    decided = None
+    if config.replan == "decision" and not envs[0].continuous:  # the grid solve the observation's features came from
+        decided = layer.decide(layer.decision_solve(observation), torch.as_tensor(actions, dtype=torch.long))
+        solve_ms.append(decided.plan.solve_ms)
+    period = 1.0 / envs[0].scenario.frequency
+    held, held_rows = None, list(range(count))
+    for frame in range(config.decision_frames):
         active = [i for i, env in enumerate(envs) if not env.episode.done]
         if not active:
             break
-        observation = stack_observations([envs[i].road_state() for i in active], active)
-        if commands is None:
-            commands = envs[0].commands(observation.ego, actions)  # frame 0: every env is active
-        safe = layer.plan(observation, commands[active])
-        solve_ms.append(safe.plan.solve_ms)
-        rows = torch.arange(len(active))
-        executed = safe.plan.selection.index
-        result = safe.plan.result
+        if frame > 0:
+            observation = stack_observations([envs[i].road_state() for i in active], active)
+        if held is not None and len(active) < len(held_rows):
+            held = held.take(torch.as_tensor([i in active for i in held_rows]))
+        control = layer.frame(observation, commands[active], frame * period, held, decided if frame == 0 else None)
+        held, held_rows = control.held, active
+        if bool(control.solved.any()) and not (frame == 0 and decided is not None):
+            solve_ms.append(control.solve_ms)
         for row, i in enumerate(active):
             env = envs[i]
-            env.episode.apply(float(safe.plan.acceleration[row]), float(safe.plan.steering[row]))
-            intervened = bool(safe.intervention[row])
+            env.episode.apply(float(control.acceleration[row]), float(control.steering[row]))
+            intervened = bool(control.intervention[row])
             rewards[i] += frame_reward(env.episode, env.reward_config) - env.config.intervention_penalty * intervened
             interventions[i] += intervened
-            fallbacks[i] += bool(safe.fallback[row])
+            fallbacks[i] += bool(control.fallback[row])
+            solved[i] += bool(control.solved[row])
             speeds[i].append(float(env.episode.ego.speed))
+            residual = control.residuals[row].tolist()
             last[i] = {
-                "feasible_goals": int(safe.feasible_goals[row]),
-                "agent_feasible": bool(safe.agent_feasible[row]),
-                "residuals": {
-                    "obstacle": float(result.residual_obstacle[rows[row], executed[row]]),
-                    "acceleration": float(result.residual_acceleration[rows[row], executed[row]]),
-                    "nonholonomic": float(result.residual_nonholonomic[rows[row], executed[row]]),
-                },
+                "feasible_goals": int(control.feasible_goals[row]),
+                "agent_feasible": bool(control.agent_feasible[row]),
+                "residuals": {"obstacle": residual[0], "acceleration": residual[1], "nonholonomic": residual[2]},
             }
     features, features_ms = SafeHighwayEnv._features(envs)
     if envs[0].config.solver_features:
@@ -375,6 +383,7 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
             "intervention": bool(interventions[i] > 0),
             "intervention_frames": int(interventions[i]),
             "fallback_frames": int(fallbacks[i]),
+            "solved_frames": int(solved[i]),
             "frames": len(speeds[i]),
             "solve_ms": WallTime(mean_ms),
             "speed": float(episode.ego.speed),

@@ -14,23 +14,31 @@ ONE optimizer call (:meth:`mmpc.MPC.plan_problem`). The executed candidate follo
    lane-keeping brake; also an intervention).
 
 The layer also measures, for observations, how every goal of the discrete grid fares at the
-current state (:meth:`SafetyLayer.goal_features`).
+current state (:meth:`SafetyLayer.decision_solve`, :meth:`SafetyLayer.features`).
+
+Replanning (:attr:`SafeEnvConfig.replan`): ``"frame"`` solves at every frame of an agent step;
+``"decision"`` solves at the agent's decision only and tracks the chosen plan between decisions
+(:mod:`mmpc.tracking`), replanning a row at once where the plan held runs into an obstacle as
+predicted now, the ego has left it, or no candidate was feasible (:meth:`SafetyLayer.frame`).
+With discrete goals the decision is taken from the solve that made the observation's solver
+features (the goal grid plus the standard goals at the same state): one solve per agent step.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
 
 from mmpc.drivers import Observation
-from mmpc.mpc import MPC, Plan, Selector
-from mmpc.problem import EGO_X, EGO_Y
+from mmpc.mpc import MPC, Plan, Scored, Selector
+from mmpc.problem import EGO_X, EGO_Y, ProblemBatch
 from mmpc.ranking import Selection
-from mmpc.result import SolveResult
+from mmpc.result import SolveResult, Trajectories
 from mmpc.rl.config import SafeEnvConfig
+from mmpc.tracking import needs_replan, plan_clearance, track
 
 #: Solver features per goal of the grid: feasible flag, squashed meta cost, clearance.
 FEATURES_PER_GOAL = 3
@@ -84,6 +92,85 @@ class SafePlan(NamedTuple):
     intervention: torch.Tensor
     fallback: torch.Tensor
     feasible_goals: torch.Tensor
+
+    def residuals(self) -> torch.Tensor:
+        """(E, 3) the executed candidate's obstacle, acceleration and non-holonomic residuals."""
+        result, executed = self.plan.result, self.plan.selection.index
+        rows = torch.arange(executed.shape[0], device=executed.device)
+        return torch.stack([result.residual_obstacle[rows, executed], result.residual_acceleration[rows, executed],
+                            result.residual_nonholonomic[rows, executed]], dim=1)
+
+
+class DecisionSolve(NamedTuple):
+    """One solve of the discrete goal grid and the standard goals at E states
+    (:meth:`SafetyLayer.decision_solve`): the observation's solver features, and with discrete
+    goals the candidates of the agent's next decision (:meth:`SafetyLayer.decide`).
+
+    Fields:
+        problem: E problems, goals (E, A + G0, 2): the grid's A first, then the standard goals.
+        scored: the candidates solved and scored.
+    """
+
+    problem: ProblemBatch
+    scored: Scored
+
+
+class HeldPlan(NamedTuple):
+    """The plans the layer executes between solves, one per environment (``replan: decision``).
+
+    Fields:
+        trajectory: the plans, every field (E, N), at ``trajectory.times`` (N,) [s].
+        planned_at: (E,) time of the agent step at which each was made [s].
+        valid: (E,) bool, a feasible candidate (False: the fallback drove; replan every frame).
+        intervention, agent_feasible: (E,) bool, as in :class:`SafePlan`, of the solve that made it.
+        feasible_goals: (E,) long, of that solve.
+        residuals: (E, 3) the plan's residuals (:meth:`SafePlan.residuals`).
+    """
+
+    trajectory: Trajectories
+    planned_at: torch.Tensor
+    valid: torch.Tensor
+    intervention: torch.Tensor
+    agent_feasible: torch.Tensor
+    feasible_goals: torch.Tensor
+    residuals: torch.Tensor
+
+    def take(self, index: torch.Tensor) -> "HeldPlan":
+        """The plans of the rows ``index`` (long or bool over E), e.g. those of the environments still running."""
+        trajectory = Trajectories(self.trajectory.times, *(field[index] for field in self.trajectory[1:]))
+        return HeldPlan(trajectory, *(field[index] for field in self[1:]))
+
+
+class FrameControl(NamedTuple):
+    """What the layer executes at one frame of E environments (:meth:`SafetyLayer.frame`).
+
+    Fields:
+        acceleration, steering: (E,) the commands [m/s^2, rad].
+        intervention, fallback, agent_feasible: (E,) bool, as in :class:`SafePlan`, of the plan executed.
+        feasible_goals: (E,) long, feasible candidates of the solve behind the plan executed.
+        residuals: (E, 3) the executed plan's residuals.
+        solved: (E,) bool, rows a solve served at this frame (the others tracked a held plan).
+        solve_ms: wall time of this frame's optimizer call [ms] (0 without one).
+        held: the plans to hold for the next frame.
+    """
+
+    acceleration: torch.Tensor
+    steering: torch.Tensor
+    intervention: torch.Tensor
+    fallback: torch.Tensor
+    agent_feasible: torch.Tensor
+    feasible_goals: torch.Tensor
+    residuals: torch.Tensor
+    solved: torch.Tensor
+    solve_ms: float
+    held: HeldPlan
+
+
+def observation_rows(observation: Observation, rows: torch.Tensor) -> Observation:
+    """The road-frame state of the environments ``rows`` (kinematics left out)."""
+    mask = None if observation.vehicle_mask is None else observation.vehicle_mask[rows]
+    ids = observation.ids()[rows]
+    return Observation(observation.ego[rows], observation.vehicles[rows], mask, None, ids)
 
 
 class SafetyLayer:
@@ -192,34 +279,127 @@ class SafetyLayer:
         problem = problem._replace(goals=goals)
         agent = torch.zeros(observation.num_envs, dtype=torch.long)
         selector = follow_agent(agent, goals, self.config.intervention_speed_scale, self.horizon, self.road.lane_width)
-        plan = self.mpc.plan_problem(problem, selector)
-        agent_feasible = plan.result.feasible[:, 0]
-        return SafePlan(
-            plan=plan,
-            agent_feasible=agent_feasible,
-            intervention=~agent_feasible,
-            fallback=~plan.selection.feasible,
-            feasible_goals=plan.result.feasible.sum(dim=1),
-        )
+        return self._safe_plan(self.mpc.plan_problem(problem, selector), agent)
 
-    def goal_features(self, observation: Observation) -> tuple[np.ndarray, float]:
-        """How every goal of the discrete grid fares at the current state (one solve for all E).
+    def decision_solve(self, observation: Observation) -> DecisionSolve:
+        """ONE solve of the discrete goal grid (at the egos' current lanes) and the standard goals
+        for E states: the observation's solver features, and the candidates of a discrete decision."""
+        problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
+        grid = self.goals(problem.ego, self._grid_commands(problem.ego))
+        problem = problem._replace(goals=torch.cat([grid, problem.goals], dim=1))
+        return DecisionSolve(problem, self.mpc.score(problem))
+
+    def features(self, solve: DecisionSolve) -> np.ndarray:
+        """How every goal of the discrete grid fares at the solved states.
 
         Returns:
             (E, A, 3) float32 features in [0, 1]: feasible flag, squashed meta cost
             ``m / (m + feature_cost_scale)`` with ``m`` the cost per trajectory sample, and
             clearance ``min(1, d / 3)`` with ``d`` the smallest normalised ellipse distance to
-            an obstacle (1/3: touching); and the solve's wall time [ms].
+            an obstacle (1/3: touching).
         """
-        problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
-        grid = self.goals(problem.ego, self._grid_commands(problem.ego))
-        problem = problem._replace(goals=torch.cat([grid, problem.goals], dim=1))
-        plan = self.mpc.plan_problem(problem)
-        count = grid.shape[1]
-        feasible = plan.result.feasible[:, :count].to(torch.float32)
-        samples = plan.result.trajectories.x.shape[-1]
-        cost = torch.nan_to_num(plan.cost[:, :count].to(torch.float32) / samples, nan=math.inf, posinf=math.inf).clamp_min(0.0)
+        result = solve.scored.result
+        count = self.num_discrete_goals
+        feasible = result.feasible[:, :count].to(torch.float32)
+        samples = result.trajectories.x.shape[-1]
+        cost = solve.scored.cost[:, :count].to(torch.float32) / samples
+        cost = torch.nan_to_num(cost, nan=math.inf, posinf=math.inf).clamp_min(0.0)
         squashed = torch.where(torch.isinf(cost), torch.ones_like(cost), cost / (cost + self.config.feature_cost_scale))
-        distance = torch.nan_to_num(plan.result.min_obstacle_distance[:, :count].to(torch.float32), nan=0.0, posinf=3.0)
+        distance = torch.nan_to_num(result.min_obstacle_distance[:, :count].to(torch.float32), nan=0.0, posinf=3.0)
         clearance = (distance / 3.0).clamp(0.0, 1.0)
-        return torch.stack([feasible, squashed, clearance], dim=-1).numpy(), plan.solve_ms
+        return torch.stack([feasible, squashed, clearance], dim=-1).numpy()
+
+    def decide(self, solve: DecisionSolve, actions: torch.Tensor) -> SafePlan:
+        """Discrete actions executed from the candidates of a :meth:`decision_solve` at the same
+        states (no new solve): the agent's grid goal where feasible, else as :func:`follow_agent`.
+
+        Args:
+            solve: the decision solve of the E states the actions were chosen at.
+            actions: (E,) long indices into the grid.
+        """
+        actions = torch.as_tensor(actions, dtype=torch.long).reshape(-1)
+        if actions.shape[0] != solve.problem.num_problems:
+            raise ValueError(f"`actions` must have shape ({solve.problem.num_problems},); got {tuple(actions.shape)}")
+        goals = solve.problem.goals
+        selector = follow_agent(actions, goals, self.config.intervention_speed_scale, self.horizon, self.road.lane_width)
+        plan = self.mpc.choose(solve.problem, solve.scored, selector)
+        return self._safe_plan(plan, actions)
+
+    def frame(
+        self,
+        observation: Observation,
+        commands: torch.Tensor,
+        now: float,
+        held: Optional[HeldPlan] = None,
+        decided: Optional[SafePlan] = None,
+    ) -> FrameControl:
+        """The commands of one frame of an agent step for E environments.
+
+        At the decision (``held`` None) the plan is ``decided`` (:meth:`decide`) or solved now
+        (:meth:`plan`). Later frames solve every row again with ``replan: frame``; with
+        ``replan: decision`` they track the plan held (:func:`mmpc.tracking.track`) and solve
+        only the rows whose plan is no longer safe to follow (:func:`mmpc.tracking.needs_replan`,
+        or no feasible candidate), all in one call.
+
+        Args:
+            observation: the E environments' road-frame state now.
+            commands: (E, 2) the goal commands held over the agent step.
+            now: time since the decision [s].
+            held: the previous frame's :attr:`FrameControl.held`; ``None`` at the decision.
+            decided: the decision's plan from :meth:`decide`, or ``None`` to solve it now.
+        """
+        if held is None or self.config.replan == "frame":
+            safe = decided if held is None and decided is not None else self.plan(observation, commands)
+            return self._control(safe, now)
+        return self._follow(observation, commands, now, held)
+
+    # ------------------------------------------------------------------ frame pieces
+
+    def _safe_plan(self, plan: Plan, agent_index: torch.Tensor) -> SafePlan:
+        rows = torch.arange(agent_index.shape[0])
+        agent_feasible = plan.result.feasible[rows, agent_index]
+        return SafePlan(plan=plan, agent_feasible=agent_feasible, intervention=~agent_feasible,
+                        fallback=~plan.selection.feasible, feasible_goals=plan.result.feasible.sum(dim=1))
+
+    def _control(self, safe: SafePlan, now: float) -> FrameControl:
+        """Execute a fresh plan in every row and hold it."""
+        plan = safe.plan
+        count = plan.acceleration.shape[0]
+        residuals = safe.residuals()
+        held = HeldPlan(plan.trajectory, torch.full((count,), now, dtype=plan.acceleration.dtype), plan.selection.feasible,
+                        safe.intervention, safe.agent_feasible, safe.feasible_goals, residuals)
+        return FrameControl(plan.acceleration, plan.steering, safe.intervention, safe.fallback, safe.agent_feasible,
+                            safe.feasible_goals, residuals, torch.ones(count, dtype=torch.bool), plan.solve_ms, held)
+
+    def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan) -> FrameControl:
+        """Track the held plans; solve again (one call) where they are no longer safe to follow."""
+        mpc = self.mpc
+        ego = observation.ego.to(mpc.optimizer.dtype)
+        elapsed = now - held.planned_at
+        acceleration, heading_rate, lateral, speed_error = track(
+            held.trajectory, elapsed, ego, mpc.config.command_window, self.config.tracking)
+        vehicles = observation.vehicles.to(ego.dtype)
+        states, mask = mpc.nearest_obstacles(ego, vehicles, observation.vehicle_mask)
+        clearance = plan_clearance(held.trajectory, elapsed, states, mask, mpc.predict, mpc.ellipse)
+        replan = ~held.valid | needs_replan(clearance, lateral, speed_error, mpc.optimizer.config.obstacle_tolerance,
+                                            self.config.tracking)
+        # fields 0-6 are what is executed; merged row-wise with the rows solved again below
+        control = FrameControl(acceleration, mpc.steering(ego, heading_rate), held.intervention,
+                               torch.zeros_like(held.valid), held.agent_feasible, held.feasible_goals, held.residuals,
+                               replan, 0.0, held)
+        rows = replan.nonzero()[:, 0]
+        if rows.numel() == 0:
+            return control
+        fresh = self._control(self.plan(observation_rows(observation, rows), commands[rows]), now)
+        executed = [_scatter_rows(mine, rows, theirs) for mine, theirs in zip(control[:7], fresh[:7])]
+        trajectory = Trajectories(held.trajectory.times, *(_scatter_rows(mine, rows, theirs)
+                                                           for mine, theirs in zip(held.trajectory[1:], fresh.held.trajectory[1:])))
+        kept = HeldPlan(trajectory, *(_scatter_rows(mine, rows, theirs) for mine, theirs in zip(held[1:], fresh.held[1:])))
+        return FrameControl(*executed, replan, fresh.solve_ms, kept)
+
+
+def _scatter_rows(base: torch.Tensor, rows: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """A copy of ``base`` with ``values`` in its rows ``rows``."""
+    merged = base.clone()
+    merged[rows] = values.to(base.dtype)
+    return merged

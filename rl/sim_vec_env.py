@@ -4,14 +4,14 @@ one optimizer call per simulation frame for all of them, as a stable-baselines3 
 
 Observations, actions, rewards and ``info`` mean what they mean in :mod:`mmpc.rl.envs` (the
 highway-env environments): highway-env's ``Kinematics`` rows and the solver features, the goal
-grid or Box goals held for ``decision_frames`` frames while the safety layer replans every frame,
-highway-env's reward summed over the frames minus the intervention penalty. Episodes that end
+grid or Box goals held for ``decision_frames`` frames (the safety layer replans at every frame or
+at the decisions, :attr:`mmpc.rl.config.SafeEnvConfig.replan`), highway-env's reward summed over the frames minus the intervention penalty. Episodes that end
 are started again at once from a new seed (SB3's auto-reset; gymnasium's ``SAME_STEP`` mode).
 """
 
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence
+from typing import Any, NamedTuple, Optional, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -23,7 +23,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, Vec
 from mmpc.drivers import Observation
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.envs import WallTime, action_space, check_action, goal_commands, observation_space, observation_vectors
-from mmpc.rl.safety import SafetyLayer
+from mmpc.rl.safety import DecisionSolve, SafetyLayer
 from mmpc.scenario import ScenarioConfig, batched_unsupported, build_mpc
 from mmpc.sim import SimEpisodes
 from mmpc.sim.observation import kinematics_observation
@@ -31,6 +31,29 @@ from mmpc.sim.reward import highway_reward
 
 #: Episode seeds drawn for resets without one lie in [0, SEED_RANGE).
 SEED_RANGE = 2 ** 31 - 1
+
+
+class BatchStep(NamedTuple):
+    """One agent step of E environments (:meth:`SafeSimBatch.advance`).
+
+    Fields:
+        observations: (E, size) float32, after the ended episodes were started again.
+        rewards: (E,) float64.
+        terminated: (E,) bool, the ego crashed.
+        truncated: (E,) bool, time up.
+        infos: one dict per environment about the step (see :class:`mmpc.rl.envs.SafeHighwayEnv`;
+            ``solved_frames`` counts the frames a solve served the environment).
+        final: environment -> the last observation of its ended episode.
+        reset_infos: environment -> the ``info`` of its new episode (``episode_seed``, ``solve_ms``).
+    """
+
+    observations: np.ndarray
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    infos: list[dict]
+    final: dict[int, np.ndarray]
+    reset_infos: dict[int, dict]
 
 
 class SafeSimBatch:
@@ -62,6 +85,7 @@ class SafeSimBatch:
         self.dtype = self.layer.mpc.optimizer.dtype
         self.rng = np.random.default_rng(seed)
         self.sim: Optional[SimEpisodes] = None
+        self._decision: Optional[DecisionSolve] = None
 
     def _seeds(self, seeds: Sequence[Optional[int]]) -> list[int]:
         return [int(s) if s is not None else int(self.rng.integers(SEED_RANGE)) for s in seeds]
@@ -70,13 +94,20 @@ class SafeSimBatch:
         ego, vehicles, mask = self.sim.road_state()
         return Observation(ego[rows].to(self.dtype), vehicles[rows].to(self.dtype), mask[rows], None, rows)
 
-    def _observations(self, rows: torch.Tensor) -> tuple[np.ndarray, float]:
-        """(R, size) observations of environments ``rows`` and the ms of their features solve."""
-        features, solve_ms = None, 0.0
-        if self.config.solver_features:
-            features, solve_ms = self.layer.goal_features(self._road_observation(rows))
+    @property
+    def _decides_from_features_solve(self) -> bool:
+        """Discrete decisions at the decision rate are taken from the solve behind the observation."""
+        return self.config.replan == "decision" and not self.continuous
+
+    def _observations(self, rows: torch.Tensor) -> tuple[np.ndarray, Optional[DecisionSolve]]:
+        """(R, size) observations of environments ``rows`` and the decision solve behind their
+        solver features (``None`` when neither the features nor the decision need one)."""
+        solve = None
+        if self.config.solver_features or self._decides_from_features_solve:
+            solve = self.layer.decision_solve(self._road_observation(rows))
+        features = self.layer.features(solve) if self.config.solver_features else None
         kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles)
-        return observation_vectors(kinematics[rows].float().numpy(), features, self.config), solve_ms
+        return observation_vectors(kinematics[rows].float().numpy(), features, self.config), solve
 
     def reset(self, seeds: Sequence[Optional[int]]) -> tuple[np.ndarray, list[dict]]:
         """Start every environment (``None`` seeds drawn); ``(observations (E, size), infos)``."""
@@ -84,23 +115,19 @@ class SafeSimBatch:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
         episode_seeds = self._seeds(seeds)
         self.sim = SimEpisodes(self.scenario, episode_seeds)
-        observations, solve_ms = self._observations(torch.arange(self.num_envs))
-        return observations, [{"solve_ms": WallTime(solve_ms), "episode_seed": s} for s in episode_seeds]
+        observations, self._decision = self._observations(torch.arange(self.num_envs))
+        solve_ms = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
+        return observations, [{"solve_ms": solve_ms, "episode_seed": s} for s in episode_seeds]
 
-    def reset_rows(self, rows: Sequence[int]) -> tuple[np.ndarray, list[dict]]:
-        """Start new episodes (drawn seeds) in environments ``rows``; the others keep running."""
-        rows = torch.as_tensor(list(rows), dtype=torch.long)
-        episode_seeds = self._seeds([None] * rows.numel())
-        self.sim.reset(rows, episode_seeds)
-        observations, solve_ms = self._observations(rows)
-        return observations, [{"solve_ms": WallTime(solve_ms), "episode_seed": s} for s in episode_seeds]
+    def advance(self, actions: Sequence[Any]) -> BatchStep:
+        """One agent step of every environment, then a new episode (drawn seed) in every one that
+        ended (the auto-reset of both vector APIs).
 
-    def advance(self, actions: Sequence[Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[dict]]:
-        """One agent step of every environment (:func:`mmpc.rl.envs.advance` on the batched simulator).
-
-        Returns:
-            observations (E, size) float32, rewards (E,) float64, terminated (E,) bool (the ego
-            crashed), truncated (E,) bool (time up), one ``info`` dict per environment.
+        Every environment turns its action into a goal command at its current state and holds it
+        for ``decision_frames`` frames; each frame is ONE safety-layer call for all running
+        environments (:meth:`mmpc.rl.safety.SafetyLayer.frame`) and one simulator step. The
+        observations after the step come from one more solve (the decision solve of the next
+        step), plus one for the last states of the episodes that ended.
         """
         if self.sim is None:
             raise RuntimeError("call reset() before step()")
@@ -115,56 +142,82 @@ class SafeSimBatch:
         if bool(self.sim.done.any()):
             raise RuntimeError(f"environments {self.sim.done.nonzero()[:, 0].tolist()} are over: reset them first")
         count = self.num_envs
-        commands = goal_commands(self.layer, self._road_observation(torch.arange(count)).ego, checked, self.continuous)
+        everyone = torch.arange(count)
+        commands = goal_commands(self.layer, self._road_observation(everyone).ego, checked, self.continuous)
+        decided = None
+        if self._decides_from_features_solve:
+            decided = self.layer.decide(self._decision, torch.as_tensor(checked, dtype=torch.long))
         rewards = torch.zeros(count, dtype=torch.float64)
         interventions = torch.zeros(count, dtype=torch.long)
         fallbacks = torch.zeros(count, dtype=torch.long)
+        solved = torch.zeros(count, dtype=torch.long)
         frames = torch.zeros(count, dtype=torch.long)
         speed_sum = torch.zeros(count, dtype=torch.float64)
         feasible_goals = torch.zeros(count, dtype=torch.long)
         agent_feasible = torch.zeros(count, dtype=torch.bool)
         residuals = torch.zeros(count, 3, dtype=torch.float64)
-        solve_ms = []
+        solve_ms = [] if decided is None else [decided.plan.solve_ms]
         reward_weights = dict(collision_reward=self.reward.collision_reward, right_lane_reward=self.reward.right_lane_reward,
                               high_speed_reward=self.reward.high_speed_reward,
                               reward_speed_range=self.reward.reward_speed_range, normalize=self.reward.normalize)
-        for _ in range(self.config.decision_frames):
+        period = 1.0 / self.scenario.frequency
+        held, held_rows = None, everyone
+        for frame in range(self.config.decision_frames):
             running = ~self.sim.done
             rows = running.nonzero()[:, 0]
             if rows.numel() == 0:
                 break
-            safe = self.layer.plan(self._road_observation(rows), commands[rows])
-            solve_ms.append(safe.plan.solve_ms)
+            if held is not None and rows.numel() < held_rows.numel():
+                held = held.take(torch.isin(held_rows, rows))
+            control = self.layer.frame(self._road_observation(rows), commands[rows], frame * period, held,
+                                       decided if frame == 0 else None)
+            held, held_rows = control.held, rows
+            if bool(control.solved.any()) and not (frame == 0 and decided is not None):
+                solve_ms.append(control.solve_ms)
             command = torch.zeros(count, 2, dtype=self.sim.state.x.dtype)
-            command[rows] = torch.stack([safe.plan.acceleration, safe.plan.steering], dim=1).to(command.dtype)
+            command[rows] = torch.stack([control.acceleration, control.steering], dim=1).to(command.dtype)
             self.sim.step(command, running)
             frame_reward = highway_reward(self.sim.state, self.sim.config, **reward_weights).double()
-            rewards[rows] += frame_reward[rows] - self.config.intervention_penalty * safe.intervention.double()
-            interventions[rows] += safe.intervention.long()
-            fallbacks[rows] += safe.fallback.long()
+            rewards[rows] += frame_reward[rows] - self.config.intervention_penalty * control.intervention.double()
+            interventions[rows] += control.intervention.long()
+            fallbacks[rows] += control.fallback.long()
+            solved[rows] += control.solved.long()
             frames[rows] += 1
             speed_sum[rows] += self.sim.state.speed[rows, 0].double()
-            feasible_goals[rows] = safe.feasible_goals
-            agent_feasible[rows] = safe.agent_feasible
-            result, executed, within = safe.plan.result, safe.plan.selection.index, torch.arange(rows.numel())
-            residuals[rows] = torch.stack([result.residual_obstacle[within, executed], result.residual_acceleration[within, executed],
-                                           result.residual_nonholonomic[within, executed]], dim=1).double()
-        observations, features_ms = self._observations(torch.arange(count))
-        if self.config.solver_features:
-            solve_ms.append(features_ms)
+            feasible_goals[rows] = control.feasible_goals
+            agent_feasible[rows] = control.agent_feasible
+            residuals[rows] = control.residuals.double()
         crashed = self.sim.crashed.clone()
         truncated = self.sim.done & ~crashed
+        end_speed = self.sim.state.speed[:, 0].tolist()
+        finished = self.sim.done.nonzero()[:, 0]
+        final: dict[int, np.ndarray] = {}
+        reset_infos: dict[int, dict] = {}
+        if finished.numel():
+            last, last_solve = self._observations(finished)
+            final = dict(zip(finished.tolist(), last))
+            if last_solve is not None:
+                solve_ms.append(last_solve.scored.solve_ms)
+            episode_seeds = self._seeds([None] * finished.numel())
+            self.sim.reset(finished, episode_seeds)
+            reset_infos = {row: {"episode_seed": seed} for row, seed in zip(finished.tolist(), episode_seeds)}
+        observations, self._decision = self._observations(everyone)
+        if self._decision is not None:
+            solve_ms.append(self._decision.scored.solve_ms)
+        for info in reset_infos.values():
+            info["solve_ms"] = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
         mean_ms = WallTime(float(np.mean(solve_ms)) if solve_ms else 0.0)
-        speed = self.sim.state.speed[:, 0].tolist()
-        columns = zip(interventions.tolist(), fallbacks.tolist(), frames.tolist(), speed, (speed_sum / frames.clamp(min=1)).tolist(),
-                      crashed.tolist(), commands.tolist(), feasible_goals.tolist(), agent_feasible.tolist(), residuals.tolist())
+        columns = zip(interventions.tolist(), fallbacks.tolist(), solved.tolist(), frames.tolist(), end_speed,
+                      (speed_sum / frames.clamp(min=1)).tolist(), crashed.tolist(), commands.tolist(),
+                      feasible_goals.tolist(), agent_feasible.tolist(), residuals.tolist())
         infos = [{
-            "intervention": intervened > 0, "intervention_frames": intervened, "fallback_frames": fallback, "frames": frame,
-            "solve_ms": mean_ms, "speed": end_speed, "mean_speed": mean_speed, "crashed": crash, "goal": tuple(goal),
-            "feasible_goals": feasible, "agent_feasible": own,
+            "intervention": intervened > 0, "intervention_frames": intervened, "fallback_frames": fallback,
+            "solved_frames": solves, "frames": frame, "solve_ms": mean_ms, "speed": speed, "mean_speed": mean_speed,
+            "crashed": crash,
+            "goal": tuple(goal), "feasible_goals": feasible, "agent_feasible": own,
             "residuals": {"obstacle": residual[0], "acceleration": residual[1], "nonholonomic": residual[2]},
-        } for intervened, fallback, frame, end_speed, mean_speed, crash, goal, feasible, own, residual in columns]
-        return observations, rewards.numpy(), crashed.numpy(), truncated.numpy(), infos
+        } for intervened, fallback, solves, frame, speed, mean_speed, crash, goal, feasible, own, residual in columns]
+        return BatchStep(observations, rewards.numpy(), crashed.numpy(), truncated.numpy(), infos, final, reset_infos)
 
 
 class SafeSimVecEnv(VecEnv):
@@ -197,19 +250,14 @@ class SafeSimVecEnv(VecEnv):
         self._actions = list(actions)
 
     def step_wait(self) -> VecEnvStepReturn:
-        observations, rewards, terminated, truncated, infos = self.batch.advance(self._actions)
-        dones = terminated | truncated
-        for index, info in enumerate(infos):
-            info["TimeLimit.truncated"] = bool(truncated[index])
-        finished = dones.nonzero()[0].tolist()
-        if finished:
-            for index in finished:
-                infos[index]["terminal_observation"] = observations[index].copy()
-            fresh, reset_infos = self.batch.reset_rows(finished)
-            observations[finished] = fresh
-            for index, info in zip(finished, reset_infos):
-                self.reset_infos[index] = info
-        return observations, rewards.astype(np.float32), dones, infos
+        step = self.batch.advance(self._actions)
+        dones = step.terminated | step.truncated
+        for index, info in enumerate(step.infos):
+            info["TimeLimit.truncated"] = bool(step.truncated[index])
+            if index in step.final:
+                info["terminal_observation"] = step.final[index]
+                self.reset_infos[index] = step.reset_infos[index]
+        return step.observations, step.rewards.astype(np.float32), dones, step.infos
 
     def close(self) -> None:
         """Nothing to release (tensors only)."""
@@ -258,16 +306,11 @@ class SafeSimVectorEnv(gym.vector.VectorEnv):
         return observations, infos
 
     def step(self, actions):
-        observations, rewards, terminated, truncated, env_infos = self.batch.advance(list(actions))
+        step = self.batch.advance(list(actions))
         infos: dict = {}
-        finished = (terminated | truncated).nonzero()[0].tolist()
-        for index in finished:
-            infos = self._add_info(infos, {"final_obs": observations[index].copy(), "final_info": env_infos[index]}, index)
-        if finished:
-            fresh, reset_infos = self.batch.reset_rows(finished)
-            observations[finished] = fresh
-            for index, info in zip(finished, reset_infos):
-                env_infos[index] = info
-        for index, info in enumerate(env_infos):
+        for index, info in enumerate(step.infos):
+            if index in step.final:
+                infos = self._add_info(infos, {"final_obs": step.final[index], "final_info": info}, index)
+                info = step.reset_infos[index]
             infos = self._add_info(infos, info, index)
-        return observations, rewards, terminated, truncated, infos
+        return step.observations, step.rewards, step.terminated, step.truncated, infos
