@@ -244,7 +244,11 @@ class BatchOptimizer(nn.Module):
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:
-            return self._solve(ego, goals, obstacles, mask, history, compiled)
+            bucket = _problem_bucket(num_problems, num_goals, self.tile_size) if compiled else num_problems
+            if bucket == num_problems:
+                return self._solve(ego, goals, obstacles, mask, history, compiled)
+            ego, goals, obstacles, mask = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask))
+            return self._solve(ego, goals, obstacles, mask, history, compiled).head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
         padded_problems = _ceil_div(num_problems, tile_problems) * tile_problems
@@ -431,6 +435,15 @@ def _tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Opti
         tiles = _ceil_div(num_problems, tile_size // num_goals)
         return _ceil_div(num_problems, tiles), num_goals
     return 1, _ceil_div(num_goals, _ceil_div(num_goals, tile_size))
+
+
+def _problem_bucket(num_problems: int, num_goals: int, tile_size: Optional[int]) -> int:
+    """Problems to solve for an E x G batch that fits one tile: E rounded up to a power of two
+    (at most a full tile), so that batches of varying E (rows that replan, episodes that end)
+    share a few compiled layouts instead of compiling one each. Without tiles: E."""
+    if tile_size is None:
+        return num_problems
+    return max(num_problems, min(1 << (num_problems - 1).bit_length(), tile_size // num_goals))
 
 
 def _ceil_div(numerator: int, denominator: int) -> int:
