@@ -225,13 +225,18 @@ def test_the_sim_config_follows_the_scenario():
 def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     import bench_sim
 
-    argv = ["--envs", "1,4", "--mpc-envs", "2", "--rl-envs", "2", "--rl-steps", "1", "--memory-envs", "4", "--steps", "2",
+    argv = ["--envs", "1,4", "--mpc-envs", "2", "--rl-envs", "2", "--rl-steps", "1", "--rl-warmup", "1", "--memory-envs", "4", "--steps", "2",
             "--mpc-steps", "1", "--highway-envs", "1", "--out", str(tmp_path)]
     assert bench_sim.main(argv) == 0
     rows = json.loads((tmp_path / "bench_sim.json").read_text())["rows"]
-    assert [(r["table"], r["world"], r["num_envs"]) for r in rows if r["table"] != "memory"] == [
+    assert [(r["table"], r["world"], r["num_envs"]) for r in rows if r["table"] not in ("memory", "rl")] == [
         ("world", "highway-env", 1), ("world", "batched", 1), ("world", "batched", 4),
-        ("mpc", "highway-env", 2), ("mpc", "batched", 2), ("rl", "highway-env", 2), ("rl", "batched", 2)]
+        ("mpc", "highway-env", 2), ("mpc", "batched", 2)]
+    assert [(r["world"], r["replan"], r["num_envs"]) for r in rows if r["table"] == "rl"] == [
+        ("highway-env", "frame", 2), ("highway-env", "decision", 2), ("batched", "frame", 2), ("batched", "decision", 2)]
+    # at every frame a solve served every environment when replanning at every frame; at the decision at least with decisions
+    assert [r["solved_frame_share"] == 1.0 for r in rows if r["table"] == "rl"] == [True, False, True, False]
+    assert all(0.2 <= r["solved_frame_share"] <= 1 for r in rows if r["table"] == "rl")
     assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] in ("world", "mpc"))
     assert all(r["agent_steps_per_s"] > 0 for r in rows if r["table"] == "rl")
     assert all(0 < r["solve_share"] <= 1 for r in rows if r["table"] == "mpc")
