@@ -5,7 +5,8 @@ what the model was trained on:
 
 - a safe-layer agent (``--env safe``) picks a goal every ``decision_frames`` control steps from
   its observation (highway-env kinematics + solver features); the goal is held while the safety
-  layer plans towards it at every step (:class:`SafeAgentDriver`);
+  layer plans towards it at every step, or plans at the decision and tracks the plan in between,
+  as the agent was trained (``replan``, :class:`SafeAgentDriver`);
 - a plain highway-env agent (``--env highway``) with continuous actions has its action mapped
   to acceleration and steering; with highway-env's ``DiscreteMetaAction`` its meta-action is
   executed by a lane and speed controller with highway-env's ``MDPVehicle`` control laws
@@ -23,8 +24,10 @@ import torch
 
 from mmpc.drivers import Candidates, Decision, Driver, Observation
 from mmpc.problem import EGO_PSI, EGO_PSIDOT, EGO_V, EGO_Y
+from mmpc.result import Trajectories
 
 if TYPE_CHECKING:
+    from mmpc.rl.safety import DecisionSolve, HeldPlan, SafePlan
     from mmpc.rl.train import TrainedRun
     from mmpc.scenario import ScenarioConfig
 
@@ -75,7 +78,18 @@ class _Hold:
 
 
 class SafeAgentDriver(Driver):
-    """A safe-layer agent: its goal choice executed through the safety layer.
+    """A safe-layer agent: its goal choice executed through the safety layer, as in training
+    (:attr:`mmpc.rl.config.SafeEnvConfig.replan`):
+
+    - ``replan: frame``: the held goal is planned afresh at every frame (:meth:`SafetyLayer.plan`);
+    - ``replan: decision``: the goal is planned at the agent's decision (discrete goals: chosen from
+      the solve behind the observation's features) and the plan tracked over the agent step's
+      other frames, solved again only where it is no longer safe (:meth:`SafetyLayer.frame`).
+
+    In decision mode a row that tracked its plan (or was solved again inside the layer) has no
+    candidates to report: its decision row carries ``goal_index`` -1 and ``plan_cost`` NaN, with
+    the layer's ``fallback`` and the ``feasible_goals`` of the solve behind the plan executed;
+    ``candidates`` and ``plan`` are given only when every row was decided at this frame.
 
     Args:
         run: the trained run (model, environment settings).
@@ -92,44 +106,122 @@ class SafeAgentDriver(Driver):
         self.continuous = run.continuous
         self.config = run.config.env
         self.layer = SafetyLayer(build_mpc(scenario), self.config)
+        self.period = 1.0 / scenario.frequency
         self.hold = _Hold(self.config.decision_frames)
+        self.held: dict[int, "HeldPlan"] = {}  # replan: decision, one-row plans by environment id
 
     def reset(self, num_envs: int) -> None:
         self.hold.clear()
+        self.held.clear()
 
-    def _goal_commands(self, observation: Observation, due: list[int]) -> torch.Tensor:
-        """The agent's new goal commands for the rows ``due``."""
-        sub = Observation(observation.ego[due], observation.vehicles[due],
-                          None if observation.vehicle_mask is None else observation.vehicle_mask[due])
+    def _choose(self, observation: Observation,
+                due: list[int]) -> tuple[Observation, Optional["DecisionSolve"], torch.Tensor, torch.Tensor]:
+        """The agent's new choice for the rows ``due``: their road-frame state, the decision solve
+        behind their solver features (also made for a discrete ``replan: decision`` agent; else
+        None), the actions and the goal commands (len(due), 2)."""
+        from mmpc.rl.safety import observation_rows
+
+        sub = observation_rows(observation, torch.as_tensor(due, dtype=torch.long))
+        decides_from_solve = self.config.replan == "decision" and not self.continuous
+        solve = self.layer.decision_solve(sub) if self.config.solver_features or decides_from_solve else None
         parts = [_flat_kinematics(observation, due, self.config.kinematics_vehicles)]
         if self.config.solver_features:
-            features = self.layer.features(self.layer.decision_solve(sub))
-            parts.append(features.reshape(len(due), -1))
+            parts.append(self.layer.features(solve).reshape(len(due), -1))
         vector = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
         actions, _ = self.model.predict(vector, deterministic=True)
         if self.continuous:
-            return self.layer.continuous_commands(sub.ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
-        return self.layer.discrete_commands(sub.ego, torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long))
+            actions = torch.as_tensor(np.asarray(actions, dtype=np.float32))
+            return sub, solve, actions, self.layer.continuous_commands(sub.ego, actions)
+        actions = torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long)
+        return sub, solve, actions, self.layer.discrete_commands(sub.ego, actions)
 
     def decide(self, observation: Observation) -> Decision:
+        if self.config.replan == "decision":
+            return self._decide_tracking(observation)
         start = time.perf_counter()
         ids = [int(i) for i in observation.ids()]
-        commands = torch.stack(self.hold.refresh(ids, lambda due: self._goal_commands(observation, due)))
+        commands = torch.stack(self.hold.refresh(ids, lambda due: self._choose(observation, due)[3]))
         safe = self.layer.plan(observation, commands)
-        plan = safe.plan
-        trajectories = plan.result.trajectories
-        return Decision(
-            acceleration=plan.acceleration,
-            steering=plan.steering,
-            solve_ms=(time.perf_counter() - start) * 1e3 - plan.compile_ms,
-            goal_index=plan.selection.index,
-            feasible_goals=safe.feasible_goals,
-            fallback=safe.fallback,
-            plan_cost=plan.selection.cost,
-            candidates=Candidates(torch.stack([trajectories.x, trajectories.y], dim=-1), plan.result.feasible,
-                                  plan.selection.index, plan.problem.goals),
-            plan=plan,
-        )
+        return _plan_decision(safe, (time.perf_counter() - start) * 1e3 - safe.plan.compile_ms)
+
+    def _decide_tracking(self, observation: Observation) -> Decision:
+        """``replan: decision``: rows due for a decision get the agent's new plan, the others
+        track their held plans through :meth:`SafetyLayer.frame` at their frame of the agent step
+        (``now = frame / frequency``, as the environments). Rows run in step (they start
+        together), so each frame makes one layer call for all of them: at a decision the agent's
+        plan (discrete goals: picked from the features solve, no other), between decisions at
+        most one optimizer call for the rows solved again."""
+        from mmpc.rl.safety import observation_rows
+
+        start = time.perf_counter()
+        ids = [int(i) for i in observation.ids()]
+        due = self.hold.due(ids)
+        decided: Optional["SafePlan"] = None
+        compile_ms = 0.0
+        if due:
+            sub, solve, actions, commands = self._choose(observation, due)
+            decided = self.layer.plan(sub, commands) if self.continuous else self.layer.decide(solve, actions)
+            compile_ms += decided.plan.compile_ms
+            for row, command in zip(due, commands):
+                self.hold.set(ids[row], command)
+        frames = [self.hold.frames - self.hold.left[env] for env in ids]  # 0 for the rows just decided
+        self.hold.tick(ids)
+        commands = torch.stack([self.hold.values[env] for env in ids])
+        count = len(ids)
+        dtype = self.layer.mpc.optimizer.dtype
+        acceleration = torch.zeros(count, dtype=dtype)
+        steering = torch.zeros(count, dtype=dtype)
+        fallback = torch.zeros(count, dtype=torch.bool)
+        feasible_goals = torch.full((count,), -1, dtype=torch.long)
+        for frame in sorted(set(frames)):
+            rows = torch.as_tensor([row for row, f in enumerate(frames) if f == frame], dtype=torch.long)
+            held = None if frame == 0 else _cat_held([self.held[ids[row]] for row in rows.tolist()])
+            control = self.layer.frame(observation_rows(observation, rows), commands[rows], frame * self.period, held,
+                                       decided if frame == 0 else None)
+            if frame > 0 and bool(control.solved.any()):
+                compile_ms += self.layer.mpc.optimizer.last_compile_ms
+            for i, row in enumerate(rows.tolist()):
+                self.held[ids[row]] = control.held.take(torch.tensor([i]))
+            acceleration[rows] = control.acceleration.to(acceleration.dtype)
+            steering[rows] = control.steering.to(steering.dtype)
+            fallback[rows] = control.fallback
+            feasible_goals[rows] = control.feasible_goals
+        solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
+        if decided is not None and len(due) == count:  # every row decided now: the whole plan
+            return _plan_decision(decided, solve_ms)
+        decision = Decision.command_only(acceleration, steering, solve_ms)._replace(fallback=fallback,
+                                                                                    feasible_goals=feasible_goals)
+        if decided is not None:
+            decision.goal_index[due] = decided.plan.selection.index
+            decision.plan_cost[due] = decided.plan.selection.cost.to(decision.plan_cost.dtype)
+        return decision
+
+
+def _plan_decision(safe: "SafePlan", solve_ms: float) -> Decision:
+    """The decision of a safety-layer plan that served every row."""
+    plan = safe.plan
+    trajectories = plan.result.trajectories
+    return Decision(
+        acceleration=plan.acceleration,
+        steering=plan.steering,
+        solve_ms=solve_ms,
+        goal_index=plan.selection.index,
+        feasible_goals=safe.feasible_goals,
+        fallback=safe.fallback,
+        plan_cost=plan.selection.cost,
+        candidates=Candidates(torch.stack([trajectories.x, trajectories.y], dim=-1), plan.result.feasible,
+                              plan.selection.index, plan.problem.goals),
+        plan=plan,
+    )
+
+
+def _cat_held(plans: list["HeldPlan"]) -> "HeldPlan":
+    """Held plans of a few rows each -> one batch, in order (the inverse of :meth:`HeldPlan.take`)."""
+    from mmpc.rl.safety import HeldPlan
+
+    first = plans[0]
+    trajectory = Trajectories(first.trajectory.times, *(torch.cat(fields) for fields in zip(*(p.trajectory[1:] for p in plans))))
+    return HeldPlan(trajectory, *(torch.cat(fields) for fields in zip(*(p[1:] for p in plans))))
 
 
 class ContinuousActionDriver(Driver):

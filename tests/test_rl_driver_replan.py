@@ -1,0 +1,194 @@
+"""mmpc.rl.driver.SafeAgentDriver replans as the agent was trained (``SafeEnvConfig.replan``):
+at every frame, or at the agent's decision with the plan tracked in between. A stub model with
+fixed actions drives the batched simulator (:class:`mmpc.highway.worlds.BatchedWorld`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from mmpc.config import load_config
+from mmpc.highway.runner import run_episode
+from mmpc.highway.worlds import BatchedWorld
+from mmpc.rl.config import RLConfig
+from mmpc.rl.driver import SafeAgentDriver
+from mmpc.rl.safety import observation_rows
+from mmpc.rl.sim_vec_env import SafeSimBatch
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+SEEDS = [0, 1, 2]
+ACTIONS = [3, 0, 5]  # smoke grid (offset-major, speeds 15, 25): keep lane 25 m/s, left 15 m/s, right 25 m/s
+
+
+@pytest.fixture(scope="module")
+def smoke() -> RLConfig:
+    return load_config(RLConfig, "smoke")
+
+
+class FixedModel:
+    """A policy that answers every row with its fixed action (row i of the batch: ``actions[i]``)."""
+
+    def __init__(self, actions) -> None:
+        self.actions = np.asarray(actions)
+
+    def predict(self, observation: np.ndarray, deterministic: bool = True):
+        return self.actions[: observation.shape[0]], None
+
+
+def make_driver(smoke: RLConfig, replan: str, actions=ACTIONS, continuous: bool = False) -> SafeAgentDriver:
+    env = dataclasses.replace(smoke.env, replan=replan)
+    run = types.SimpleNamespace(model=FixedModel(actions), continuous=continuous, config=types.SimpleNamespace(env=env))
+    return SafeAgentDriver(run, smoke.scenario)
+
+
+def count_solves(driver: SafeAgentDriver) -> list[int]:
+    """Counts the driver's optimizer calls (every solve goes through ``MPC.score``)."""
+    calls = [0]
+    score = driver.layer.mpc.score
+
+    def counted(problem):
+        calls[0] += 1
+        return score(problem)
+
+    driver.layer.mpc.score = counted
+    return calls
+
+
+def test_frame_mode_plans_the_held_goal_afresh_at_every_frame(smoke):
+    driver = make_driver(smoke, "frame")
+    layer = driver.layer
+    world = BatchedWorld(smoke.scenario, SEEDS)
+    driver.reset(len(SEEDS))
+    active = list(range(len(SEEDS)))
+    frames = smoke.env.decision_frames
+    for frame in range(frames + 2):  # across a new decision
+        observation, _ = world.observe(active)
+        if frame % frames == 0:
+            commands = layer.discrete_commands(observation.ego, torch.tensor(ACTIONS))
+        decision = driver.decide(observation)
+        expected = layer.plan(observation, commands)
+        assert torch.equal(decision.acceleration, expected.plan.acceleration)
+        assert torch.equal(decision.steering, expected.plan.steering)
+        assert torch.equal(decision.goal_index, expected.plan.selection.index)
+        assert torch.equal(decision.feasible_goals, expected.feasible_goals)
+        assert decision.plan is not None and decision.candidates is not None
+        world.apply(active, decision.acceleration, decision.steering)
+
+
+def test_decision_mode_solves_once_at_the_decision_and_tracks_the_plan_between(smoke):
+    driver = make_driver(smoke, "decision")
+    layer = driver.layer
+    calls = count_solves(driver)
+    period = 1.0 / smoke.scenario.frequency
+    world = BatchedWorld(smoke.scenario, SEEDS)
+    driver.reset(len(SEEDS))
+    active = list(range(len(SEEDS)))
+    tracked_frames = 0
+    for frame in range(smoke.env.decision_frames):
+        observation, _ = world.observe(active)
+        before = calls[0]
+        decision = driver.decide(observation)
+        solves = calls[0] - before
+        if frame == 0:
+            commands = layer.discrete_commands(observation.ego, torch.tensor(ACTIONS))
+            decided = layer.decide(layer.decision_solve(observation), torch.tensor(ACTIONS))
+            expected = layer.frame(observation, commands, 0.0, None, decided)
+            assert solves == 1  # the solve behind the features is the decision's
+            assert torch.equal(decision.goal_index, decided.plan.selection.index) and decision.plan is not None
+        else:
+            expected = layer.frame(observation, commands, frame * period, expected.held)
+            assert solves == int(bool(expected.solved.any()))  # one call for the rows solved again, if any
+            tracked_frames += solves == 0
+            assert decision.plan is None and decision.candidates is None
+            assert decision.goal_index.tolist() == [-1] * len(SEEDS) and bool(decision.plan_cost.isnan().all())
+        assert torch.equal(decision.acceleration, expected.acceleration)
+        assert torch.equal(decision.steering, expected.steering)
+        assert torch.equal(decision.fallback, expected.fallback)
+        assert torch.equal(decision.feasible_goals, expected.feasible_goals)
+        world.apply(active, decision.acceleration, decision.steering)
+    assert tracked_frames >= 1  # the seeds give frames on which every row just tracked its plan
+
+
+def test_rows_leaving_the_batch_keep_the_others_held_plans(smoke):
+    seeds, actions = [0, 1, 2, 3], [3, 0, 5, 3]
+    driver = make_driver(smoke, "decision", actions)
+    layer = driver.layer
+    period = 1.0 / smoke.scenario.frequency
+    world = BatchedWorld(smoke.scenario, seeds)
+    driver.reset(len(seeds))
+    active = list(range(len(seeds)))
+    for frame in range(smoke.env.decision_frames):
+        if frame == 2:
+            active = [0, 2, 3]  # environment 1 ends
+        if frame == 3:
+            active = [2, 3]  # and then environment 0
+        observation, _ = world.observe(active)
+        decision = driver.decide(observation)
+        if frame == 0:
+            commands = layer.discrete_commands(observation.ego, torch.tensor(actions))
+            decided = layer.decide(layer.decision_solve(observation), torch.tensor(actions))
+            expected, expected_rows = layer.frame(observation, commands, 0.0, None, decided), list(range(len(seeds)))
+        else:
+            keep = torch.tensor([env in active for env in expected_rows])
+            expected = layer.frame(observation_rows(observation, torch.arange(len(active))), commands[active],
+                                   frame * period, expected.held.take(keep))
+            expected_rows = active
+        assert torch.equal(decision.acceleration, expected.acceleration)
+        assert torch.equal(decision.steering, expected.steering)
+        world.apply(active, decision.acceleration, decision.steering)
+
+
+@pytest.mark.parametrize("replan", ["frame", "decision"])
+@pytest.mark.parametrize("continuous", [False, True])
+def test_the_driver_drives_two_agent_steps_as_the_training_environment(replan, continuous, smoke):
+    actions = [[0.0, 1.0], [-1.0, -0.5], [1.0, 0.3]] if continuous else ACTIONS
+    driver = make_driver(smoke, replan, actions, continuous)
+    batch = SafeSimBatch(len(SEEDS), smoke.scenario, driver.config, smoke.reward, continuous=continuous)
+    batch.reset(SEEDS)
+    world = BatchedWorld(smoke.scenario, SEEDS)
+    driver.reset(len(SEEDS))
+    active = list(range(len(SEEDS)))
+    for _ in range(2):
+        step = batch.advance(actions)
+        assert not step.terminated.any() and not step.truncated.any()
+        for _ in range(smoke.env.decision_frames):
+            observation, _ = world.observe(active)
+            decision = driver.decide(observation)
+            world.apply(active, decision.acceleration, decision.steering)
+        for name in ("x", "y", "heading", "speed"):
+            assert torch.equal(getattr(world.sim.state, name)[:, 0], getattr(batch.sim.state, name)[:, 0]), name
+
+
+def test_the_runner_records_a_decision_mode_episode(smoke):
+    scenario = dataclasses.replace(smoke.scenario, sim="batched")
+    driver = make_driver(smoke, "decision", [3])
+    result = run_episode(scenario, seed=2, driver=driver)
+    records = result.records
+    assert len(records) == round(scenario.duration * scenario.frequency)
+    frames = smoke.env.decision_frames
+    assert all(r.goal_index >= 0 and not math.isnan(r.plan_cost) for r in records[::frames])
+    assert all(r.goal_index == -1 and math.isnan(r.goal_x) for i, r in enumerate(records) if i % frames)
+    assert all(r.feasible_goals >= 1 for r in records)
+
+
+def test_a_row_joining_mid_step_is_decided_while_the_others_track(smoke):
+    driver = make_driver(smoke, "decision", [3, 0, 5])
+    layer = driver.layer
+    world = BatchedWorld(smoke.scenario, SEEDS)
+    driver.reset(len(SEEDS))
+    observation, _ = world.observe([0, 1])
+    first = driver.decide(observation)
+    world.apply([0, 1], first.acceleration, first.steering)
+    observation, _ = world.observe([0, 1, 2])  # environment 2 joins at the others' second frame
+    mixed = driver.decide(observation)
+    joining = observation_rows(observation, torch.tensor([2]))
+    decided = layer.decide(layer.decision_solve(joining), torch.tensor([3]))  # the model answers row 0 of its batch
+    assert mixed.goal_index.tolist() == [-1, -1, int(decided.plan.selection.index[0])] and mixed.candidates is None
+    assert float(mixed.acceleration[2]) == float(decided.plan.acceleration[0])
+    assert math.isnan(float(mixed.plan_cost[0])) and not math.isnan(float(mixed.plan_cost[2]))
