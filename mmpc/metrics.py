@@ -7,6 +7,8 @@ speed: mean speed and distance to the right lane), computation time, plus safety
 
 from __future__ import annotations
 
+import math
+
 from typing import NamedTuple, Optional, Sequence
 
 
@@ -108,7 +110,7 @@ def episode_metrics(
         ``collisions`` (0 or 1: an episode ends at the first one), ``offroad`` (steps off the
         road), ``steps``, ``duration`` [s], ``mean_speed`` [m/s], ``meta_cost_mean`` / ``_max``
         (over the driven states' meta cost terms),
-        ``plan_cost_mean``, ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
+        ``plan_cost_mean`` (over the steps with a plan), ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
         ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
         [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``,
         ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``,
@@ -129,7 +131,7 @@ def episode_metrics(
         "mean_speed": _mean(speeds),
         "meta_cost_mean": _mean([r.meta_cost for r in records]),
         "meta_cost_max": max(r.meta_cost for r in records),
-        "plan_cost_mean": _mean([r.plan_cost for r in records]),
+        "plan_cost_mean": _mean([r.plan_cost for r in records if not math.isnan(r.plan_cost)]),  # steps with a plan
     }
     if v_cruise is not None:
         metrics["speed_residual_mean"] = _mean([(v - v_cruise) ** 2 for v in speeds])

@@ -43,6 +43,13 @@ def test_episode_metrics_follow_their_definitions():
         episode_metrics([], dt=0.1, right_lane_y=20.0)
 
 
+def test_plan_cost_mean_is_over_the_steps_with_a_plan():
+    # a driver that plans at some steps only (e.g. the safe layer tracking a plan between decisions)
+    records = [record(0)._replace(plan_cost=3.0), record(1), record(2)._replace(plan_cost=5.0)]
+    assert episode_metrics(records, dt=0.1, right_lane_y=20.0)["plan_cost_mean"] == pytest.approx(4.0)
+    assert math.isnan(episode_metrics([record(0)], dt=0.1, right_lane_y=20.0)["plan_cost_mean"])
+
+
 @pytest.mark.usefixtures("one_thread")
 def test_episode_outputs_and_video(tmp_path):
     scenario = ScenarioConfig(duration=2.0)
