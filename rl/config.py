@@ -51,17 +51,32 @@ def _recipe_algorithms() -> dict[str, dict[str, Any]]:
     }
 
 
+#: Rewards the RL environments know (:attr:`RewardConfig.kind`).
+REWARD_KINDS = ("highway", "meta_cost")
+
+
 @dataclass(frozen=True)
 class RewardConfig:
-    """highway-env's reward, computed at every simulation frame and summed over an agent step.
+    """The reward, computed at every simulation frame and summed over an agent step.
 
-    ``r = collision_reward * crashed + right_lane_reward * lane / (lanes - 1)
-    + high_speed_reward * clip((v cos(heading) - low) / (high - low), 0, 1)``, mapped from
-    ``[collision_reward, high_speed_reward + right_lane_reward]`` onto [0, 1] when
-    ``normalize``, times 0 off the road; the safe environments subtract
-    ``SafeEnvConfig.intervention_penalty`` for every frame the layer overrode the agent.
+    ``kind: highway`` is highway-env's: ``r = collision_reward * crashed + right_lane_reward *
+    lane / (lanes - 1) + high_speed_reward * clip((v cos(heading) - low) / (high - low), 0, 1)``,
+    mapped from ``[collision_reward, high_speed_reward + right_lane_reward]`` onto [0, 1] when
+    ``normalize``, times 0 off the road.
+
+    ``kind: meta_cost`` is what the MPC expert ranks by: ``r = 1 - c / meta_cost_scale`` with
+    ``c`` the scenario's meta cost term at the ego's state (``objective.stage_cost``, e.g. high
+    speed ``w_speed (v - v_max)^2 + w_lane (y - y_right)^2``), ``collision_reward`` on a crashed
+    frame, times 0 off the road. It is linear in ``c``, so a higher return is a lower mean meta
+    cost over the same frames; with ``meta_cost_scale`` above the costs the layer drives into it
+    stays positive, so ending an episode early never pays.
+
+    Either way the safe environments subtract ``SafeEnvConfig.intervention_penalty`` for every
+    frame the layer overrode the agent.
 
     Attributes:
+        kind: ``"highway"`` or ``"meta_cost"``.
+        meta_cost_scale: ``kind: meta_cost``: the meta cost term that earns 0 per frame [units of the meta cost].
         collision_reward: reward of a crashed frame (highway-env: -1).
         right_lane_reward: reward on the right lane (highway-env: 0.1).
         high_speed_reward: reward at or above ``reward_speed_range[1]`` (highway-env: 0.4).
@@ -69,6 +84,8 @@ class RewardConfig:
         normalize: map the sum onto [0, 1] (highway-env: true).
     """
 
+    kind: str = "highway"
+    meta_cost_scale: float = 100.0
     collision_reward: float = -1.0
     right_lane_reward: float = 0.1
     high_speed_reward: float = 0.4
@@ -76,6 +93,8 @@ class RewardConfig:
     normalize: bool = True
 
     def __post_init__(self) -> None:
+        require(self.kind in REWARD_KINDS, f"reward: `kind` must be one of {list(REWARD_KINDS)}; got {self.kind!r}")
+        require_positive("reward", meta_cost_scale=self.meta_cost_scale)
         for name in ("collision_reward", "right_lane_reward", "high_speed_reward"):
             require(is_finite_number(getattr(self, name)), f"reward: `{name}` must be a finite number; got {getattr(self, name)!r}")
         low_high = self.reward_speed_range
@@ -85,8 +104,13 @@ class RewardConfig:
         require(not self.normalize or self.collision_reward < self.high_speed_reward + self.right_lane_reward,
                  "reward: with `normalize`, `collision_reward` must be below high_speed_reward + right_lane_reward")
 
+    def meta_cost_reward(self, cost: Any, crashed: Any, on_road: Any) -> Any:
+        """``kind: meta_cost``'s reward of states with meta cost terms ``cost``: floats, or tensors
+        of one shape with ``crashed`` and ``on_road`` as 0/1 of the same dtype."""
+        return (self.collision_reward * crashed + (1 - crashed) * (1 - cost / self.meta_cost_scale)) * on_road
+
     def highway_env_config(self) -> dict:
-        """The same reward as highway-env configuration keys."""
+        """highway-env's reward (``kind: highway``) as highway-env configuration keys."""
         return {
             "collision_reward": self.collision_reward,
             "right_lane_reward": self.right_lane_reward,

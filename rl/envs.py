@@ -43,8 +43,13 @@ KINEMATICS_FEATURES = ("presence", "x", "y", "vx", "vy")
 
 
 def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
-    """highway-env's reward of the current state (see :class:`mmpc.rl.config.RewardConfig`)."""
+    """The reward of the current state (see :class:`mmpc.rl.config.RewardConfig`): highway-env's,
+    or the scenario's meta cost term made a reward."""
     ego = episode.ego
+    if reward.kind == "meta_cost":
+        scenario = episode.scenario
+        cost = scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), scenario.road)
+        return reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))
     lanes = max(episode.scenario.lanes - 1, 1)
     lane = int(ego.lane_index[2]) if ego.lane_index is not None else 0
     low, high = reward.reward_speed_range

@@ -28,6 +28,7 @@ from mmpc.scenario import ScenarioConfig, batched_unsupported, build_mpc
 from mmpc.sim import SimEpisodes
 from mmpc.sim.observation import kinematics_observation
 from mmpc.sim.reward import highway_reward
+from mmpc.sim.state import on_road
 
 #: Episode seeds drawn for resets without one lie in [0, SEED_RANGE).
 SEED_RANGE = 2 ** 31 - 1
@@ -109,6 +110,17 @@ class SafeSimBatch:
         kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles)
         return observation_vectors(kinematics[rows].float().numpy(), features, self.config), solve
 
+    def _frame_rewards(self) -> torch.Tensor:
+        """(E,) float64 rewards of the current states (:class:`mmpc.rl.config.RewardConfig`)."""
+        state, reward = self.sim.state, self.reward
+        if reward.kind == "meta_cost":
+            ego_speed, ego_y = state.speed[:, 0].double(), state.y[:, 0].double()
+            cost = self.scenario.objective.stage_cost(ego_speed, ego_y, self.scenario.road)
+            return reward.meta_cost_reward(cost, state.crashed[:, 0].double(), on_road(state.y[:, 0], self.sim.config).double())
+        return highway_reward(state, self.sim.config, collision_reward=reward.collision_reward,
+                              right_lane_reward=reward.right_lane_reward, high_speed_reward=reward.high_speed_reward,
+                              reward_speed_range=reward.reward_speed_range, normalize=reward.normalize).double()
+
     def reset(self, seeds: Sequence[Optional[int]]) -> tuple[np.ndarray, list[dict]]:
         """Start every environment (``None`` seeds drawn); ``(observations (E, size), infos)``."""
         if len(seeds) != self.num_envs:
@@ -157,9 +169,6 @@ class SafeSimBatch:
         agent_feasible = torch.zeros(count, dtype=torch.bool)
         residuals = torch.zeros(count, 3, dtype=torch.float64)
         solve_ms = [] if decided is None else [decided.plan.solve_ms]
-        reward_weights = dict(collision_reward=self.reward.collision_reward, right_lane_reward=self.reward.right_lane_reward,
-                              high_speed_reward=self.reward.high_speed_reward,
-                              reward_speed_range=self.reward.reward_speed_range, normalize=self.reward.normalize)
         period = 1.0 / self.scenario.frequency
         held, held_rows = None, everyone
         for frame in range(self.config.decision_frames):
@@ -177,8 +186,7 @@ class SafeSimBatch:
             command = torch.zeros(count, 2, dtype=self.sim.state.x.dtype)
             command[rows] = torch.stack([control.acceleration, control.steering], dim=1).to(command.dtype)
             self.sim.step(command, running)
-            frame_reward = highway_reward(self.sim.state, self.sim.config, **reward_weights).double()
-            rewards[rows] += frame_reward[rows] - self.config.intervention_penalty * control.intervention.double()
+            rewards[rows] += self._frame_rewards()[rows] - self.config.intervention_penalty * control.intervention.double()
             interventions[rows] += control.intervention.long()
             fallbacks[rows] += control.fallback.long()
             solved[rows] += control.solved.long()

@@ -54,8 +54,9 @@ class HighwayBaseline(gym.Wrapper):
     ``frequency / decision_frames`` Hz (the agent's decision rate in the safe environments).
 
     Differences that remain: highway-env's traffic without :mod:`mmpc.highway.traffic`'s initial
-    clearance; the reward is highway-env's one per agent step (the safe environments sum it over
-    the step's frames).
+    clearance; the reward is computed once per agent step, at its last frame (the safe
+    environments sum it over the step's frames): highway-env's, or with ``kind: meta_cost`` the
+    step's frames times the meta cost reward of the state it ends in.
 
     ``info`` adds ``mean_speed`` (the ego's speed at the end of the step) [m/s] and ``frames``.
     """
@@ -74,6 +75,8 @@ class HighwayBaseline(gym.Wrapper):
         super().__init__(gym.make(scenario.env_id, config=values))
         self.ego_speed = scenario.ego.speed
         self.frames = frames
+        self.scenario = scenario
+        self.reward = config.reward
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         observation, info = self.env.reset(**kwargs)
@@ -83,8 +86,12 @@ class HighwayBaseline(gym.Wrapper):
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         observation, reward, terminated, truncated, info = self.env.step(action)
-        info = dict(info, mean_speed=float(info.get("speed", self.env.unwrapped.vehicle.speed)), frames=self.frames)
-        info["crashed"] = bool(self.env.unwrapped.vehicle.crashed)
+        ego = self.env.unwrapped.vehicle
+        info = dict(info, mean_speed=float(info.get("speed", ego.speed)), frames=self.frames)
+        info["crashed"] = bool(ego.crashed)
+        if self.reward.kind == "meta_cost":
+            cost = self.scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), self.scenario.road)
+            reward = self.frames * self.reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))
         return observation, reward, terminated, truncated, info
 
 
