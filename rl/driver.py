@@ -342,6 +342,51 @@ class MetaActionDriver(Driver):
                                      (time.perf_counter() - start) * 1e3)
 
 
+class RandomGoals:
+    """A stand-in for a trained model: uniformly random goals of the discrete grid, the
+    layer's least careful user. The draws restart from ``seed`` at every :meth:`reset`, so a
+    lockstep group of episodes sees the same action stream whoever runs it."""
+
+    def __init__(self, num_goals: int, seed: int = 0) -> None:
+        self.num_goals = num_goals
+        self.seed = seed
+        self.reset()
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def predict(self, observations: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return self.rng.integers(0, self.num_goals, len(observations)), None
+
+
+class RandomSafeAgentDriver(SafeAgentDriver):
+    """Random discrete goals behind the safety layer (``safe-random[:frame|decision]``): what
+    the layer alone guarantees, whatever an agent asks."""
+
+    name = "safe-random"
+
+    def reset(self, num_envs: int) -> None:
+        super().reset(num_envs)
+        self.model.reset()
+
+
+def make_random_safe_driver(scenario: "ScenarioConfig", replan: Optional[str]) -> Driver:
+    """The driver of ``safe-random[:REPLAN]`` (registry entry ``"safe-random"``): random goals of
+    the default grid (:class:`mmpc.rl.config.SafeEnvConfig`) behind the safety layer of
+    ``scenario``, replanning at every frame or at the decisions (``REPLAN``, default decision)."""
+    import dataclasses
+
+    from mmpc.rl.config import REPLAN_MODES, RLConfig, SafeEnvConfig
+    from mmpc.rl.train import TrainedRun
+
+    replan = replan or "decision"
+    if replan not in REPLAN_MODES:
+        raise ValueError(f"driver 'safe-random' takes a replanning mode {list(REPLAN_MODES)}; got {replan!r}")
+    env = SafeEnvConfig(replan=replan)
+    config = dataclasses.replace(RLConfig(), scenario=scenario, env=env)
+    return RandomSafeAgentDriver(TrainedRun(RandomGoals(env.num_discrete_goals), "random", "safe", False, config), scenario)
+
+
 def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:
     """The driver of ``sb3:MODEL.zip`` (the registry entry ``"sb3"`` of :data:`mmpc.drivers.DRIVERS`).
 

@@ -192,3 +192,31 @@ def test_a_row_joining_mid_step_is_decided_while_the_others_track(smoke):
     assert mixed.goal_index.tolist() == [-1, -1, int(decided.plan.selection.index[0])] and mixed.candidates is None
     assert float(mixed.acceleration[2]) == float(decided.plan.acceleration[0])
     assert math.isnan(float(mixed.plan_cost[0])) and not math.isnan(float(mixed.plan_cost[2]))
+
+
+@pytest.mark.parametrize("replan", ["frame", "decision"])
+def test_random_goals_behind_the_layer_drive_highway_env_from_the_registry(replan, smoke):
+    from mmpc.drivers import make_driver as make_registered
+    from mmpc.rl.driver import RandomGoals
+
+    scenario = dataclasses.replace(smoke.scenario, duration=3.0)
+    driver = make_registered(f"safe-random:{replan}", scenario)
+    assert driver.config.replan == replan and isinstance(driver.model, RandomGoals)
+    result = run_episode(scenario, seed=3, driver=driver)
+    assert result.metrics["collisions"] == 0 and result.metrics["steps"] == 30
+    # the goals change at the decisions (every decision_frames steps) and are random
+    first = [record.goal_index for record in result.records]
+    result = run_episode(scenario, seed=3, driver=driver)
+    assert [record.goal_index for record in result.records] == first  # the draws restart at every reset
+    with pytest.raises(ValueError, match="replanning mode"):
+        make_registered("safe-random:sometimes", scenario)
+
+
+def test_random_goals_cover_the_grid():
+    from mmpc.rl.driver import RandomGoals
+
+    model = RandomGoals(12, seed=5)
+    actions, _ = model.predict(np.zeros((2000, 3)))
+    assert set(actions.tolist()) == set(range(12))
+    model.reset()
+    assert model.predict(np.zeros((2000, 3)))[0].tolist() == actions.tolist()

@@ -85,7 +85,8 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--driver", action="append", metavar="SPEC",
                         help="driver(s), comma-separated or repeated: mpc (default), frenet, standard-mpc, batch-nlp, "
-                             "bc:RUN/policy.pt, sb3:MODEL.zip; several give a side-by-side table")
+                             "bc:RUN/policy.pt, sb3:MODEL.zip, safe-random[:frame|decision]; several give a "
+                             "side-by-side table")
     parser.add_argument("--scenarios", default="cruise,high_speed",
                         help="comma-separated names in configs/scenarios or YAML paths (default cruise,high_speed)")
     parser.add_argument("--seeds", type=seed_list, default=tuple(range(20)), help="seeds such as 0-999 or 0,3,7 (default 0-19)")
