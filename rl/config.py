@@ -51,20 +51,20 @@ def _recipe_algorithms() -> dict[str, dict[str, Any]]:
     }
 
 
-#: Rewards the RL environments know (:attr:`RewardConfig.kind`).
-REWARD_KINDS = ("highway", "meta_cost")
+#: Where the RL environments take their reward from (:attr:`RewardConfig.source`).
+REWARD_SOURCES = ("highway", "meta_cost")
 
 
 @dataclass(frozen=True)
 class RewardConfig:
     """The reward, computed at every simulation frame and summed over an agent step.
 
-    ``kind: highway`` is highway-env's: ``r = collision_reward * crashed + right_lane_reward *
+    ``source: highway`` is highway-env's: ``r = collision_reward * crashed + right_lane_reward *
     lane / (lanes - 1) + high_speed_reward * clip((v cos(heading) - low) / (high - low), 0, 1)``,
     mapped from ``[collision_reward, high_speed_reward + right_lane_reward]`` onto [0, 1] when
     ``normalize``, times 0 off the road.
 
-    ``kind: meta_cost`` is what the MPC expert ranks by: ``r = 1 - c / meta_cost_scale`` with
+    ``source: meta_cost`` is what the MPC expert ranks by: ``r = 1 - c / meta_cost_scale`` with
     ``c`` the scenario's meta cost term at the ego's state (``objective.stage_cost``, e.g. high
     speed ``w_speed (v - v_max)^2 + w_lane (y - y_right)^2``), ``collision_reward`` on a crashed
     frame, times 0 off the road. It is linear in ``c``, so a higher return is a lower mean meta
@@ -75,8 +75,8 @@ class RewardConfig:
     frame the layer overrode the agent.
 
     Attributes:
-        kind: ``"highway"`` or ``"meta_cost"``.
-        meta_cost_scale: ``kind: meta_cost``: the meta cost term that earns 0 per frame [units of the meta cost].
+        source: ``"highway"`` (highway-env's reward) or ``"meta_cost"`` (the scenario's meta cost).
+        meta_cost_scale: ``source: meta_cost``: the meta cost term that earns 0 per frame [units of the meta cost].
         collision_reward: reward of a crashed frame (highway-env: -1).
         right_lane_reward: reward on the right lane (highway-env: 0.1).
         high_speed_reward: reward at or above ``reward_speed_range[1]`` (highway-env: 0.4).
@@ -84,7 +84,7 @@ class RewardConfig:
         normalize: map the sum onto [0, 1] (highway-env: true).
     """
 
-    kind: str = "highway"
+    source: str = "highway"
     meta_cost_scale: float = 100.0
     collision_reward: float = -1.0
     right_lane_reward: float = 0.1
@@ -93,7 +93,7 @@ class RewardConfig:
     normalize: bool = True
 
     def __post_init__(self) -> None:
-        require(self.kind in REWARD_KINDS, f"reward: `kind` must be one of {list(REWARD_KINDS)}; got {self.kind!r}")
+        require(self.source in REWARD_SOURCES, f"reward: `source` must be one of {list(REWARD_SOURCES)}; got {self.source!r}")
         require_positive("reward", meta_cost_scale=self.meta_cost_scale)
         for name in ("collision_reward", "right_lane_reward", "high_speed_reward"):
             require(is_finite_number(getattr(self, name)), f"reward: `{name}` must be a finite number; got {getattr(self, name)!r}")
@@ -105,12 +105,12 @@ class RewardConfig:
                  "reward: with `normalize`, `collision_reward` must be below high_speed_reward + right_lane_reward")
 
     def meta_cost_reward(self, cost: Any, crashed: Any, on_road: Any) -> Any:
-        """``kind: meta_cost``'s reward of states with meta cost terms ``cost``: floats, or tensors
+        """``source: meta_cost``'s reward of states with meta cost terms ``cost``: floats, or tensors
         of one shape with ``crashed`` and ``on_road`` as 0/1 of the same dtype."""
         return (self.collision_reward * crashed + (1 - crashed) * (1 - cost / self.meta_cost_scale)) * on_road
 
     def highway_env_config(self) -> dict:
-        """highway-env's reward (``kind: highway``) as highway-env configuration keys."""
+        """highway-env's reward (``source: highway``) as highway-env configuration keys."""
         return {
             "collision_reward": self.collision_reward,
             "right_lane_reward": self.right_lane_reward,

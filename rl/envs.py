@@ -46,7 +46,7 @@ def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
     """The reward of the current state (see :class:`mmpc.rl.config.RewardConfig`): highway-env's,
     or the scenario's meta cost term made a reward."""
     ego = episode.ego
-    if reward.kind == "meta_cost":
+    if reward.source == "meta_cost":
         scenario = episode.scenario
         cost = scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), scenario.road)
         return reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))

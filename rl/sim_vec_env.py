@@ -113,7 +113,7 @@ class SafeSimBatch:
     def _frame_rewards(self) -> torch.Tensor:
         """(E,) float64 rewards of the current states (:class:`mmpc.rl.config.RewardConfig`)."""
         state, reward = self.sim.state, self.reward
-        if reward.kind == "meta_cost":
+        if reward.source == "meta_cost":
             ego_speed, ego_y = state.speed[:, 0].double(), state.y[:, 0].double()
             cost = self.scenario.objective.stage_cost(ego_speed, ego_y, self.scenario.road)
             return reward.meta_cost_reward(cost, state.crashed[:, 0].double(), on_road(state.y[:, 0], self.sim.config).double())

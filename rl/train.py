@@ -55,7 +55,7 @@ class HighwayBaseline(gym.Wrapper):
 
     Differences that remain: highway-env's traffic without :mod:`mmpc.highway.traffic`'s initial
     clearance; the reward is computed once per agent step, at its last frame (the safe
-    environments sum it over the step's frames): highway-env's, or with ``kind: meta_cost`` the
+    environments sum it over the step's frames): highway-env's, or with ``source: meta_cost`` the
     step's frames times the meta cost reward of the state it ends in.
 
     ``info`` adds ``mean_speed`` (the ego's speed at the end of the step) [m/s] and ``frames``.
@@ -89,7 +89,7 @@ class HighwayBaseline(gym.Wrapper):
         ego = self.env.unwrapped.vehicle
         info = dict(info, mean_speed=float(info.get("speed", ego.speed)), frames=self.frames)
         info["crashed"] = bool(ego.crashed)
-        if self.reward.kind == "meta_cost":
+        if self.reward.source == "meta_cost":
             cost = self.scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), self.scenario.road)
             reward = self.frames * self.reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))
         return observation, reward, terminated, truncated, info

@@ -1,4 +1,4 @@
-"""The meta cost reward (RewardConfig kind: meta_cost) on highway-env, the batched simulator and
+"""The meta cost reward (RewardConfig source: meta_cost) on highway-env, the batched simulator and
 the plain highway-env baseline: ``1 - c / scale`` with c the scenario's meta cost term."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from mmpc.rl.train import make_highway_env
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-META = RewardConfig(kind="meta_cost", meta_cost_scale=50.0, collision_reward=-2.0)
+META = RewardConfig(source="meta_cost", meta_cost_scale=50.0, collision_reward=-2.0)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def test_the_meta_cost_reward_is_linear_in_the_cost_and_punishes_a_crash():
     assert values.tolist() == pytest.approx([1.0, 0.8, -2.0])
 
 
-@pytest.mark.parametrize("bad, match", [({"kind": "speed"}, "kind"), ({"meta_cost_scale": 0.0}, "meta_cost_scale")])
+@pytest.mark.parametrize("bad, match", [({"source": "speed"}, "source"), ({"meta_cost_scale": 0.0}, "meta_cost_scale")])
 def test_reward_config_refuses_unknown_kinds_and_scales(bad, match):
     with pytest.raises(ConfigError, match=match):
         RewardConfig(**bad)
