@@ -21,6 +21,7 @@ from mmpc.imitation.policy import PolicyConfig
 from mmpc.rl.config import RL_SCENARIO, RewardConfig, RLConfig, SafeEnvConfig
 from mmpc.rl.config import TrainConfig as RLTrainConfig
 from mmpc.sim import SimConfig
+from mmpc.tracking import TrackingConfig
 from mmpc.scenario import (
     CruiseObjective, EgoConfig, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
     ScriptedVehicle, load_scenario,
@@ -38,7 +39,8 @@ CONFIGS = [
     FrenetConfig(), NLPConfig(), RewardConfig(), SafeEnvConfig(), RLTrainConfig(), RLConfig(), BCTrainConfig(),
     PolicyConfig(), DaggerConfig(), SceneGeometry(4.0, (5.6, 3.1)), FeatureConfig(SceneGeometry(5.0, (8.0, 3.3))),
     EvaluationConfig(drivers=("mpc", "frenet"), seeds=(3, 1), ray="auto", episode_layout="{driver}/{seed}"),
-    SimConfig(),
+    SimConfig(), TrackingConfig(speed_gain=2.0, max_lateral_error=0.3), SafeEnvConfig(replan="decision"),
+    RewardConfig(source="meta_cost", meta_cost_scale=50.0),
 ]
 
 
@@ -230,7 +232,16 @@ def test_no_shipped_file_restates_the_defaults():
     from mmpc.configs import shipped_config_dir
 
     assert not (ROOT / "configs" / "optimizer").exists() and not (ROOT / "configs" / "imitation").exists()
-    assert [p.stem for p in shipped_config_dir("rl").glob("*.yaml")] == ["smoke"]
+    defaults = to_dict(RLConfig())
+    shipped = sorted(shipped_config_dir("rl").glob("*.yaml"))
+    assert [p.stem for p in shipped] == ["high_speed", "smoke"]
+    for path in shipped:  # every value a recipe sets (the scenario aside) differs from the default
+        for section, values in yaml.safe_load(path.read_text()).items():
+            if section in ("scenario", "algorithms"):
+                continue
+            restated = [key for key, value in values.items() if to_dict(from_dict(type(getattr(RLConfig(), section)),
+                                                                                  {key: value}))[key] == defaults[section][key]]
+            assert not restated, f"{path.name}: {section}.{restated} restate the defaults"
 
 
 # ----------------------------------------------------------------------------------- command line
