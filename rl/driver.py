@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import time
+import zlib
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Optional
 
 import numpy as np
@@ -344,19 +345,19 @@ class MetaActionDriver(Driver):
 
 class RandomGoals:
     """A stand-in for a trained model: uniformly random goals of the discrete grid, the
-    layer's least careful user. The draws restart from ``seed`` at every :meth:`reset`, so a
-    lockstep group of episodes sees the same action stream whoever runs it."""
+    layer's least careful user. Each row's goal is drawn from a generator seeded by ``seed``
+    and the bytes of the row's first ``key_size`` observation values (the Kinematics rows), so an
+    episode gets the same goals whichever lockstep group, batch position or worker drives it."""
 
-    def __init__(self, num_goals: int, seed: int = 0) -> None:
+    def __init__(self, num_goals: int, key_size: int, seed: int = 0) -> None:
         self.num_goals = num_goals
+        self.key_size = key_size
         self.seed = seed
-        self.reset()
-
-    def reset(self) -> None:
-        self.rng = np.random.default_rng(self.seed)
 
     def predict(self, observations: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
-        return self.rng.integers(0, self.num_goals, len(observations)), None
+        keys = np.ascontiguousarray(np.asarray(observations, dtype=np.float32)[:, :self.key_size])
+        return np.array([np.random.default_rng([self.seed, zlib.crc32(row.tobytes())]).integers(self.num_goals)
+                         for row in keys], dtype=np.int64), None
 
 
 class RandomSafeAgentDriver(SafeAgentDriver):
@@ -364,10 +365,6 @@ class RandomSafeAgentDriver(SafeAgentDriver):
     the layer alone guarantees, whatever an agent asks."""
 
     name = "safe-random"
-
-    def reset(self, num_envs: int) -> None:
-        super().reset(num_envs)
-        self.model.reset()
 
 
 def make_random_safe_driver(scenario: "ScenarioConfig", replan: Optional[str]) -> Driver:
@@ -377,6 +374,7 @@ def make_random_safe_driver(scenario: "ScenarioConfig", replan: Optional[str]) -
     import dataclasses
 
     from mmpc.rl.config import REPLAN_MODES, RLConfig, SafeEnvConfig
+    from mmpc.rl.envs import KINEMATICS_FEATURES
     from mmpc.rl.train import TrainedRun
 
     replan = replan or "decision"
@@ -384,7 +382,8 @@ def make_random_safe_driver(scenario: "ScenarioConfig", replan: Optional[str]) -
         raise ValueError(f"driver 'safe-random' takes a replanning mode {list(REPLAN_MODES)}; got {replan!r}")
     env = SafeEnvConfig(replan=replan)
     config = dataclasses.replace(RLConfig(), scenario=scenario, env=env)
-    return RandomSafeAgentDriver(TrainedRun(RandomGoals(env.num_discrete_goals), "random", "safe", False, config), scenario)
+    model = RandomGoals(env.num_discrete_goals, key_size=env.kinematics_vehicles * len(KINEMATICS_FEATURES))
+    return RandomSafeAgentDriver(TrainedRun(model, "random", "safe", False, config), scenario)
 
 
 def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:

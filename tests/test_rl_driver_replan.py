@@ -204,19 +204,23 @@ def test_random_goals_behind_the_layer_drive_highway_env_from_the_registry(repla
     assert driver.config.replan == replan and isinstance(driver.model, RandomGoals)
     result = run_episode(scenario, seed=3, driver=driver)
     assert result.metrics["collisions"] == 0 and result.metrics["steps"] == 30
-    # the goals change at the decisions (every decision_frames steps) and are random
+    # the goals are a function of the episode's own states: driving it again gives the same
     first = [record.goal_index for record in result.records]
     result = run_episode(scenario, seed=3, driver=driver)
-    assert [record.goal_index for record in result.records] == first  # the draws restart at every reset
+    assert [record.goal_index for record in result.records] == first
     with pytest.raises(ValueError, match="replanning mode"):
         make_registered("safe-random:sometimes", scenario)
 
 
-def test_random_goals_cover_the_grid():
+def test_random_goals_cover_the_grid_and_depend_on_the_row_alone():
     from mmpc.rl.driver import RandomGoals
 
-    model = RandomGoals(12, seed=5)
-    actions, _ = model.predict(np.zeros((2000, 3)))
+    model = RandomGoals(12, key_size=2, seed=5)
+    rows = np.random.default_rng(0).normal(size=(2000, 4)).astype(np.float32)
+    actions, _ = model.predict(rows)
     assert set(actions.tolist()) == set(range(12))
-    model.reset()
-    assert model.predict(np.zeros((2000, 3)))[0].tolist() == actions.tolist()
+    # the same row gets the same goal in any batch, whatever follows its key (e.g. solver features)
+    shuffled = rows[::-1].copy()
+    shuffled[:, 2:] = 0.0
+    assert model.predict(shuffled)[0].tolist() == actions[::-1].tolist()
+    assert RandomGoals(12, key_size=2, seed=6).predict(rows)[0].tolist() != actions.tolist()
