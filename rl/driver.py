@@ -361,29 +361,28 @@ class RandomGoals:
 
 
 class RandomSafeAgentDriver(SafeAgentDriver):
-    """Random discrete goals behind the safety layer (``safe-random[:frame|decision]``): what
-    the layer alone guarantees, whatever an agent asks."""
+    """Random discrete goals behind the safety layer (``safe-random[:RL_CONFIG]``): what the
+    layer alone guarantees, whatever an agent asks."""
 
     name = "safe-random"
 
 
-def make_random_safe_driver(scenario: "ScenarioConfig", replan: Optional[str]) -> Driver:
-    """The driver of ``safe-random[:REPLAN]`` (registry entry ``"safe-random"``): random goals of
-    the default grid (:class:`mmpc.rl.config.SafeEnvConfig`) behind the safety layer of
-    ``scenario``, replanning at every frame or at the decisions (``REPLAN``, default decision)."""
+def make_random_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -> Driver:
+    """The driver of ``safe-random[:RL_CONFIG]`` (registry entry ``"safe-random"``): random goals
+    of the grid behind the safety layer of ``scenario``, with the environment settings (goal
+    grid, ``replan``, ...) of the RL config ``RL_CONFIG`` (a shipped name such as ``high_speed``
+    or a YAML path; default: the defaults, :class:`mmpc.rl.config.SafeEnvConfig`)."""
     import dataclasses
 
-    from mmpc.rl.config import REPLAN_MODES, RLConfig, SafeEnvConfig
+    from mmpc.config import load_config
+    from mmpc.rl.config import RLConfig
     from mmpc.rl.envs import KINEMATICS_FEATURES
     from mmpc.rl.train import TrainedRun
 
-    replan = replan or "decision"
-    if replan not in REPLAN_MODES:
-        raise ValueError(f"driver 'safe-random' takes a replanning mode {list(REPLAN_MODES)}; got {replan!r}")
-    env = SafeEnvConfig(replan=replan)
-    config = dataclasses.replace(RLConfig(), scenario=scenario, env=env)
+    run_config = dataclasses.replace(load_config(RLConfig, config or None), scenario=scenario)
+    env = run_config.env
     model = RandomGoals(env.num_discrete_goals, key_size=env.kinematics_vehicles * len(KINEMATICS_FEATURES))
-    return RandomSafeAgentDriver(TrainedRun(model, "random", "safe", False, config), scenario)
+    return RandomSafeAgentDriver(TrainedRun(model, "random", "safe", False, run_config), scenario)
 
 
 def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:

@@ -15,7 +15,7 @@ import torch
 from mmpc.config import load_config
 from mmpc.highway.runner import run_episode
 from mmpc.highway.worlds import BatchedWorld
-from mmpc.rl.config import RLConfig
+from mmpc.rl.config import RLConfig, SafeEnvConfig
 from mmpc.rl.driver import SafeAgentDriver
 from mmpc.rl.safety import observation_rows
 from mmpc.rl.sim_vec_env import SafeSimBatch
@@ -195,20 +195,23 @@ def test_a_row_joining_mid_step_is_decided_while_the_others_track(smoke):
 
 
 @pytest.mark.parametrize("replan", ["frame", "decision"])
-def test_random_goals_behind_the_layer_drive_highway_env_from_the_registry(replan, smoke):
+def test_random_goals_behind_the_layer_drive_highway_env_from_the_registry(replan, smoke, tmp_path):
     from mmpc.drivers import make_driver as make_registered
     from mmpc.rl.driver import RandomGoals
 
     scenario = dataclasses.replace(smoke.scenario, duration=3.0)
-    driver = make_registered(f"safe-random:{replan}", scenario)
-    assert driver.config.replan == replan and isinstance(driver.model, RandomGoals)
+    config = tmp_path / "random.yaml"
+    config.write_text(f"env: {{replan: {replan}, speeds: [15.0, 25.0]}}\n")
+    driver = make_registered(f"safe-random:{config}", scenario)
+    assert driver.config.replan == replan and isinstance(driver.model, RandomGoals) and driver.model.num_goals == 6
     result = run_episode(scenario, seed=3, driver=driver)
     assert result.metrics["collisions"] == 0 and result.metrics["steps"] == 30
     # the goals are a function of the episode's own states: driving it again gives the same
     first = [record.goal_index for record in result.records]
     result = run_episode(scenario, seed=3, driver=driver)
     assert [record.goal_index for record in result.records] == first
-    with pytest.raises(ValueError, match="replanning mode"):
+    assert make_registered("safe-random", scenario).config == SafeEnvConfig()  # the defaults
+    with pytest.raises(FileNotFoundError, match="sometimes"):
         make_registered("safe-random:sometimes", scenario)
 
 

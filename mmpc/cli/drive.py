@@ -91,7 +91,7 @@ def add_subcommand(sub: argparse._SubParsersAction) -> None:
                             "comma-separated with --seeds (default cruise)")
     drive.add_argument("--driver", default="mpc",
                        help="who drives: mpc (default), frenet, standard-mpc, batch-nlp, bc:RUN/policy.pt, sb3:MODEL.zip, "
-                            "safe-random[:frame|decision] (random goals behind the safety layer)")
+                            "safe-random[:RL_CONFIG] (random goals behind the safety layer)")
     drive.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's first seed)")
     drive.add_argument("--seeds", type=seed_list, default=None,
                        help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "

@@ -85,7 +85,7 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--driver", action="append", metavar="SPEC",
                         help="driver(s), comma-separated or repeated: mpc (default), frenet, standard-mpc, batch-nlp, "
-                             "bc:RUN/policy.pt, sb3:MODEL.zip, safe-random[:frame|decision]; several give a "
+                             "bc:RUN/policy.pt, sb3:MODEL.zip, safe-random[:RL_CONFIG]; several give a "
                              "side-by-side table")
     parser.add_argument("--scenarios", default="cruise,high_speed",
                         help="comma-separated names in configs/scenarios or YAML paths (default cruise,high_speed)")
