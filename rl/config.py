@@ -153,9 +153,6 @@ class SafeEnvConfig:
         intervention_speed_scale: a feasible candidate's distance to the agent's goal is
             ``hypot(dv / intervention_speed_scale, dy / lane_width)``: a lane weighs like this
             speed difference [m/s].
-        lateral_overshoot: prefer feasible candidates whose path stays within this many metres of
-            the lateral span between the ego and their goal (:func:`mmpc.rl.safety.within_lateral_span`;
-            the others only where none does); ``null``: no preference [m].
         kinematics_vehicles: rows of highway-env's ``Kinematics`` observation (ego first).
     """
 
@@ -170,7 +167,6 @@ class SafeEnvConfig:
     feature_cost_scale: float = 25.0
     intervention_penalty: float = 0.1
     intervention_speed_scale: float = 5.0
-    lateral_overshoot: Optional[float] = None
     kinematics_vehicles: int = 5
 
     def __post_init__(self) -> None:
@@ -191,8 +187,6 @@ class SafeEnvConfig:
         require(isinstance(self.solver_features, bool), f"{where}: `solver_features` must be true or false; got {self.solver_features!r}")
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
         require_non_negative(where, intervention_penalty=self.intervention_penalty)
-        if self.lateral_overshoot is not None:
-            require_non_negative(where, lateral_overshoot=self.lateral_overshoot)
         require(isinstance(self.kinematics_vehicles, int) and self.kinematics_vehicles >= 1,
                  f"{where}: `kinematics_vehicles` must be an int >= 1; got {self.kinematics_vehicles!r}")
 

@@ -44,15 +44,7 @@ from mmpc.tracking import needs_replan, plan_clearance, track
 FEATURES_PER_GOAL = 3
 
 
-def follow_agent(
-    agent_index: torch.Tensor,
-    goals: torch.Tensor,
-    speed_scale: float,
-    horizon: float,
-    lane_width: float,
-    lateral_overshoot: Optional[float] = None,
-    ego_y: Optional[torch.Tensor] = None,
-) -> Selector:
+def follow_agent(agent_index: torch.Tensor, goals: torch.Tensor, speed_scale: float, horizon: float, lane_width: float) -> Selector:
     """A selection rule for :meth:`mmpc.MPC.plan_problem` that follows the agent's goal.
 
     Args:
@@ -61,20 +53,14 @@ def follow_agent(
         speed_scale: a lane weighs like this difference of average speed [m/s].
         horizon: the optimizer's horizon t_f [s] (goal x differences / t_f = speed differences).
         lane_width: [m].
-        lateral_overshoot: with ``ego_y`` (E,) [m]: prefer candidates that stay within this many
-            metres of the lateral span between the ego and their goal (:func:`within_lateral_span`);
-            feasible ones that do not are used only where no feasible one does. ``None``: no preference.
 
     Returns:
-        ``selector(result, cost, violation) -> Selection``: the agent's goal where feasible (and
-        preferred), else the nearest such goal, else the least violation (``feasible`` False).
+        ``selector(result, cost, violation) -> Selection``: the agent's goal where feasible,
+        else the nearest feasible goal, else the least violation (``feasible`` False).
     """
 
     def select(result: SolveResult, cost: torch.Tensor, violation: torch.Tensor) -> Selection:
         feasible = result.feasible
-        if lateral_overshoot is not None:
-            preferred = feasible & within_lateral_span(result.trajectories.y, ego_y, goals[..., 1], lateral_overshoot)
-            feasible = torch.where(preferred.any(dim=1, keepdim=True), preferred, feasible)
         rows = torch.arange(feasible.shape[0], device=feasible.device)
         index = agent_index.to(feasible.device)
         target = goals[rows, index]  # (E, 2)
@@ -88,16 +74,6 @@ def follow_agent(
         return Selection(index=chosen, cost=cost[rows, chosen], feasible=any_feasible)
 
     return select
-
-
-def within_lateral_span(y: torch.Tensor, ego_y: torch.Tensor, goal_y: torch.Tensor, margin: float) -> torch.Tensor:
-    """(E, G) bool: candidate paths ``y`` (E, G, N) [m] that stay within ``margin`` [m] of the
-    span between the ego's lateral position ``ego_y`` (E,) and their goal's ``goal_y`` (E, G): no
-    swing across a lane the candidate is not heading for (a path back to the ego's lane that
-    first carries on into the next one, say)."""
-    low = torch.minimum(ego_y[:, None], goal_y) - margin
-    high = torch.maximum(ego_y[:, None], goal_y) + margin
-    return (y.amin(dim=-1) >= low) & (y.amax(dim=-1) <= high)
 
 
 class SafePlan(NamedTuple):
@@ -377,8 +353,7 @@ class SafetyLayer:
     # ------------------------------------------------------------------ frame pieces
 
     def _selector(self, agent_index: torch.Tensor, problem: ProblemBatch) -> Selector:
-        return follow_agent(agent_index, problem.goals, self.config.intervention_speed_scale, self.horizon,
-                            self.road.lane_width, self.config.lateral_overshoot, problem.ego[:, EGO_Y])
+        return follow_agent(agent_index, problem.goals, self.config.intervention_speed_scale, self.horizon, self.road.lane_width)
 
     def _safe_plan(self, plan: Plan, agent_index: torch.Tensor) -> SafePlan:
         agent_feasible = plan.selection.feasible & (plan.selection.index == agent_index)

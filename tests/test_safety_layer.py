@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
@@ -16,7 +15,7 @@ from hypothesis import strategies as st
 from mmpc.config import load_config
 from mmpc.drivers import Observation
 from mmpc.problem import ego_state
-from mmpc.rl.config import RLConfig, SafeEnvConfig
+from mmpc.rl.config import RLConfig
 from mmpc.rl.envs import SafeHighwayEnv
 from mmpc.rl.safety import SafetyLayer
 from mmpc.scenario import EgoConfig, ScriptedTraffic, ScriptedVehicle, build_mpc, load_scenario
@@ -182,27 +181,3 @@ def test_a_collision_free_scripted_scene_stays_collision_free_whatever_the_agent
         assert interventions > 0  # the layer overrode the agent somewhere
     env.close()
 
-
-def test_within_lateral_span():
-    from mmpc.rl.safety import within_lateral_span
-
-    y = torch.tensor([[[1.0, 2.0, 3.1], [1.0, 0.5, 0.0], [1.0, 1.8, 0.0]]])  # (1, 3, N)
-    inside = within_lateral_span(y, torch.tensor([1.0]), torch.tensor([[4.0, 0.0, 0.0]]), 0.5)
-    assert inside.tolist() == [[True, True, False]]  # the last swings 0.8 m beyond the ego towards the other side
-
-
-def test_the_layer_prefers_candidates_that_do_not_swing_across_a_lane_they_are_not_heading_for():
-    # the ego (lane 0, 1.4 m right of its centre) still turns right at 20 m/s: a plan back to
-    # lane 0 first carries on past y = 3 m, into lane 1, before it turns back
-    scenario = load_scenario("cruise")
-    ego = ego_state(0.0, 1.42, 0.064, 20.0, 0.0, 0.02)
-    observation = Observation(ego, torch.tensor([[[300.0, 20.0, 10.0, 0.0]]]))
-    grid = SafeEnvConfig()
-    back_to_lane_0 = torch.tensor([len(grid.speeds) + 1])  # offset 0 (the ego's lane 0) at 20 m/s
-    plain = SafetyLayer(build_mpc(scenario), grid)
-    picky = SafetyLayer(build_mpc(scenario), dataclasses.replace(grid, lateral_overshoot=1.0))
-    followed = plain.decide(plain.decision_solve(observation), back_to_lane_0)
-    assert bool(followed.agent_feasible[0]) and float(followed.plan.trajectory.y.max()) > 1.42 + 1.0
-    steered = picky.decide(picky.decision_solve(observation), back_to_lane_0)
-    assert bool(steered.intervention[0]) and not bool(steered.fallback[0])
-    assert float(steered.plan.trajectory.y.max()) <= max(1.42, float(steered.plan.problem.goals[0, steered.plan.selection.index[0], 1])) + 1.0
