@@ -39,10 +39,6 @@ Selector = Callable[[SolveResult, torch.Tensor, torch.Tensor], Selection]
 UNDRIVABLE = Status.NONHOLONOMIC | Status.HEADING | Status.SPEED | Status.NUMERICAL | Status.OFF_ROAD
 
 
-#: The lane-keeping fallback turns to the lane beyond the nearest only when that lane asks for at
-#: least this much less braking for the vehicles ahead in it [m/s^2] (:meth:`MPC._fallback_lane`).
-FALLBACK_LANE_MARGIN = 1.0
-
 #: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
 #: road) -> (E, M, N, 2)`` centres.
 PREDICTIONS = {
@@ -525,37 +521,6 @@ class MPC:
         tangential = (trajectory.xdot * trajectory.xddot + trajectory.ydot * trajectory.yddot) / speed
         return tangential[:, window].mean(dim=1), trajectory.psidot[:, window].mean(dim=1)
 
-    def _fallback_lane(
-        self, ego: torch.Tensor, times: torch.Tensor, obstacles: Optional[torch.Tensor], mask: Optional[torch.Tensor]
-    ) -> torch.Tensor:
-        """(E,) the lane centre [m] the lane-keeping fallback steers to: the nearest, unless the
-        ego is between two lanes (more than a quarter lane width off the nearest centre) and the other asks for at least :data:`FALLBACK_LANE_MARGIN` less
-        braking for the vehicles ahead in it (:func:`mmpc.stopping.conflict_deceleration` with the
-        ego on its centre) and has no vehicle alongside. Measured: a random agent behind the
-        safety layer drifted across a lane line towards a slow car, and the fallback steered into
-        that car's lane, the nearest, while braking (docs/experiments/2026-11-24-safe-rl-at-scale.md)."""
-        width = self.road.lane_width
-        y = ego[:, EGO_Y]
-        nearest = self.road.lane_index(y).to(ego.dtype) * width
-        if obstacles is None or obstacles.shape[1] == 0:
-            return nearest
-        mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask
-        other = torch.where(y > nearest, nearest + width, nearest - width).clamp(0.0, self.road.right_lane_y)
-
-        def braking(lane: torch.Tensor) -> torch.Tensor:
-            on_lane = ego.clone()
-            on_lane[:, EGO_Y] = lane
-            return -conflict_deceleration(on_lane, obstacles, mask, times, half_width=0.5 * width,
-                                          standoff=self.wheelbase + self.config.stop_gap,
-                                          max_deceleration=self.config.max_deceleration)
-
-        start = obstacles[:, :, 0]  # (E, M, 2) centres now
-        alongside = mask & ((start[..., 0] - ego[:, EGO_X, None]).abs() < self.wheelbase + self.config.stop_gap) \
-            & ((start[..., 1] - other[:, None]).abs() < 0.5 * width)
-        between = (y - nearest).abs() > 0.25 * width
-        better = between & (braking(other) + FALLBACK_LANE_MARGIN <= braking(nearest)) & ~alongside.any(dim=1) & (other != nearest)
-        return torch.where(better, other, nearest)
-
     def _fallback(
         self,
         ego: torch.Tensor,
@@ -568,7 +533,7 @@ class MPC:
         mask: Optional[torch.Tensor],
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The commands of :meth:`command` where the plan is not feasible."""
-        lane_y = self._fallback_lane(ego, times, obstacles, mask)
+        lane_y = self.road.lane_index(ego[:, EGO_Y]).to(ego.dtype) * self.road.lane_width
         desired_heading = torch.atan(-0.25 * (ego[:, EGO_Y] - lane_y)).clamp(-0.2, 0.2)
         keep_lane = 1.0 * (desired_heading - ego[:, EGO_PSI])
         fallback_acceleration = torch.where(drivable, acceleration.clamp_max(0.0), -self.config.brake_deceleration)

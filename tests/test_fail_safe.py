@@ -95,25 +95,6 @@ def test_a_fallback_never_accelerates_and_brakes_for_the_conflict_ahead():
     assert plan.acceleration.item() <= -(6.0**2) / (2 * (25.0 - 5.0 - 2.0)) + 1e-6
 
 
-def test_the_fallback_keeps_to_the_lane_that_needs_less_braking_when_between_two():
-    # the ego has drifted 0.6 m past the line into lane 1 at 18 m/s, a car at 6 m/s 22 m ahead in
-    # lane 1; lane 0 is clear ahead. The lane-keeping fallback turns back to lane 0.
-    mpc = wall_mpc(stop_lanes=None)
-    times = mpc.optimizer.times
-    ego = mmpc.ego_state([0.0, 0.0, 0.0], [2.6, 2.6, 4.6], [0.09, 0.09, 0.0], [18.0, 18.0, 18.0])
-    slow = [22.0, 4.0, 6.0, 0.0]
-    beside = [1.0, 0.0, 18.0, 0.0]
-    states = torch.tensor([[slow, [300.0, 8.0, 6.0, 0.0]], [slow, beside], [slow, [300.0, 8.0, 6.0, 0.0]]])
-    obstacles = predict_constant_velocity(states, times)
-    lanes = mpc._fallback_lane(ego, times, obstacles, torch.ones(3, 2, dtype=torch.bool))
-    # back to lane 0; but not with a car alongside there; and not from near lane 1's centre (nearest)
-    assert lanes.tolist() == [0.0, 4.0, 4.0]
-    _, heading_rate = mpc._fallback(ego, times, torch.zeros(3, dtype=torch.bool), torch.zeros(3, dtype=torch.bool),
-                                    torch.zeros(3), torch.zeros(3), obstacles, torch.ones(3, 2, dtype=torch.bool))
-    assert float(heading_rate[0]) < 0.0 < float(heading_rate[1])  # towards lane 0 / lane 1
-    assert mpc._fallback_lane(ego, times, None, None).tolist() == [4.0, 4.0, 4.0]  # no obstacles: the nearest
-
-
 def test_mpc_plan_refuses_bad_input():
     mpc = wall_mpc()
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 14.0)
