@@ -168,7 +168,7 @@ class SafeSimBatch:
         feasible_goals = torch.zeros(count, dtype=torch.long)
         agent_feasible = torch.zeros(count, dtype=torch.bool)
         residuals = torch.zeros(count, 3, dtype=torch.float64)
-        solve_ms = [] if decided is None else [decided.plan.solve_ms]
+        solve_ms: list[float] = []  # the decision's solve was timed at the end of the step before
         period = 1.0 / self.scenario.frequency
         held, held_rows = None, everyone
         for frame in range(self.config.decision_frames):

@@ -53,6 +53,13 @@ def random_scenes(seed: int, count: int, vehicles: int) -> Observation:
     return Observation(ego, cars, clear)
 
 
+def random_choices(layer: SafetyLayer, seed: int) -> tuple[Observation, torch.Tensor, torch.Tensor]:
+    """8 random scenes (:func:`random_scenes`), a random grid goal for each, and its goal command."""
+    observation = random_scenes(seed, count=8, vehicles=8)
+    actions = torch.randint(0, layer.num_discrete_goals, (8,), generator=torch.Generator().manual_seed(seed))
+    return observation, actions, layer.discrete_commands(observation.ego, actions)
+
+
 def assert_feasible_first(plan, fallback: torch.Tensor) -> None:
     """The executed candidate is feasible wherever any candidate is; the fallback only where none is."""
     feasible = plan.result.feasible
@@ -66,9 +73,7 @@ def assert_feasible_first(plan, fallback: torch.Tensor) -> None:
 @given(seed=st.integers(0, 10_000))
 def test_the_layer_never_executes_an_infeasible_candidate_while_a_feasible_one_exists(seed, layers):
     layer = layers["decision"]
-    observation = random_scenes(seed, count=8, vehicles=8)
-    actions = torch.randint(0, layer.num_discrete_goals, (8,), generator=torch.Generator().manual_seed(seed))
-    commands = layer.discrete_commands(observation.ego, actions)
+    observation, actions, commands = random_choices(layer, seed)
     fresh = layer.plan(observation, commands)  # per-frame mode: the agent's goal + the standard goals
     assert_feasible_first(fresh.plan, fresh.fallback)
     decided = layer.decide(layer.decision_solve(observation), actions)  # decision mode: the grid's candidates
@@ -121,9 +126,7 @@ def test_decision_mode_tracks_the_plan_and_solves_again_only_where_it_is_blocked
 @given(seed=st.integers(0, 10_000))
 def test_decision_mode_never_tracks_a_plan_that_runs_into_an_obstacle_as_predicted_now(seed, layers):
     layer = layers["decision"]
-    observation = random_scenes(seed, count=8, vehicles=8)
-    actions = torch.randint(0, layer.num_discrete_goals, (8,), generator=torch.Generator().manual_seed(seed))
-    commands = layer.discrete_commands(observation.ego, actions)
+    observation, actions, commands = random_choices(layer, seed)
     control = layer.frame(observation, commands, 0.0, None, layer.decide(layer.decision_solve(observation), actions))
     # every car changes speed by up to +-5 m/s and the egos are where their plans say 0.2 s on
     generator = torch.Generator().manual_seed(seed + 1)
