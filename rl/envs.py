@@ -47,9 +47,7 @@ def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
     or the scenario's meta cost term made a reward."""
     ego = episode.ego
     if reward.source == "meta_cost":
-        scenario = episode.scenario
-        cost = scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), scenario.road)
-        return reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))
+        return vehicle_meta_cost_reward(ego, episode.scenario, reward)
     lanes = max(episode.scenario.lanes - 1, 1)
     lane = int(ego.lane_index[2]) if ego.lane_index is not None else 0
     low, high = reward.reward_speed_range
@@ -60,6 +58,13 @@ def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
         best = reward.high_speed_reward + reward.right_lane_reward
         value = (value - reward.collision_reward) / (best - reward.collision_reward)
     return value * float(ego.on_road)
+
+
+def vehicle_meta_cost_reward(ego: Any, scenario: ScenarioConfig, reward: RewardConfig) -> float:
+    """``source: meta_cost``'s reward (:meth:`mmpc.rl.config.RewardConfig.meta_cost_reward`) of a
+    highway-env vehicle ``ego``: the scenario's meta cost term at its speed and lateral position."""
+    cost = scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), scenario.road)
+    return reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))
 
 
 class WallTime(float):

@@ -29,6 +29,7 @@ import yaml
 
 from mmpc.config import from_dict, to_dict
 from mmpc.rl.config import ALGORITHMS, RLConfig
+from mmpc.rl.envs import vehicle_meta_cost_reward
 
 logger = logging.getLogger(__name__)
 
@@ -90,8 +91,7 @@ class HighwayBaseline(gym.Wrapper):
         info = dict(info, mean_speed=float(info.get("speed", ego.speed)), frames=self.frames)
         info["crashed"] = bool(ego.crashed)
         if self.reward.source == "meta_cost":
-            cost = self.scenario.objective.stage_cost(float(ego.speed), float(ego.position[1]), self.scenario.road)
-            reward = self.frames * self.reward.meta_cost_reward(cost, float(ego.crashed), float(ego.on_road))
+            reward = self.frames * vehicle_meta_cost_reward(ego, self.scenario, self.reward)
         return observation, reward, terminated, truncated, info
 
 
