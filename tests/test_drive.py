@@ -109,15 +109,20 @@ def test_seed_lists():
             seed_list(bad)
 
 
-def test_summary_table_lists_collisions_by_seed():
-    rows = [dict(scenario="cruise", seed=s, collisions=int(s == 3), offroad=0, mean_speed=14.0 + s, speed_residual_mean=0.1,
+def test_summary_table_lists_collisions_by_seed_and_fault():
+    parts = {1: "rear", 3: "front"}
+    rows = [dict(scenario="cruise", seed=s, collisions=int(s in parts), collision_part=parts.get(s),
+                 ego_fault_collisions=int(parts.get(s) == "front"), offroad=0, mean_speed=14.0 + s, speed_residual_mean=0.1,
                  right_lane_distance_mean=5.0, lin_acc_mean=0.5, ang_acc_mean=0.01, meta_cost_mean=1.0, lane_changes=2,
                  fallback_steps=1, solve_ms_mean=20.0, solve_ms_max=30.0 + s, min_clearance=1.5) for s in range(4)]
+    rows.append({**rows[0], "seed": 4, "collisions": 1, "collision_part": None, "ego_fault_collisions": None})  # before the split
     summary = summarize(rows)
-    assert summary[0]["collisions"] == 1 and summary[0]["collision_seeds"] == [3]
-    assert summary[0]["mean_speed"] == pytest.approx(15.5) and summary[0]["solve_ms_max"] == 33.0
+    assert summary[0]["collisions"] == 3 and summary[0]["collision_seeds"] == [1, 3, 4]
+    assert summary[0]["ego_fault_collisions"] == 2 and summary[0]["ego_fault_seeds"] == [3, 4]
+    assert summary[0]["mean_speed"] == pytest.approx(15.2) and summary[0]["solve_ms_max"] == 33.0
     table = format_table(summary)
-    assert "seeds [3]" in table and "15.50" in table
+    assert "seeds 1 (rear), 3 (front), 4 (unknown)" in table and "15.20" in table
+    assert [line.split()[-1] for line in table.splitlines() if "ego's fault" in line] == ["2"]
 
 
 @pytest.mark.usefixtures("one_thread")

@@ -33,6 +33,7 @@ TABLE = (
     ("episodes", "episodes", "{:d}"),
     ("errors", "errors", "{:d}"),
     ("collisions", "collisions", "{:d}"),
+    ("ego_fault_collisions", "  ego's fault", "{:d}"),
     ("collision_rate", "collision rate", "{:.3f}"),
     ("offroad", "offroad steps", "{:d}"),
     ("mean_speed", "mean v [m/s]", "{:.2f}"),
@@ -126,7 +127,9 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
 
     Returns:
         Entries with ``driver``, ``scenario``, ``episodes`` (finished ones), ``errors`` and
-        ``error_seeds``, ``collisions`` and ``collision_seeds``, ``collision_rate`` and
+        ``error_seeds``, ``collisions`` and ``collision_seeds``, ``ego_fault_collisions`` and
+        ``ego_fault_seeds`` (the ego's front or side struck; rows from before the split count
+        as the ego's fault), ``collision_parts`` (seed -> part struck), ``collision_rate`` and
         ``collision_rate_ci`` (Wilson), ``offroad`` (steps, summed), ``solve_ms_max``,
         ``min_clearance`` (smallest), and for each of :data:`MEAN_METRICS` the mean over the
         finished episodes where it is finite and ``<key>_ci`` (t interval, ``None`` for fewer
@@ -137,6 +140,8 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
         mine = [row for row in rows if row.get("driver") == driver and row["scenario"] == scenario]
         done = [row for row in mine if row.get("status", "ok") == "ok"]
         collisions = sum(int(row["collisions"]) for row in done)
+        crashed = [row for row in done if row["collisions"]]
+        ego_fault = [row["seed"] for row in crashed if row.get("ego_fault_collisions") != 0]
         entry: dict = {
             "driver": driver,
             "scenario": scenario,
@@ -144,7 +149,10 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
             "errors": len(mine) - len(done),
             "error_seeds": [row["seed"] for row in mine if row.get("status", "ok") != "ok"],
             "collisions": collisions,
-            "collision_seeds": [row["seed"] for row in done if row["collisions"]],
+            "collision_seeds": [row["seed"] for row in crashed],
+            "ego_fault_collisions": len(ego_fault),
+            "ego_fault_seeds": ego_fault,
+            "collision_parts": {row["seed"]: row.get("collision_part") or "unknown" for row in crashed},
             "collision_rate": collisions / len(done) if done else None,
             "collision_rate_ci": wilson_ci(collisions, len(done)),
             "offroad": sum(int(row["offroad"]) for row in done),
@@ -182,7 +190,9 @@ def format_table(summary: Sequence[dict]) -> str:
     for entry, (driver, scenario) in zip(summary, labels):
         where = f"{driver} / {scenario}" if driver else scenario
         if entry["collisions"]:
-            lines.append(f"collisions in {where}: seeds {entry['collision_seeds']}")
+            parts = entry.get("collision_parts", {})
+            seeds = ", ".join(f"{seed} ({parts.get(seed, 'unknown')})" for seed in entry["collision_seeds"])
+            lines.append(f"collisions in {where} (part of the ego struck): seeds {seeds}")
         if entry.get("errors"):
             lines.append(f"errors in {where}: seeds {entry['error_seeds']}")
     return "\n".join(lines)
@@ -209,6 +219,8 @@ def format_markdown(summary: Sequence[dict]) -> str:
         header = "| " + " | ".join(["", *(f"`{entry['driver']}`" for entry in mine)]) + " |"
         lines = [f"### {scenario}", "", header, "|" + "---|" * (len(mine) + 1)]
         lines.append("| episodes (errors) | " + " | ".join(f"{e['episodes']} ({e['errors']})" for e in mine) + " |")
+        lines.append("| collisions (ego's fault) | " + " | ".join(f"{e['collisions']} ({e['ego_fault_collisions']})"
+                                                                   for e in mine) + " |")
         for key, label in COMPARED:
             lines.append(f"| {label} | " + " | ".join(_cell(entry, key) for entry in mine) + " |")
         parts.append("\n".join(lines))
@@ -263,14 +275,14 @@ def write_tensorboard(rows: Sequence[dict], summary: Sequence[dict], logdir: str
             for row in rows:
                 if row["driver"] != driver or row.get("status", "ok") != "ok":
                     continue
-                for key in ("collisions", *MEAN_METRICS):
+                for key in ("collisions", "ego_fault_collisions", *MEAN_METRICS):
                     value = row.get(key)
                     if value is not None and math.isfinite(value):
                         writer.add_scalar(f"{row['scenario']}/{key}", value, global_step=row["seed"])
             for entry in summary:
                 if entry["driver"] != driver:
                     continue
-                for key in ("collision_rate", *MEAN_METRICS):
+                for key in ("collision_rate", "ego_fault_collisions", *MEAN_METRICS):
                     if entry.get(key) is None:
                         continue
                     writer.add_scalar(f"summary/{entry['scenario']}/{key}", entry[key], global_step=0)

@@ -31,16 +31,19 @@ KEY_COLUMNS = ("driver", "scenario", "seed")
 #: wall time [s]).
 RUN_COLUMNS = ("status", "error", "group", "group_size", "worker", "wall_s")
 #: The episode metrics (:func:`mmpc.metrics.episode_metrics`; empty where a scenario has none),
+#: what a collision struck and whose fault it was (:class:`mmpc.highway.runner.EpisodeResult`),
 #: plus ``solve_ms_per_episode_mean``: each decision's time divided by the episodes it served.
 METRIC_COLUMNS = (
-    "steps", "duration", "collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
+    "steps", "duration", "collisions", "collision_part", "ego_fault_collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
     "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "lane_changes", "fallback_steps", "min_clearance",
     "off_centre_share", "lane_change_s_mean",
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
-_INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "offroad", "lane_changes", "fallback_steps"})
-_TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker"})
+_INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
+                          "lane_changes", "fallback_steps"})
+_TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker", "collision_part"})
+_NULLABLE_TEXT_COLUMNS = frozenset({"collision_part"})  # an empty cell reads back as None
 
 Key = tuple[str, str, int]
 
@@ -66,7 +69,7 @@ _DAMAGED_LINE = "fix or delete the line (a deleted episode is run again) or use 
 
 def _parse(column: str, text: str, where: str) -> object:
     if column in _TEXT_COLUMNS:
-        return text
+        return None if text == "" and column in _NULLABLE_TEXT_COLUMNS else text
     if text == "":
         return None
     try:

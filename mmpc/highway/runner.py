@@ -19,6 +19,7 @@ from typing import NamedTuple, Optional, Sequence
 
 import torch
 
+from mmpc.collisions import is_ego_fault, struck_part
 from mmpc.drivers import Decision, Driver, Observation, make_driver
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.highway.worlds import World, make_world
@@ -37,7 +38,9 @@ class EpisodeResult(NamedTuple):
         scenario: the scenario as run (duration included).
         seed: its seed.
         records: one :class:`mmpc.metrics.StepRecord` per control step.
-        metrics: :func:`mmpc.metrics.episode_metrics` plus ``scenario`` and ``seed``.
+        metrics: :func:`mmpc.metrics.episode_metrics` plus ``scenario``, ``seed``,
+            ``collision_part`` (what the collision struck of the ego, :mod:`mmpc.collisions`;
+            ``None`` without one) and ``ego_fault_collisions`` (1: it struck the front or a side).
     """
 
     scenario: ScenarioConfig
@@ -93,12 +96,23 @@ def _record(step: int, episode: HighwayEpisode, observation: Observation, decisi
     )
 
 
-def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord]) -> EpisodeResult:
+def _struck_part(after: Observation, vehicle: tuple[float, float]) -> Optional[str]:
+    """The part of the ego a collision struck (:func:`mmpc.collisions.struck_part`), from the state right after it (E = 1)."""
+    ego = after.ego[0]
+    vehicles = after.vehicles[0] if after.vehicle_mask is None else after.vehicles[0][after.vehicle_mask[0]]
+    return struck_part((float(ego[EGO_X]), float(ego[EGO_Y]), float(ego[EGO_PSI])), vehicles[:, :2].tolist(), vehicle)
+
+
+def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], part: Optional[str]) -> EpisodeResult:
+    """The episode's result; ``part``: what its collision struck (``None``: no collision, or no car found)."""
     v_cruise = scenario.objective.v_cruise if isinstance(scenario.objective, CruiseObjective) else None
     metrics = episode_metrics(records, dt=1.0 / scenario.frequency, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
                               lane_width=scenario.road.lane_width)
+    metrics["collision_part"] = part if metrics["collisions"] else None
+    metrics["ego_fault_collisions"] = int(part is not None and metrics["collisions"] and is_ego_fault(part))
     if metrics["collisions"]:
-        logger.warning("scenario %s seed %d: collision at t = %.1f s", scenario.name, seed, records[-1].time)
+        logger.warning("scenario %s seed %d: collision at t = %.1f s (%s struck)", scenario.name, seed, records[-1].time,
+                       part or "no car found")
     return EpisodeResult(scenario, seed, records, {"scenario": scenario.name, "seed": seed, **metrics})
 
 
@@ -232,6 +246,7 @@ def run_lockstep(
     observers = list(observers)
     world: Optional[World] = None
     records: list[list[StepRecord]] = [[] for _ in seeds]
+    struck: dict[int, Optional[str]] = {}  # environment -> the part of the ego its collision struck
     try:
         if video is not None:
             observers.insert(0, _VideoObserver(video, scenario.frequency))
@@ -258,6 +273,8 @@ def run_lockstep(
                 for observer in observers:
                     observer.applied(step)
                 if ended[i]:
+                    if episodes[i].ego.crashed:
+                        struck[i] = _struck_part(world.observe([i])[1][0], scenario.vehicle)
                     for observer in observers:
                         observer.finished(i, episodes[i])
             active = [i for i in active if not ended[i]]
@@ -266,7 +283,7 @@ def run_lockstep(
             observer.close()
         if world is not None:
             world.close()
-    return [_result(scenario, seed, rows) for seed, rows in zip(seeds, records)]
+    return [_result(scenario, seed, rows, struck.get(i)) for i, (seed, rows) in enumerate(zip(seeds, records))]
 
 
 def write_outputs(result: EpisodeResult, out: Path) -> list[Path]:
