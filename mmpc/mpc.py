@@ -415,16 +415,18 @@ class MPC:
         cost = self.meta_cost(result.trajectories, self.road)
         return Scored(result, cost, self._violation(result, road_excess), solve_ms, compile_ms)
 
+    def select(self, problem: ProblemBatch, scored: Scored) -> Selection:
+        """The MPC's own choice among the candidates of ``problem`` from its :meth:`score`: the
+        feasible candidate of lowest meta cost (ties broken as :meth:`tie_break`), else the least violation."""
+        return select_best(scored.result, scored.cost, self.optimizer.config, violation=scored.violation,
+                           **self.tie_break(scored.result.trajectories, problem.ego))
+
     @torch.no_grad()
     def choose(self, problem: ProblemBatch, scored: Scored, selector: Optional[Selector] = None) -> Plan:
         """The :class:`Plan` of ``problem`` from its :meth:`score`: select a candidate per problem
         (``selector``, as :meth:`plan_problem`) and the commands that execute it (:meth:`command`)."""
-        result, cost, violation = scored.result, scored.cost, scored.violation
-        if selector is None:
-            selection = select_best(result, cost, self.optimizer.config, violation=violation,
-                                    **self.tie_break(result.trajectories, problem.ego))
-        else:
-            selection = selector(result, cost, violation)
+        result = scored.result
+        selection = self.select(problem, scored) if selector is None else selector(result, scored.cost, scored.violation)
         trajectory = result.trajectories.select(selection.index)
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0
@@ -432,7 +434,7 @@ class MPC:
             problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=problem.obstacles, mask=problem.obstacle_mask
         )
         return Plan(
-            problem, result, cost, selection, trajectory, acceleration, steering, heading_rate, scored.solve_ms,
+            problem, result, scored.cost, selection, trajectory, acceleration, steering, heading_rate, scored.solve_ms,
             scored.compile_ms,
         )
 

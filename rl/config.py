@@ -143,8 +143,13 @@ class SafeEnvConfig:
         lateral_range: continuous actions: ``a[0]`` in [-1, 1] maps to the ego lane's centre
             plus ``a[0] * lateral_range`` lane widths (clamped to the lane centres of the road).
         speed_range: continuous actions: ``a[1]`` in [-1, 1] maps linearly onto (low, high) [m/s].
-        solver_features: append per-goal solver features to the observation: for every goal of
-            the discrete grid at the current state, feasible flag, meta cost
+        expert_action: discrete actions: one more action after the grid, "drive what the MPC
+            expert would": its own choice among every candidate of the decision solve (the grid
+            and the scenario's standard goals), held over the agent step like a grid goal. The
+            agent can then do no worse than the expert at the decision rate and learns when to
+            deviate from it. Needs ``replan: decision``.
+        solver_features: append per-goal solver features to the observation: for every action
+            of the discrete grid (and the expert action) at the current state, feasible flag, meta cost
             ``m / (m + feature_cost_scale)`` (``m`` the cost per trajectory sample) and clearance
             ``min(1, d / 3)`` (``d`` the smallest normalised ellipse distance).
         feature_cost_scale: see ``solver_features`` [units of the meta cost].
@@ -163,6 +168,7 @@ class SafeEnvConfig:
     speeds: tuple[float, ...] = (15.0, 20.0, 25.0, 28.0)
     lateral_range: float = 1.0
     speed_range: tuple[float, float] = (10.0, 28.0)
+    expert_action: bool = False
     solver_features: bool = True
     feature_cost_scale: float = 25.0
     intervention_penalty: float = 0.1
@@ -184,6 +190,10 @@ class SafeEnvConfig:
         low_high = self.speed_range
         require(isinstance(low_high, tuple) and len(low_high) == 2 and all(map(is_finite_number, low_high)) and 0 < low_high[0] <= low_high[1],
                  f"{where}: `speed_range` must be [low, high] with 0 < low <= high m/s; got {low_high!r}")
+        require(isinstance(self.expert_action, bool), f"{where}: `expert_action` must be true or false; got {self.expert_action!r}")
+        require(not self.expert_action or self.replan == "decision",
+                 f"{where}: `expert_action` needs `replan: decision` (the expert's choice comes from the decision's solve); "
+                 f"got replan {self.replan!r}")
         require(isinstance(self.solver_features, bool), f"{where}: `solver_features` must be true or false; got {self.solver_features!r}")
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
         require_non_negative(where, intervention_penalty=self.intervention_penalty)
@@ -194,6 +204,11 @@ class SafeEnvConfig:
     def num_discrete_goals(self) -> int:
         """A, the size of the discrete goal grid ``lane_offsets x speeds``."""
         return len(self.lane_offsets) * len(self.speeds)
+
+    @property
+    def num_actions(self) -> int:
+        """Discrete actions: the grid's A goals, then the expert action when ``expert_action``."""
+        return self.num_discrete_goals + int(self.expert_action)
 
     @property
     def top_speed(self) -> float:

@@ -134,6 +134,8 @@ class SafeAgentDriver(Driver):
             actions = torch.as_tensor(np.asarray(actions, dtype=np.float32))
             return sub, solve, actions, self.layer.continuous_commands(sub.ego, actions)
         actions = torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long)
+        if decides_from_solve:
+            return sub, solve, actions, self.layer.decision_commands(solve, actions)
         return sub, solve, actions, self.layer.discrete_commands(sub.ego, actions)
 
     def decide(self, observation: Observation) -> Decision:
@@ -344,8 +346,8 @@ class MetaActionDriver(Driver):
 
 
 class RandomGoals:
-    """A stand-in for a trained model: uniformly random goals of the discrete grid, the
-    layer's least careful user. Each row's goal is drawn from a generator seeded by ``seed``
+    """A stand-in for a trained model: uniformly random discrete actions (the grid's goals, and
+    the expert's choice with ``expert_action``), the layer's least careful user. Each row's goal is drawn from a generator seeded by ``seed``
     and the bytes of the row's first ``key_size`` observation values (the Kinematics rows), so an
     episode gets the same goals whichever lockstep group, batch position or worker drives it."""
 
@@ -381,7 +383,7 @@ def make_random_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -
 
     run_config = dataclasses.replace(load_config(RLConfig, config or None), scenario=scenario)
     env = run_config.env
-    model = RandomGoals(env.num_discrete_goals, key_size=env.kinematics_vehicles * len(KINEMATICS_FEATURES))
+    model = RandomGoals(env.num_actions, key_size=env.kinematics_vehicles * len(KINEMATICS_FEATURES))
     return RandomSafeAgentDriver(TrainedRun(model, "random", "safe", False, run_config), scenario)
 
 

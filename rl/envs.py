@@ -17,7 +17,8 @@ its environments.
 
 Observation: highway-env's ``Kinematics`` observation (``kinematics_vehicles`` rows x
 presence, x, y, vx, vy, normalised and clipped to [-1, 1]), flattened, followed (with
-``solver_features``) by (feasible, meta cost, clearance) for each goal of the discrete grid.
+``solver_features``) by (feasible, meta cost, clearance) for each goal of the discrete grid
+(and for the expert's choice, with ``expert_action``).
 """
 
 from __future__ import annotations
@@ -86,17 +87,20 @@ class WallTime(float):
 
 
 def action_space(config: SafeEnvConfig, continuous: bool) -> spaces.Space:
-    """Box ``[-1, 1]^2`` goal commands, or the discrete grid ``lane_offsets x speeds``."""
+    """Box ``[-1, 1]^2`` goal commands, or the discrete grid ``lane_offsets x speeds`` (then the
+    expert action, with ``expert_action``)."""
     if continuous:
+        if config.expert_action:
+            raise ValueError("env: `expert_action` is a discrete action; continuous goals (SAC) need expert_action: false")
         return spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-    return spaces.Discrete(config.num_discrete_goals)
+    return spaces.Discrete(config.num_actions)
 
 
 def observation_space(config: SafeEnvConfig) -> spaces.Box:
     """The flat observation: kinematics rows, then (with ``solver_features``) the goal features."""
     size = config.kinematics_vehicles * len(KINEMATICS_FEATURES)
     if config.solver_features:
-        size += config.num_discrete_goals * FEATURES_PER_GOAL
+        size += config.num_actions * FEATURES_PER_GOAL
     return spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
 
 
@@ -134,14 +138,14 @@ def check_action(action: Any, config: SafeEnvConfig, continuous: bool) -> Any:
         if not np.isfinite(values).all():
             raise ValueError(f"`action` must be finite numbers (in [-1, 1]); got {values.tolist()}")
         return values
-    count = config.num_discrete_goals
+    count = config.num_actions
     if isinstance(action, np.ndarray) and action.shape == ():
         action = action[()]
     if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
         came = (f"an array of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray)
                 else f"{action!r} ({type(action).__name__})")
-        raise ValueError(f"`action` must be an int in [0, {count}) (a goal of the grid lane_offsets x speeds); "
-                         f"got {came}")
+        meaning = "a goal of the grid lane_offsets x speeds" + (f", or {count - 1}: the expert's choice" if config.expert_action else "")
+        raise ValueError(f"`action` must be an int in [0, {count}) ({meaning}); got {came}")
     if not 0 <= action < count:
         raise ValueError(f"`action` must be an int in [0, {count}); got {action}")
     return int(action)
@@ -347,11 +351,14 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
     last: list[dict] = [{} for _ in envs]
     solve_ms: list[float] = []
     observation = stack_observations([env.road_state() for env in envs], range(count))
-    commands = envs[0].commands(observation.ego, actions)
     decided = None
     if config.replan == "decision" and not envs[0].continuous:  # the grid solve the observation's features came from
-        decided = layer.decide(layer.decision_solve(observation), torch.as_tensor(actions, dtype=torch.long))
+        solve = layer.decision_solve(observation)
+        commands = layer.decision_commands(solve, torch.as_tensor(actions, dtype=torch.long))
+        decided = layer.decide(solve, torch.as_tensor(actions, dtype=torch.long))
         solve_ms.append(decided.plan.solve_ms)
+    else:
+        commands = envs[0].commands(observation.ego, actions)
     period = 1.0 / envs[0].scenario.frequency
     held, held_rows = None, list(range(count))
     for frame in range(config.decision_frames):

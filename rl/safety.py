@@ -22,6 +22,8 @@ Replanning (:attr:`SafeEnvConfig.replan`): ``"frame"`` solves at every frame of 
 predicted now, the ego has left it, or no candidate was feasible (:meth:`SafetyLayer.frame`).
 With discrete goals the decision is taken from the solve that made the observation's solver
 features (the goal grid plus the standard goals at the same state): one solve per agent step.
+With :attr:`SafeEnvConfig.expert_action` one more discrete action drives the candidate the MPC
+expert would choose from that solve.
 """
 
 from __future__ import annotations
@@ -109,10 +111,12 @@ class DecisionSolve(NamedTuple):
     Fields:
         problem: E problems, goals (E, A + G0, 2): the grid's A first, then the standard goals.
         scored: the candidates solved and scored.
+        expert: (E,) long, the candidate the MPC expert would drive (``expert_action``; else None).
     """
 
     problem: ProblemBatch
     scored: Scored
+    expert: Optional[torch.Tensor] = None
 
 
 class HeldPlan(NamedTuple):
@@ -209,6 +213,11 @@ class SafetyLayer:
         """A, the size of the discrete goal grid."""
         return self._grid_offsets.numel()
 
+    @property
+    def num_actions(self) -> int:
+        """Discrete actions: the grid's A goals, then (``expert_action``) the expert's choice, action A."""
+        return self.config.num_actions
+
     # ------------------------------------------------------------------ actions -> goal commands
 
     def discrete_commands(self, ego: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -286,41 +295,70 @@ class SafetyLayer:
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         grid = self.goals(problem.ego, self._grid_commands(problem.ego))
         problem = problem._replace(goals=torch.cat([grid, problem.goals], dim=1))
-        return DecisionSolve(problem, self.mpc.score(problem))
+        scored = self.mpc.score(problem)
+        expert = self.mpc.select(problem, scored).index if self.config.expert_action else None
+        return DecisionSolve(problem, scored, expert)
+
+    def agent_candidates(self, solve: DecisionSolve, actions: torch.Tensor) -> torch.Tensor:
+        """(E,) long, the candidate of a :meth:`decision_solve` each discrete action names: grid
+        action i its goal i; the expert action (A) the candidate the MPC would drive (:meth:`mmpc.MPC.select`)."""
+        actions = torch.as_tensor(actions, dtype=torch.long).reshape(-1)
+        if actions.shape[0] != solve.problem.num_problems:
+            raise ValueError(f"`actions` must have shape ({solve.problem.num_problems},); got {tuple(actions.shape)}")
+        if bool(((actions < 0) | (actions >= self.num_actions)).any()):
+            raise ValueError(f"discrete actions must lie in [0, {self.num_actions}); got {actions.tolist()}")
+        if solve.expert is None:
+            return actions
+        return torch.where(actions == self.num_discrete_goals, solve.expert, actions)
+
+    def decision_commands(self, solve: DecisionSolve, actions: torch.Tensor) -> torch.Tensor:
+        """(E, 2) goal commands ``(y [m], v [m/s])`` of discrete actions at the states of a
+        :meth:`decision_solve`: the grid's commands, and for the expert action its candidate's goal
+        ``(x, y)`` as ``(y, (x - x_ego) / t_f)``."""
+        index = self.agent_candidates(solve, actions)
+        ego = solve.problem.ego
+        rows = torch.arange(index.shape[0])
+        grid = self._grid_commands(ego)[rows, index.clamp(max=self.num_discrete_goals - 1)]
+        goal = solve.problem.goals[rows, index]
+        chosen = torch.stack([goal[:, 1], (goal[:, 0] - ego[:, EGO_X]) / self.horizon], dim=1)
+        return torch.where((index < self.num_discrete_goals)[:, None], grid, chosen)
 
     def features(self, solve: DecisionSolve) -> np.ndarray:
-        """How every goal of the discrete grid fares at the solved states.
+        """How every discrete action's candidate fares at the solved states.
 
         Returns:
-            (E, A, 3) float32 features in [0, 1]: feasible flag, squashed meta cost
+            (E, num_actions, 3) float32 features in [0, 1] (the grid's goals, then the expert's
+            choice with ``expert_action``): feasible flag, squashed meta cost
             ``m / (m + feature_cost_scale)`` with ``m`` the cost per trajectory sample, and
             clearance ``min(1, d / 3)`` with ``d`` the smallest normalised ellipse distance to
             an obstacle (1/3: touching).
         """
         result = solve.scored.result
-        count = self.num_discrete_goals
-        feasible = result.feasible[:, :count].to(torch.float32)
+        count = solve.problem.num_problems
+        columns = torch.arange(self.num_discrete_goals).expand(count, -1)
+        if solve.expert is not None:
+            columns = torch.cat([columns, solve.expert[:, None]], dim=1)
+        rows = torch.arange(count)[:, None]
+        feasible = result.feasible[rows, columns].to(torch.float32)
         samples = result.trajectories.x.shape[-1]
-        cost = solve.scored.cost[:, :count].to(torch.float32) / samples
+        cost = solve.scored.cost[rows, columns].to(torch.float32) / samples
         cost = torch.nan_to_num(cost, nan=math.inf, posinf=math.inf).clamp_min(0.0)
         squashed = torch.where(torch.isinf(cost), torch.ones_like(cost), cost / (cost + self.config.feature_cost_scale))
-        distance = torch.nan_to_num(result.min_obstacle_distance[:, :count].to(torch.float32), nan=0.0, posinf=3.0)
+        distance = torch.nan_to_num(result.min_obstacle_distance[rows, columns].to(torch.float32), nan=0.0, posinf=3.0)
         clearance = (distance / 3.0).clamp(0.0, 1.0)
         return torch.stack([feasible, squashed, clearance], dim=-1).numpy()
 
     def decide(self, solve: DecisionSolve, actions: torch.Tensor) -> SafePlan:
         """Discrete actions executed from the candidates of a :meth:`decision_solve` at the same
-        states (no new solve): the agent's grid goal where feasible, else as :func:`follow_agent`.
+        states (no new solve): the action's candidate where feasible, else as :func:`follow_agent`.
 
         Args:
             solve: the decision solve of the E states the actions were chosen at.
-            actions: (E,) long indices into the grid.
+            actions: (E,) long indices into the grid, or A for the expert's choice (``expert_action``).
         """
-        actions = torch.as_tensor(actions, dtype=torch.long).reshape(-1)
-        if actions.shape[0] != solve.problem.num_problems:
-            raise ValueError(f"`actions` must have shape ({solve.problem.num_problems},); got {tuple(actions.shape)}")
-        plan = self.mpc.choose(solve.problem, solve.scored, self._selector(actions, solve.problem))
-        return self._safe_plan(plan, actions)
+        index = self.agent_candidates(solve, actions)
+        plan = self.mpc.choose(solve.problem, solve.scored, self._selector(index, solve.problem))
+        return self._safe_plan(plan, index)
 
     def frame(
         self,

@@ -82,6 +82,7 @@ class SafeSimBatch:
         self.config = config
         self.reward = reward
         self.continuous = bool(continuous)
+        action_space(config, self.continuous)  # refuses settings the action type cannot have
         self.layer = SafetyLayer(build_mpc(scenario), config)
         self.dtype = self.layer.mpc.optimizer.dtype
         self.rng = np.random.default_rng(seed)
@@ -155,10 +156,13 @@ class SafeSimBatch:
             raise RuntimeError(f"environments {self.sim.done.nonzero()[:, 0].tolist()} are over: reset them first")
         count = self.num_envs
         everyone = torch.arange(count)
-        commands = goal_commands(self.layer, self._road_observation(everyone).ego, checked, self.continuous)
         decided = None
         if self._decides_from_features_solve:
-            decided = self.layer.decide(self._decision, torch.as_tensor(checked, dtype=torch.long))
+            chosen = torch.as_tensor(checked, dtype=torch.long)
+            commands = self.layer.decision_commands(self._decision, chosen)
+            decided = self.layer.decide(self._decision, chosen)
+        else:
+            commands = goal_commands(self.layer, self._road_observation(everyone).ego, checked, self.continuous)
         rewards = torch.zeros(count, dtype=torch.float64)
         interventions = torch.zeros(count, dtype=torch.long)
         fallbacks = torch.zeros(count, dtype=torch.long)

@@ -184,3 +184,46 @@ def test_a_collision_free_scripted_scene_stays_collision_free_whatever_the_agent
         assert interventions > 0  # the layer overrode the agent somewhere
     env.close()
 
+
+
+def test_the_expert_action_drives_exactly_what_the_mpc_expert_would(smoke):
+    config = dataclasses.replace(smoke.env, replan="decision", expert_action=True)
+    layer = SafetyLayer(build_mpc(smoke.scenario), config)
+    grid = layer.num_discrete_goals
+    assert layer.num_actions == grid + 1
+    observation = random_scenes(11, count=8, vehicles=8)
+    solve = layer.decision_solve(observation)
+    expert = layer.mpc.choose(solve.problem, solve.scored)  # the MPC's own choice over the same candidates
+    decided = layer.decide(solve, torch.full((8,), grid))
+    assert torch.equal(decided.plan.selection.index, expert.selection.index)
+    assert torch.equal(decided.plan.acceleration, expert.acceleration) and torch.equal(decided.plan.steering, expert.steering)
+    assert torch.equal(decided.agent_feasible, expert.selection.feasible)  # an intervention only where nothing is feasible
+    # its goal command reaches the expert's goal; grid actions keep the grid's commands
+    commands = layer.decision_commands(solve, torch.full((8,), grid))
+    goals = layer.goals(solve.problem.ego, commands[:, None])[:, 0]
+    torch.testing.assert_close(goals, solve.problem.goals[torch.arange(8), expert.selection.index], atol=1e-4, rtol=0)
+    actions = torch.arange(8) % grid
+    assert torch.equal(layer.decision_commands(solve, actions), layer.discrete_commands(observation.ego, actions))
+    # the observation's features: the grid's goals, then the expert's candidate
+    features = layer.features(solve)
+    assert features.shape == (8, grid + 1, 3)
+    feasible = solve.scored.result.feasible[torch.arange(8), expert.selection.index]
+    assert features[:, grid, 0].tolist() == feasible.float().tolist()
+    with pytest.raises(ValueError, match=rf"\[0, {grid + 1}\)"):
+        layer.decide(solve, torch.full((8,), grid + 1))
+
+
+def test_the_expert_action_needs_decision_replanning_and_discrete_goals(smoke):
+    with pytest.raises(ValueError, match="expert_action.*replan: decision"):
+        dataclasses.replace(smoke.env, replan="frame", expert_action=True)
+    config = dataclasses.replace(smoke.env, replan="decision", expert_action=True)
+    with pytest.raises(ValueError, match="continuous"):
+        SafeHighwayEnv(smoke.scenario, config, smoke.reward, continuous=True)
+    env = SafeHighwayEnv(smoke.scenario, config, smoke.reward)
+    assert env.action_space.n == config.num_discrete_goals + 1
+    env.reset(seed=3)
+    _, _, _, _, info = env.step(config.num_discrete_goals)
+    assert info["frames"] == config.decision_frames and info["solved_frames"] >= 1
+    with pytest.raises(ValueError, match="expert's choice"):
+        env.step(1.5)
+    env.close()
