@@ -362,6 +362,17 @@ class RandomGoals:
                          for row in keys], dtype=np.int64), None
 
 
+class ExpertChoice:
+    """A stand-in for a trained model that always takes the expert action (the last discrete
+    action with ``expert_action``): the MPC expert at the agent's decision rate."""
+
+    def __init__(self, action: int) -> None:
+        self.action = action
+
+    def predict(self, observations: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return np.full(len(observations), self.action, dtype=np.int64), None
+
+
 class RandomSafeAgentDriver(SafeAgentDriver):
     """Random discrete goals behind the safety layer (``safe-random[:RL_CONFIG]``): what the
     layer alone guarantees, whatever an agent asks."""
@@ -369,22 +380,46 @@ class RandomSafeAgentDriver(SafeAgentDriver):
     name = "safe-random"
 
 
-def make_random_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -> Driver:
-    """The driver of ``safe-random[:RL_CONFIG]`` (registry entry ``"safe-random"``): random goals
-    of the grid behind the safety layer of ``scenario``, with the environment settings (goal
-    grid, ``replan``, ...) of the RL config ``RL_CONFIG`` (a shipped name such as ``high_speed``
-    or a YAML path; default: the defaults, :class:`mmpc.rl.config.SafeEnvConfig`)."""
+class ExpertSafeAgentDriver(SafeAgentDriver):
+    """The expert action at every decision (``safe-expert[:RL_CONFIG]``): what an agent gets by
+    always deferring to the MPC expert, the baseline a trained agent has to beat."""
+
+    name = "safe-expert"
+
+
+def _stand_in_run(scenario: "ScenarioConfig", config: Optional[str], **env_settings: Any) -> "TrainedRun":
+    """A run of the RL config ``config`` (name, path or None: the defaults) on ``scenario``, with
+    ``env_settings`` on top, for a stand-in model."""
     import dataclasses
 
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
-    from mmpc.rl.envs import KINEMATICS_FEATURES
     from mmpc.rl.train import TrainedRun
 
-    run_config = dataclasses.replace(load_config(RLConfig, config or None), scenario=scenario)
-    env = run_config.env
+    run_config = load_config(RLConfig, config or None)
+    run_config = dataclasses.replace(run_config, scenario=scenario, env=dataclasses.replace(run_config.env, **env_settings))
+    return TrainedRun(None, "stand-in", "safe", False, run_config)
+
+
+def make_random_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -> Driver:
+    """The driver of ``safe-random[:RL_CONFIG]`` (registry entry ``"safe-random"``): random
+    discrete actions behind the safety layer of ``scenario``, with the environment settings (goal
+    grid, ``replan``, ...) of the RL config ``RL_CONFIG`` (a shipped name such as ``high_speed``
+    or a YAML path; default: the defaults, :class:`mmpc.rl.config.SafeEnvConfig`)."""
+    from mmpc.rl.envs import KINEMATICS_FEATURES
+
+    run = _stand_in_run(scenario, config)
+    env = run.config.env
     model = RandomGoals(env.num_actions, key_size=env.kinematics_vehicles * len(KINEMATICS_FEATURES))
-    return RandomSafeAgentDriver(TrainedRun(model, "random", "safe", False, run_config), scenario)
+    return RandomSafeAgentDriver(run._replace(model=model), scenario)
+
+
+def make_expert_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -> Driver:
+    """The driver of ``safe-expert[:RL_CONFIG]`` (registry entry ``"safe-expert"``): the expert
+    action at every decision, with the environment settings of ``RL_CONFIG`` (as
+    ``safe-random``) and ``replan: decision``, ``expert_action: true`` on top."""
+    run = _stand_in_run(scenario, config, replan="decision", expert_action=True)
+    return ExpertSafeAgentDriver(run._replace(model=ExpertChoice(run.config.env.num_discrete_goals)), scenario)
 
 
 def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:

@@ -79,7 +79,7 @@ def test_wheel_ships_every_package_and_declares_the_drivers(installed_wheel):
     (entry_points,) = installed_wheel.glob("mmpc-*.dist-info/entry_points.txt")
     declared = entry_points.read_text()
     assert "[mmpc.drivers]" in declared and all(f"\n{name} = " in declared
-                                                for name in ("mpc", "frenet", "standard-mpc", "batch-nlp", "bc", "sb3", "safe-random"))
+                                                for name in ("mpc", "frenet", "standard-mpc", "batch-nlp", "bc", "sb3", "safe-random", "safe-expert"))
 
 
 def test_installed_wheel_loads_shipped_configs_by_name(installed_wheel, tmp_path):

@@ -227,3 +227,28 @@ def test_random_goals_cover_the_grid_and_depend_on_the_row_alone():
     shuffled[:, 2:] = 0.0
     assert model.predict(shuffled)[0].tolist() == actions[::-1].tolist()
     assert RandomGoals(12, key_size=2, seed=6).predict(rows)[0].tolist() != actions.tolist()
+
+
+def test_the_expert_stand_in_drives_the_mpcs_own_choice_at_every_decision(smoke, tmp_path):
+    from mmpc.drivers import make_driver as make_registered
+    from mmpc.highway.runner import Observer
+
+    scenario = dataclasses.replace(smoke.scenario, duration=2.0)
+    config = tmp_path / "every_frame.yaml"
+    config.write_text("env: {decision_frames: 1}\n")
+    driver = make_registered(f"safe-expert:{config}", scenario)
+    assert driver.config.expert_action and driver.config.replan == "decision"
+    layer = driver.layer
+
+    class Decisions(Observer):
+        def __init__(self):
+            self.seen = []
+
+        def decided(self, observation, decision, active):
+            self.seen.append((observation, decision.goal_index.clone()))
+
+    decisions = Decisions()
+    result = run_episode(scenario, seed=5, driver=driver, observers=[decisions])
+    assert result.metrics["collisions"] == 0 and len(decisions.seen) == 20
+    for observation, chosen in decisions.seen:  # the same candidates solved again: the expert picks the same one
+        assert int(chosen[0]) == int(layer.decision_solve(observation).expert[0])
