@@ -427,12 +427,13 @@ def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:
 
     Args:
         scenario: the scenario to drive.
-        path: ``model.zip`` (or a checkpoint) of a run written by ``mmpc rl train``.
+        path: ``model.zip`` (or a checkpoint) of a run written by ``mmpc rl train``, or the name
+            of a shipped agent (:func:`mmpc.rl.train.shipped_models`).
     """
     from mmpc.rl.train import load_run
 
     if not path:
-        raise ValueError("driver 'sb3' needs a model: sb3:RUN/model.zip")
+        raise ValueError("driver 'sb3' needs a model: sb3:RUN/model.zip or a shipped agent's name")
     run = load_run(path)
     if scenario.road != run.config.scenario.road:
         raise ValueError(f"the agent was trained on {run.config.scenario.road}; scenario {scenario.name!r} has {scenario.road}")

@@ -361,12 +361,24 @@ class TrainedRun(NamedTuple):
     config: RLConfig
 
 
+#: Trained agents shipped with mmpc: ``models/<name>/`` beside this module (model.zip, config.yaml).
+SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
+
+
+def shipped_models() -> list[str]:
+    """Names of the shipped agents (``sb3:NAME`` drives one)."""
+    return sorted(p.parent.name for p in SHIPPED_MODELS.glob("*/model.zip"))
+
+
 def load_run(path: str | Path) -> TrainedRun:
     """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
-    (the model's folder or the one above, for checkpoints)."""
+    (the model's folder or the one above, for checkpoints); or a shipped agent by name
+    (:func:`shipped_models`) where no such file exists."""
     path = Path(path)
+    if not path.is_file() and str(path) in shipped_models():
+        path = SHIPPED_MODELS / str(path) / "model.zip"
     if not path.is_file():
-        raise FileNotFoundError(f"no model file {path}")
+        raise FileNotFoundError(f"no model file {path} (shipped agents: {', '.join(shipped_models()) or 'none'})")
     for folder in (path.parent, path.parent.parent):
         if (folder / "config.yaml").is_file():
             run = yaml.safe_load((folder / "config.yaml").read_text())

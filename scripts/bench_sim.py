@@ -119,10 +119,10 @@ def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int) -> list[
     return rows
 
 
-def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int) -> list[dict]:
-    """Table 4: agent steps per second of the safe RL vector environment (the default RL config,
-    random discrete goals, the same seeds and actions in every row) on highway-env and on the
-    batched simulator, for each replanning mode (:attr:`mmpc.rl.config.SafeEnvConfig.replan`).
+def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int, rl_config: Optional[str] = None) -> list[dict]:
+    """Table 4: agent steps per second of the safe RL vector environment (the RL config
+    ``rl_config``, default the defaults; random goals of the grid, the same seeds and actions in
+    every row) on highway-env and on the batched simulator, for each replanning mode (:attr:`mmpc.rl.config.SafeEnvConfig.replan`).
     ``warmup`` untimed steps come first; what later solves spend compiling new layouts is taken
     out of the time (it is paid once per layout in a run)."""
     import dataclasses
@@ -134,7 +134,7 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
     from mmpc.rl.sim_vec_env import SafeSimVecEnv
     from mmpc.rl.vec_env import SafeHighwayVecEnv
 
-    config = load_config(RLConfig, None)
+    config = load_config(RLConfig, rl_config)
     rows = []
     for num_envs in envs:
         rng = np.random.default_rng(0)
@@ -142,7 +142,7 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
         reference = None
         for world in ("highway-env", "batched"):
             for replan in replans:
-                env = dataclasses.replace(config.env, replan=replan)
+                env = dataclasses.replace(config.env, replan=replan, expert_action=config.env.expert_action and replan == "decision")
                 if world == "highway-env":
                     venv = SafeHighwayVecEnv(num_envs, config.scenario, env, config.reward)
                 else:
@@ -171,7 +171,8 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
                 venv.close()
                 rate = num_envs * steps / elapsed
                 reference = reference or rate
-                rows.append({"table": "rl", "world": world, "replan": replan, "num_envs": num_envs, "agent_steps_per_s": rate,
+                rows.append({"table": "rl", "config": rl_config or "defaults", "world": world, "replan": replan,
+                             "expert_action": env.expert_action, "num_envs": num_envs, "agent_steps_per_s": rate,
                              "solved_frame_share": solved / frames, "speedup": rate / reference})
     return rows
 
@@ -233,7 +234,7 @@ TABLES = (
         ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.1f}"), ("solve share", 12, lambda r: f"{r['solve_share']:.0%}"),
         ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
-    ("rl", "safe RL vector environment: agent steps/s (5 frames each; one solve for all E when any row solves)", (
+    ("rl", "safe RL vector environment: agent steps/s (env.decision_frames frames each; one solve for all E when any row solves)", (
         ("world", -12, lambda r: r["world"]), ("replan", -9, lambda r: r["replan"]), ("E", 6, lambda r: r["num_envs"]),
         ("agent steps/s", 14, lambda r: f"{r['agent_steps_per_s']:.1f}"),
         ("frames solved", 14, lambda r: f"{r['solved_frame_share']:.0%}"),
@@ -268,6 +269,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--rl-warmup", type=int, default=2, help="untimed agent steps before them (default 2)")
     parser.add_argument("--rl-replan", type=lambda text: tuple(text.split(",")), default=("frame", "decision"),
                         help="replanning modes of the RL table, comma-separated (default frame,decision)")
+    parser.add_argument("--rl-config", default=None, help="RL config of the safe RL table (a shipped name or a YAML path; default: the defaults)")
     parser.add_argument("--no-rl", action="store_true", help="skip the safe RL table")
     parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
@@ -290,7 +292,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if not args.no_mpc:
         rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps)
     if not args.no_rl:
-        rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup)
+        rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup, args.rl_config)
     if not args.no_memory:
         rows += memory_rows(args.scenario, args.memory_envs, max(2, args.steps // 4))
     print(format_rows(rows))

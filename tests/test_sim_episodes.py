@@ -245,6 +245,11 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     assert "MPC in the loop" in capsys.readouterr().out
     with pytest.raises(ValueError, match="--sim highway-env"):
         bench_sim.main(["--scenario", "cruise_ngsim", "--out", str(tmp_path)])
+    # a recipe with the expert action: it stays in the decision rows (frame replanning cannot have it)
+    recipe = bench_sim.rl_rows([2], steps=1, replans=("frame", "decision"), warmup=0, rl_config="high_speed")
+    assert [(r["world"], r["replan"], r["expert_action"], r["config"]) for r in recipe] == [
+        ("highway-env", "frame", False, "high_speed"), ("highway-env", "decision", True, "high_speed"),
+        ("batched", "frame", False, "high_speed"), ("batched", "decision", True, "high_speed")]
 
 
 def test_reward_is_highway_env_s_along_episodes_that_crash_or_leave_the_road():
