@@ -231,6 +231,9 @@ class TrainConfig:
             same seeds for the safe and the plain highway-env agent).
         eval_envs: evaluation episodes run in lockstep (one batched solve per frame).
         torch_threads: torch CPU threads of the run.
+        expert_prior: with ``env.expert_action`` and PPO: the probability the untrained policy
+            gives the expert action (the rest shared evenly), so that training starts from the
+            expert and learns where to deviate; 0 keeps stable-baselines3's initialisation.
     """
 
     n_envs: int = 8
@@ -240,12 +243,15 @@ class TrainConfig:
     eval_seed: int = 100_000
     eval_envs: int = 10
     torch_threads: int = 1
+    expert_prior: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("n_envs", "log_every", "checkpoint_every", "eval_episodes", "eval_envs", "torch_threads"):
             value = getattr(self, name)
             require(isinstance(value, int) and not isinstance(value, bool) and value >= 1,
                      f"train: `{name}` must be an int >= 1; got {value!r}")
+        require(is_finite_number(self.expert_prior) and 0.0 <= self.expert_prior < 1.0,
+                 f"train: `expert_prior` must be a probability in [0, 1); got {self.expert_prior!r}")
         require(isinstance(self.eval_seed, int) and self.eval_seed >= 0, f"train: `eval_seed` must be an int >= 0; got {self.eval_seed!r}")
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import math
 import logging
 import time
 from pathlib import Path
@@ -271,6 +272,17 @@ def algorithm_kwargs(config: RLConfig, algo: str) -> dict:
     return kwargs
 
 
+def prefer_expert_action(model: Any, prior: float) -> None:
+    """Make an untrained PPO policy over discrete actions give its last action (the expert's)
+    probability ``prior`` and the others ``(1 - prior) / (n - 1)`` each: the action logits' bias.
+    stable-baselines3 initialises the action head with weights of gain 0.01, so the bias decides."""
+    head = model.policy.action_net
+    count = head.out_features
+    with torch.no_grad():
+        head.bias.zero_()
+        head.bias[count - 1] = math.log(prior * (count - 1) / (1.0 - prior))
+
+
 def train(
     config: RLConfig,
     algo: str,
@@ -308,6 +320,10 @@ def train(
     if not isinstance(timesteps, int) or timesteps < 1:
         raise ValueError(f"`timesteps` must be an int >= 1; got {timesteps!r}")
     continuous = config.action_for(algo) == "continuous"
+    if config.train.expert_prior > 0 and (algo != "ppo" or continuous or env_kind != "safe" or not config.env.expert_action):
+        raise ValueError(f"train: `expert_prior` sets PPO's discrete policy towards the expert action, so it needs "
+                         f"--algo ppo, the safe environments and env.expert_action: true; got algo {algo}, env {env_kind}, "
+                         f"{'continuous' if continuous else 'discrete'} actions, expert_action {config.env.expert_action}")
     kwargs = algorithm_kwargs(config, algo)
     torch.set_num_threads(config.train.torch_threads)
     out = Path(out)
@@ -319,6 +335,8 @@ def train(
     (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
     env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
     model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
+    if config.train.expert_prior > 0:
+        prefer_expert_action(model, config.train.expert_prior)
     checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1), str(out / "checkpoints"),
                                      name_prefix=algo)
     start = time.perf_counter()

@@ -19,7 +19,7 @@ from mmpc.drivers import Observation, make_driver
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import ego_state
 from mmpc.config import from_dict, load_config, to_dict
-from mmpc.rl.config import RLConfig
+from mmpc.rl.config import RLConfig, TrainConfig
 from mmpc.rl.envs import frame_reward
 from mmpc.rl.safety import SafetyLayer
 from mmpc.scenario import build_mpc
@@ -342,3 +342,22 @@ def test_meta_action_driver_reads_the_scenarios_vehicle_length():
     run = type("Run", (), {"model": None, "config": load_config(RLConfig, "smoke")})()
     assert MetaActionDriver(run, load_scenario("cruise_paper")).length == 4.0
     assert MetaActionDriver(run, load_scenario("cruise")).length == 5.0
+
+
+def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_elsewhere(smoke, tmp_path):
+    from stable_baselines3 import PPO
+
+    from mmpc.rl.train import prefer_expert_action, train
+
+    env = gym.make("CartPole-v1")
+    model = PPO("MlpPolicy", env, seed=0, n_steps=64, batch_size=64)
+    prefer_expert_action(model, 0.9)
+    observations = torch.as_tensor(np.stack([env.observation_space.sample() for _ in range(16)]))
+    probs = model.policy.get_distribution(observations).distribution.probs
+    torch.testing.assert_close(probs[:, -1], torch.full((16,), 0.9), atol=0.02, rtol=0)
+    with pytest.raises(ValueError, match="expert_prior"):
+        TrainConfig(expert_prior=1.0)
+    config = dataclasses.replace(smoke, train=dataclasses.replace(smoke.train, expert_prior=0.9))
+    with pytest.raises(ValueError, match="expert_action: true"):  # the smoke grid has no expert action
+        train(config, "ppo", 64, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
