@@ -66,6 +66,16 @@ def test_wheel_ships_every_config(installed_wheel):
     assert in_wheel == shipped_names()
 
 
+def test_wheel_ships_the_trained_agents(installed_wheel):
+    from mmpc.rl.train import SHIPPED_MODELS, shipped_models
+
+    assert shipped_models()
+    for name in shipped_models():
+        for part in ("model.zip", "config.yaml"):
+            shipped = installed_wheel / "mmpc" / "rl" / "models" / name / part
+            assert shipped.read_bytes() == (SHIPPED_MODELS / name / part).read_bytes()
+
+
 def test_wheel_ships_every_package_and_declares_the_drivers(installed_wheel):
     def modules(root: Path, package: str) -> set[str]:
         found = set()

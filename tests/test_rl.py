@@ -22,7 +22,7 @@ from mmpc.config import from_dict, load_config, to_dict
 from mmpc.rl.config import RLConfig, TrainConfig
 from mmpc.rl.envs import frame_reward
 from mmpc.rl.safety import SafetyLayer
-from mmpc.scenario import build_mpc
+from mmpc.scenario import build_mpc, load_scenario
 
 
 @pytest.fixture(scope="module")
@@ -361,3 +361,16 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_elsewhe
     with pytest.raises(ValueError, match="expert_action: true"):  # the smoke grid has no expert action
         train(config, "ppo", 64, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_the_shipped_agent_drives_by_name():
+    from mmpc.rl.train import load_run, shipped_models
+
+    assert "high_speed_ppo" in shipped_models()
+    run = load_run("high_speed_ppo")
+    assert run.algo == "ppo" and run.env_kind == "safe" and run.config.env.expert_action
+    scenario = dataclasses.replace(load_scenario("high_speed"), duration=1.0)
+    result = run_episode(scenario, seed=1, driver=make_driver("sb3:high_speed_ppo", scenario))
+    assert result.metrics["collisions"] == 0 and result.metrics["steps"] == 10
+    with pytest.raises(FileNotFoundError, match="shipped agents: high_speed_ppo"):
+        load_run("no_such_agent")
