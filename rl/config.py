@@ -233,7 +233,8 @@ class TrainConfig:
         torch_threads: torch CPU threads of the run.
         expert_prior: with ``env.expert_action`` and PPO: the probability the untrained policy
             gives the expert action (the rest shared evenly), so that training starts from the
-            expert and learns where to deviate; 0 keeps stable-baselines3's initialisation.
+            expert and learns where to deviate; 0 keeps stable-baselines3's initialisation. DQN
+            and SAC ignore it (as they ignore ``algorithms.ppo``).
     """
 
     n_envs: int = 8

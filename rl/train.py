@@ -320,9 +320,10 @@ def train(
     if not isinstance(timesteps, int) or timesteps < 1:
         raise ValueError(f"`timesteps` must be an int >= 1; got {timesteps!r}")
     continuous = config.action_for(algo) == "continuous"
-    if config.train.expert_prior > 0 and (algo != "ppo" or continuous or env_kind != "safe" or not config.env.expert_action):
+    expert_prior = config.train.expert_prior if algo == "ppo" else 0.0  # other algorithms ignore it, as algorithms.ppo
+    if expert_prior > 0 and (continuous or env_kind != "safe" or not config.env.expert_action):
         raise ValueError(f"train: `expert_prior` sets PPO's discrete policy towards the expert action, so it needs "
-                         f"--algo ppo, the safe environments and env.expert_action: true; got algo {algo}, env {env_kind}, "
+                         f"the safe environments, discrete actions and env.expert_action: true; got env {env_kind}, "
                          f"{'continuous' if continuous else 'discrete'} actions, expert_action {config.env.expert_action}")
     kwargs = algorithm_kwargs(config, algo)
     torch.set_num_threads(config.train.torch_threads)
@@ -335,8 +336,8 @@ def train(
     (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
     env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
     model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
-    if config.train.expert_prior > 0:
-        prefer_expert_action(model, config.train.expert_prior)
+    if expert_prior > 0:
+        prefer_expert_action(model, expert_prior)
     checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1), str(out / "checkpoints"),
                                      name_prefix=algo)
     start = time.perf_counter()

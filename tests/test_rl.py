@@ -14,6 +14,7 @@ import torch
 import yaml
 
 import mmpc.rl
+import mmpc.rl.train
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
 from mmpc.highway import HighwayEpisode
@@ -361,6 +362,10 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_elsewhe
     with pytest.raises(ValueError, match="expert_action: true"):  # the smoke grid has no expert action
         train(config, "ppo", 64, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+    # the shipped recipe starts PPO at the expert; it reproduces the shipped agent's settings
+    recipe = load_config(RLConfig, "high_speed")
+    shipped = yaml.safe_load((mmpc.rl.train.SHIPPED_MODELS / "high_speed_ppo" / "config.yaml").read_text())
+    assert recipe.train.expert_prior == 0.9 and to_dict(recipe) == shipped["config"]
 
 
 def test_the_shipped_agent_drives_by_name():
