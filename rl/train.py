@@ -17,8 +17,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
-import math
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Optional, Sequence

@@ -40,7 +40,8 @@ class EpisodeResult(NamedTuple):
         records: one :class:`mmpc.metrics.StepRecord` per control step.
         metrics: :func:`mmpc.metrics.episode_metrics` plus ``scenario``, ``seed``,
             ``collision_part`` (what the collision struck of the ego, :mod:`mmpc.collisions`;
-            ``None`` without one) and ``ego_fault_collisions`` (1: it struck the front or a side).
+            ``None`` without one) and ``ego_fault_collisions`` (1: it struck the front or a side,
+            or no other car was found to tell).
     """
 
     scenario: ScenarioConfig
@@ -109,7 +110,7 @@ def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], part
     metrics = episode_metrics(records, dt=1.0 / scenario.frequency, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
                               lane_width=scenario.road.lane_width)
     metrics["collision_part"] = part if metrics["collisions"] else None
-    metrics["ego_fault_collisions"] = int(part is not None and metrics["collisions"] and is_ego_fault(part))
+    metrics["ego_fault_collisions"] = int(bool(metrics["collisions"]) and (part is None or is_ego_fault(part)))  # unknown: the ego's
     if metrics["collisions"]:
         logger.warning("scenario %s seed %d: collision at t = %.1f s (%s struck)", scenario.name, seed, records[-1].time,
                        part or "no car found")
