@@ -347,9 +347,10 @@ class MetaActionDriver(Driver):
 
 class RandomGoals:
     """A stand-in for a trained model: uniformly random discrete actions (the grid's goals, and
-    the expert's choice with ``expert_action``), the layer's least careful user. Each row's goal is drawn from a generator seeded by ``seed``
-    and the bytes of the row's first ``key_size`` observation values (the Kinematics rows), so an
-    episode gets the same goals whichever lockstep group, batch position or worker drives it."""
+    the expert's choice with ``expert_action``), the layer's least careful user. Each row's action
+    is drawn from a generator seeded by ``seed`` and the bytes of the row's first ``key_size``
+    observation values (the Kinematics rows), so an episode gets the same actions whichever
+    lockstep group, batch position or worker drives it."""
 
     def __init__(self, num_goals: int, key_size: int, seed: int = 0) -> None:
         self.num_goals = num_goals
