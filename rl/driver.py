@@ -115,11 +115,10 @@ class SafeAgentDriver(Driver):
         self.hold.clear()
         self.held.clear()
 
-    def _choose(self, observation: Observation,
-                due: list[int]) -> tuple[Observation, Optional["DecisionSolve"], torch.Tensor, torch.Tensor]:
+    def _choose(self, observation: Observation, due: list[int]) -> tuple[Observation, Optional["DecisionSolve"], torch.Tensor]:
         """The agent's new choice for the rows ``due``: their road-frame state, the decision solve
         behind their solver features (also made for a discrete ``replan: decision`` agent; else
-        None), the actions and the goal commands (len(due), 2)."""
+        None) and the actions (float (R, 2) continuous, long (R,) discrete)."""
         from mmpc.rl.safety import observation_rows
 
         sub = observation_rows(observation, torch.as_tensor(due, dtype=torch.long))
@@ -131,19 +130,26 @@ class SafeAgentDriver(Driver):
         vector = np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
         actions, _ = self.model.predict(vector, deterministic=True)
         if self.continuous:
-            actions = torch.as_tensor(np.asarray(actions, dtype=np.float32))
-            return sub, solve, actions, self.layer.continuous_commands(sub.ego, actions)
-        actions = torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long)
-        if decides_from_solve:
-            return sub, solve, actions, self.layer.decision_commands(solve, actions)
-        return sub, solve, actions, self.layer.discrete_commands(sub.ego, actions)
+            return sub, solve, torch.as_tensor(np.asarray(actions, dtype=np.float32))
+        return sub, solve, torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long)
+
+    def _commands(self, ego: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """(R, 2) goal commands of actions chosen at the egos ``ego`` (R, 6)."""
+        if self.continuous:
+            return self.layer.continuous_commands(ego, actions)
+        return self.layer.discrete_commands(ego, actions)
+
+    def _new_commands(self, observation: Observation, due: list[int]) -> torch.Tensor:
+        """``replan: frame``: the agent's new goal commands (len(due), 2) for the rows ``due``."""
+        sub, _, actions = self._choose(observation, due)
+        return self._commands(sub.ego, actions)
 
     def decide(self, observation: Observation) -> Decision:
         if self.config.replan == "decision":
             return self._decide_tracking(observation)
         start = time.perf_counter()
         ids = [int(i) for i in observation.ids()]
-        commands = torch.stack(self.hold.refresh(ids, lambda due: self._choose(observation, due)[3]))
+        commands = torch.stack(self.hold.refresh(ids, lambda due: self._new_commands(observation, due)))
         safe = self.layer.plan(observation, commands)
         return _plan_decision(safe, (time.perf_counter() - start) * 1e3 - safe.plan.compile_ms)
 
@@ -162,10 +168,10 @@ class SafeAgentDriver(Driver):
         decided: Optional["SafePlan"] = None
         compile_ms = 0.0
         if due:
-            sub, solve, actions, commands = self._choose(observation, due)
-            decided = self.layer.plan(sub, commands) if self.continuous else self.layer.decide(solve, actions)
+            sub, solve, actions = self._choose(observation, due)
+            decided = self.layer.plan(sub, self._commands(sub.ego, actions)) if self.continuous else self.layer.decide(solve, actions)
             compile_ms += decided.plan.compile_ms
-            for row, command in zip(due, commands):
+            for row, command in zip(due, decided.commands):
                 self.hold.set(ids[row], command)
         frames = [self.hold.frames - self.hold.left[env] for env in ids]  # 0 for the rows just decided
         self.hold.tick(ids)

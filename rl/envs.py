@@ -353,9 +353,8 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
     observation = stack_observations([env.road_state() for env in envs], range(count))
     decided = None
     if config.replan == "decision" and not envs[0].continuous:  # the grid solve the observation's features came from
-        solve = layer.decision_solve(observation)
-        commands = layer.decision_commands(solve, torch.as_tensor(actions, dtype=torch.long))
-        decided = layer.decide(solve, torch.as_tensor(actions, dtype=torch.long))
+        decided = layer.decide(layer.decision_solve(observation), torch.as_tensor(actions, dtype=torch.long))
+        commands = decided.commands
         solve_ms.append(decided.plan.solve_ms)
     else:
         commands = envs[0].commands(observation.ego, actions)

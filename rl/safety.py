@@ -87,6 +87,7 @@ class SafePlan(NamedTuple):
         intervention: (E,) bool, ``~agent_feasible``: another candidate or the fallback drove.
         fallback: (E,) bool, no candidate was feasible (the MPC's fallback drove).
         feasible_goals: (E,) long, feasible candidates, the agent's included.
+        commands: (E, 2) the agents' goal commands ``(y [m], v [m/s])``, held over the agent step.
     """
 
     plan: Plan
@@ -94,6 +95,7 @@ class SafePlan(NamedTuple):
     intervention: torch.Tensor
     fallback: torch.Tensor
     feasible_goals: torch.Tensor
+    commands: torch.Tensor
 
     def residuals(self) -> torch.Tensor:
         """(E, 3) the executed candidate's obstacle, acceleration and non-holonomic residuals."""
@@ -287,7 +289,7 @@ class SafetyLayer:
         goals = torch.cat([self.goals(problem.ego, commands[:, None]), problem.goals], dim=1)
         problem = problem._replace(goals=goals)
         agent = torch.zeros(observation.num_envs, dtype=torch.long)
-        return self._safe_plan(self.mpc.plan_problem(problem, self._selector(agent, problem)), agent)
+        return self._safe_plan(self.mpc.plan_problem(problem, self._selector(agent, problem)), agent, commands)
 
     def decision_solve(self, observation: Observation) -> DecisionSolve:
         """ONE solve of the discrete goal grid (at the egos' current lanes) and the standard goals
@@ -311,11 +313,10 @@ class SafetyLayer:
             return actions
         return torch.where(actions == self.num_discrete_goals, solve.expert, actions)
 
-    def decision_commands(self, solve: DecisionSolve, actions: torch.Tensor) -> torch.Tensor:
-        """(E, 2) goal commands ``(y [m], v [m/s])`` of discrete actions at the states of a
-        :meth:`decision_solve`: the grid's commands, and for the expert action its candidate's goal
+    def _decision_commands(self, solve: DecisionSolve, index: torch.Tensor) -> torch.Tensor:
+        """(E, 2) goal commands ``(y [m], v [m/s])`` of the candidates ``index`` (:meth:`agent_candidates`)
+        of a :meth:`decision_solve`: the grid's commands, and for the expert's candidate its goal
         ``(x, y)`` as ``(y, (x - x_ego) / t_f)``."""
-        index = self.agent_candidates(solve, actions)
         ego = solve.problem.ego
         rows = torch.arange(index.shape[0])
         grid = self._grid_commands(ego)[rows, index.clamp(max=self.num_discrete_goals - 1)]
@@ -350,7 +351,8 @@ class SafetyLayer:
 
     def decide(self, solve: DecisionSolve, actions: torch.Tensor) -> SafePlan:
         """Discrete actions executed from the candidates of a :meth:`decision_solve` at the same
-        states (no new solve): the action's candidate where feasible, else as :func:`follow_agent`.
+        states (no new solve): the action's candidate where feasible, else as :func:`follow_agent`;
+        ``commands`` are the goal commands of the actions' candidates.
 
         Args:
             solve: the decision solve of the E states the actions were chosen at.
@@ -358,7 +360,7 @@ class SafetyLayer:
         """
         index = self.agent_candidates(solve, actions)
         plan = self.mpc.choose(solve.problem, solve.scored, self._selector(index, solve.problem))
-        return self._safe_plan(plan, index)
+        return self._safe_plan(plan, index, self._decision_commands(solve, index))
 
     def frame(
         self,
@@ -393,10 +395,11 @@ class SafetyLayer:
     def _selector(self, agent_index: torch.Tensor, problem: ProblemBatch) -> Selector:
         return follow_agent(agent_index, problem.goals, self.config.intervention_speed_scale, self.horizon, self.road.lane_width)
 
-    def _safe_plan(self, plan: Plan, agent_index: torch.Tensor) -> SafePlan:
+    def _safe_plan(self, plan: Plan, agent_index: torch.Tensor, commands: torch.Tensor) -> SafePlan:
         agent_feasible = plan.selection.feasible & (plan.selection.index == agent_index)
         return SafePlan(plan=plan, agent_feasible=agent_feasible, intervention=~agent_feasible,
-                        fallback=~plan.selection.feasible, feasible_goals=plan.result.feasible.sum(dim=1))
+                        fallback=~plan.selection.feasible, feasible_goals=plan.result.feasible.sum(dim=1),
+                        commands=commands)
 
     def _control(self, safe: SafePlan, now: float) -> FrameControl:
         """Execute a fresh plan in every row and hold it."""

@@ -158,9 +158,8 @@ class SafeSimBatch:
         everyone = torch.arange(count)
         decided = None
         if self._decides_from_features_solve:
-            chosen = torch.as_tensor(checked, dtype=torch.long)
-            commands = self.layer.decision_commands(self._decision, chosen)
-            decided = self.layer.decide(self._decision, chosen)
+            decided = self.layer.decide(self._decision, torch.as_tensor(checked, dtype=torch.long))
+            commands = decided.commands
         else:
             commands = goal_commands(self.layer, self._road_observation(everyone).ego, checked, self.continuous)
         rewards = torch.zeros(count, dtype=torch.float64)

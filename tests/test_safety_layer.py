@@ -199,11 +199,10 @@ def test_the_expert_action_drives_exactly_what_the_mpc_expert_would(smoke):
     assert torch.equal(decided.plan.acceleration, expert.acceleration) and torch.equal(decided.plan.steering, expert.steering)
     assert torch.equal(decided.agent_feasible, expert.selection.feasible)  # an intervention only where nothing is feasible
     # its goal command reaches the expert's goal; grid actions keep the grid's commands
-    commands = layer.decision_commands(solve, torch.full((8,), grid))
-    goals = layer.goals(solve.problem.ego, commands[:, None])[:, 0]
+    goals = layer.goals(solve.problem.ego, decided.commands[:, None])[:, 0]
     torch.testing.assert_close(goals, solve.problem.goals[torch.arange(8), expert.selection.index], atol=1e-4, rtol=0)
     actions = torch.arange(8) % grid
-    assert torch.equal(layer.decision_commands(solve, actions), layer.discrete_commands(observation.ego, actions))
+    assert torch.equal(layer.decide(solve, actions).commands, layer.discrete_commands(observation.ego, actions))
     # the observation's features: the grid's goals, then the expert's candidate
     features = layer.features(solve)
     assert features.shape == (8, grid + 1, 3)
