@@ -1,5 +1,6 @@
-"""Command line of :mod:`mmpc.imitation`: ``mmpc imitate {demos, bc, dagger, export}`` (a cloned
-policy is evaluated by ``mmpc evaluate --driver mpc,bc:RUN/policy.pt``). Heavy imports (Minari,
+"""Command line of :mod:`mmpc.imitation`: ``mmpc imitate {demos, bc, dagger, proposer, export}`` (a
+cloned policy is evaluated by ``mmpc evaluate --driver mpc,bc:RUN/policy.pt``, a mode proposer by
+``--driver mpc,proposer:RUN/proposer.pt``). Heavy imports (Minari,
 stable-baselines3, TensorBoard) happen inside the commands."""
 
 from __future__ import annotations
@@ -132,6 +133,60 @@ def _dagger(args: argparse.Namespace) -> int:
     return 0
 
 
+def _proposer(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from mmpc.config import load_config
+    from mmpc.imitation.dataset import DemonstrationsError
+    from mmpc.imitation.proposer_dagger import ProposerDaggerConfig, run_proposer_dagger
+
+    torch.set_num_threads(args.threads)
+    overrides, routed_scenario = split_overrides(args.set, "scenario")
+    if args.rounds is not None:
+        overrides["rounds"] = args.rounds
+    config = load_config(ProposerDaggerConfig, args.config, overrides)
+    scenario = _scenario(args, scenario_overrides(args, list(routed_scenario.items())))
+    bar = tqdm(total=config.episodes, desc="labelling round", unit="ep")
+
+    def on_progress(finished: int, total: int) -> None:
+        bar.reset(total) if finished < bar.n else None
+        bar.update(finished - bar.n)
+
+    def on_round(entry: dict) -> None:
+        bar.write(_round_line(entry, config.train.keep))
+        bar.reset()
+
+    try:
+        report = run_proposer_dagger(scenario, Path(args.out), config, on_round=on_round, on_progress=on_progress)
+    except (ValueError, DemonstrationsError) as error:
+        bar.close()
+        print(f"mmpc imitate proposer: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        bar.close()
+        print(f"mmpc imitate proposer: interrupted; finished rounds and staged episodes are kept in {args.out}; "
+              "re-run the same command to resume", file=sys.stderr)
+        return 130
+    bar.close()
+    print(f"wrote {Path(args.out) / 'proposer.pt'} (round {report['best_round']}), proposer.json, labels/ (a Minari "
+          f"dataset per round) and TensorBoard events in {Path(args.out) / 'tb'}")
+    print(f"drive it: mmpc evaluate --driver mpc,proposer:{Path(args.out) / 'proposer.pt'} --scenarios {scenario.name}")
+    return 0
+
+
+def _round_line(entry: dict, keep: int) -> str:
+    """One round of ``proposer.json`` as a line of text."""
+    speed = f" ({entry['labels_per_s']:.0f} labels/s)" if entry.get("labels_per_s") else ""
+    line = (f"round {entry['round']}: beta {entry['beta']:.3g}, {entry['states']} labelled states{speed}, "
+            f"held-out top-{keep} agreement {entry['top_k_agreement']:.3f}")
+    if "check" in entry:
+        check, expert = entry["check"], entry["expert_check"]
+        line += (f"; alone on {check['episodes']} held-out episodes: collisions {check['collisions']}, meta cost "
+                 f"{check['meta_cost_mean']:.2f} (expert {expert['collisions']}, {expert['meta_cost_mean']:.2f}), "
+                 f"escalated {check['escalated_share']:.1%} of the steps")
+    return line
+
+
 def _export(args: argparse.Namespace) -> int:
     import math
 
@@ -153,9 +208,9 @@ def _scenario_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_subcommands(sub) -> None:
-    """Add ``mmpc imitate {demos, bc, dagger, export}``."""
+    """Add ``mmpc imitate {demos, bc, dagger, proposer, export}``."""
 
-    imitate = sub.add_parser("imitate", help="imitation learning from the MPC: demos, bc, dagger, export")
+    imitate = sub.add_parser("imitate", help="imitation learning from the MPC: demos, bc, dagger, proposer, export")
     commands = imitate.add_subparsers(dest="imitate_command", required=True)
 
     demos = commands.add_parser("demos", help="expert (MPC) demonstrations as a Minari dataset; re-run to resume")
@@ -187,6 +242,15 @@ def add_subcommands(sub) -> None:
                        "e.g. --set train.epochs=10 --set scenario.traffic.lane_changes=false")
     dagger.add_argument("--out", default="runs/dagger", help="run folder (default runs/dagger)")
     dagger.set_defaults(func=_dagger)
+
+    proposer = commands.add_parser("proposer", help="a mode proposer trained on the expert's rankings, with DAgger on "
+                                                    "the scenario's world (--sim batched for scale); re-run to resume")
+    _scenario_arguments(proposer)
+    proposer.add_argument("--rounds", type=int, default=None, help="rounds after round 0 (default: the config's)")
+    add_config(proposer, "proposer DAgger config (mmpc.imitation.proposer_dagger.ProposerDaggerConfig); the "
+                         "scenario's as scenario.KEY, e.g. --set episodes=256 --set train.epochs=20")
+    proposer.add_argument("--out", default="runs/proposer", help="run folder (default runs/proposer)")
+    proposer.set_defaults(func=_proposer)
 
     export = commands.add_parser("export", help="a cloned policy as a stable-baselines3 policy (PPO can start from it)")
     export.add_argument("--policy", required=True, help="RUN/policy.pt")

@@ -141,7 +141,8 @@ def load_episode(path: Path) -> Episode:
     """Read an episode written by :func:`save_episode`; a damaged file raises :class:`DemonstrationsError`."""
     try:
         with np.load(path, allow_pickle=False) as data:
-            infos = {name: data[f"info_{name}"] for name in INFO_FIELDS}
+            infos = {name: data[f"info_{name}"] for name in INFO_FIELDS}  # KeyError: not an episode file
+            infos.update({key.removeprefix("info_"): data[key] for key in data.files if key.startswith("info_")})
             episode = Episode(int(data["seed"]), data["observations"], data["actions"], data["rewards"],
                               data["terminations"], data["truncations"], infos)
     except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError) as error:
@@ -248,7 +249,19 @@ def _require_minari():
     return minari
 
 
-def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: Sequence[int]):
+#: What every dataset's description says about its arrays (after a first sentence on who drove).
+DATASET_ARRAYS = (
+    "Observations: highway-env's Kinematics observation; actions: executed (acceleration [m/s^2], steering [rad]) "
+    "(highway-env's [-1, 1] action scaled by its ranges); infos[t]: the decision at observations[t] (goal index, "
+    "plan and meta cost, solver residuals, road-frame ego state and nearest 8 vehicles), last row -1/NaN. The env spec "
+    "rebuilds highway-env with the scenario's config; mmpc's traffic controller (slow target speeds, "
+    "respawn window) is in the metadata's mmpc_scenario, applied by mmpc.highway.HighwayEpisode."
+)
+
+
+def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: Sequence[int], *,
+                 identifier: Optional[str] = None, driver: str = "mmpc multi-modal MPC expert",
+                 description: Optional[str] = None):
     """(Re)build the Minari dataset of ``directory`` from the staged episodes of ``seeds``.
 
     The dataset is written under a temporary folder and swapped in, so an interrupted build
@@ -258,6 +271,9 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
         directory: the demonstrations directory.
         scenario: the scenario the episodes were driven in (for the env spec and metadata).
         seeds: the episodes to include, in this order (all must be staged).
+        identifier: the Minari id (default :func:`dataset_id`, the expert's demonstrations).
+        driver: who drove (Minari's ``algorithm_name``).
+        description: what the dataset holds beyond :data:`DATASET_ARRAYS` (default: the MPC's demonstrations).
 
     Returns:
         The ``minari.MinariDataset``.
@@ -272,7 +288,7 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
     missing = sorted(set(seeds) - directory.finished_seeds())
     if missing:
         raise DemonstrationsError(f"cannot build the dataset: episodes of seeds {missing[:10]} are not staged")
-    identifier = dataset_id(scenario)
+    identifier = dataset_id(scenario) if identifier is None else identifier
     episodes = [directory.read(seed) for seed in seeds]
     buffers = [
         EpisodeBuffer(id=index, seed=episode.seed, observations=episode.observations, actions=episode.actions,
@@ -290,18 +306,12 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
             dataset_id=identifier,
             buffer=buffers,
             env=env,
-            algorithm_name="mmpc multi-modal MPC expert",
+            algorithm_name=driver,
             observation_space=spaces.Box(-np.inf, np.inf, shape=observation_shape, dtype=np.float32),
             action_space=spaces.Box(np.array([ACCELERATION_RANGE[0], STEERING_RANGE[0]], dtype=np.float32),
                                     np.array([ACCELERATION_RANGE[1], STEERING_RANGE[1]], dtype=np.float32)),
-            description=(
-                f"Multi-modal MPC (mmpc) driving highway-env scenario '{scenario.name}'. Observations: highway-env's "
-                "Kinematics observation; actions: executed (acceleration [m/s^2], steering [rad]) (highway-env's "
-                "[-1, 1] action scaled by its ranges); infos[t]: the decision at observations[t] (goal index, "
-                "plan and meta cost, solver residuals, road-frame ego state and nearest 8 vehicles), last row -1/NaN. The env spec "
-                "rebuilds highway-env with the scenario's config; mmpc's traffic controller (slow target speeds, "
-                "respawn window) is in the metadata's mmpc_scenario, applied by mmpc.highway.HighwayEpisode."
-            ),
+            description=(description or f"Multi-modal MPC (mmpc) driving highway-env scenario '{scenario.name}'.")
+            + " " + DATASET_ARRAYS,
             data_format="hdf5",
             requirements=[f"mmpc=={package_versions()['mmpc']}"],
         )

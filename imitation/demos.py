@@ -110,9 +110,10 @@ def _group_failed(task: DemoTask, error: BaseException | str) -> list[int]:
 
 
 @contextlib.contextmanager
-def _locked_directory(root: Path, manifest: Manifest) -> Iterator[DemonstrationsDir]:
+def locked_directory(root: Path, manifest: Manifest) -> Iterator[DemonstrationsDir]:
     """``root`` (created when missing) opened as a :class:`DemonstrationsDir` while this process
-    holds its :data:`LOCK`; another run holding it raises :class:`DemonstrationsError`."""
+    holds its :data:`LOCK`; another run holding it raises :class:`DemonstrationsError`. (Also the
+    staging of the proposer's ranking labels, :mod:`mmpc.imitation.labels`.)"""
     ours = (root / MANIFEST).exists() or (root / LOCK).exists()
     if root.exists() and (not root.is_dir() or not ours and any(root.iterdir())):
         DemonstrationsDir(root, manifest)  # not a demonstrations directory: refused before a lock file goes in
@@ -128,7 +129,7 @@ def _locked_directory(root: Path, manifest: Manifest) -> Iterator[Demonstrations
 
 
 @contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
+def sigterm_as_interrupt() -> Iterator[None]:
     """Let SIGTERM stop generation like Ctrl-C (KeyboardInterrupt), so the same cleanup runs."""
     def handler(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
@@ -182,7 +183,7 @@ def generate_demonstrations(
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     if workers < 1 or lockstep < 1 or threads < 1:
         raise ValueError(f"`workers`, `lockstep` and `threads` must be >= 1; got {workers}, {lockstep}, {threads}")
-    with _locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions())) as directory:
+    with locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions())) as directory:
         staged = directory.finished_seeds()
         reused = [s for s in seeds if s in staged]
         tasks = [DemoTask(scenario, tuple(group), tuple(s for s in group if s not in staged), directory.episodes_dir)
@@ -196,7 +197,7 @@ def generate_demonstrations(
 
         progress()
         generated: list[int] = []
-        with _sigterm_as_interrupt():
+        with sigterm_as_interrupt():
             for _, written in run_tasks(tasks, drive_group, _group_failed, Backend(min(workers, max(len(tasks), 1)), threads)):
                 generated += written
                 progress()

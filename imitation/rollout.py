@@ -17,7 +17,7 @@ row (no decision) holds -1 / NaN / False, its ``ego`` and ``neighbours`` the fin
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple, Optional, Sequence
+from typing import Callable, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 import torch
@@ -56,7 +56,7 @@ class Episode(NamedTuple):
         rewards: (T,) float64 highway-env's reward after each command.
         terminations: (T,) bool, True on the step the ego crashed.
         truncations: (T,) bool, True on the last step of an episode that reached the duration.
-        infos: :data:`INFO_FIELDS` name -> (T + 1, ...) array.
+        infos: :data:`INFO_FIELDS` name (and any extra field the recorder was given) -> (T + 1, ...) array.
     """
 
     seed: int
@@ -124,19 +124,31 @@ class RolloutRecorder(Observer):
         seeds: the seeds given to the runner, in its order.
         keep_states: also keep the driver's input of every step (:attr:`Rollout.states`).
         on_finished: called with each episode as soon as it ends.
+        extra_fields: more per-step infos, declared as :data:`INFO_FIELDS` are (e.g. the expert's
+            ranking of every goal, :mod:`mmpc.imitation.labels`), and ``extra_infos()``, called
+            after every decision, returns them as (E, ...) arrays, one row per deciding environment.
     """
 
     def __init__(self, scenario: ScenarioConfig, seeds: Sequence[int], *, keep_states: bool = False,
-                 on_finished: Optional[Callable[[Rollout], None]] = None) -> None:
+                 on_finished: Optional[Callable[[Rollout], None]] = None,
+                 extra_fields: Mapping[str, tuple[type, tuple[int, ...], float]] = {},
+                 extra_infos: Optional[Callable[[], dict[str, np.ndarray]]] = None) -> None:
+        clash = sorted(set(extra_fields) & set(INFO_FIELDS))
+        if clash or bool(extra_fields) != (extra_infos is not None):
+            raise ValueError(f"`extra_fields` must name new infos ({clash} exist already) and come with `extra_infos`")
         self.scenario = scenario
         self.seeds = list(seeds)
         self.on_finished = on_finished
+        self.fields = {**INFO_FIELDS, **extra_fields}
+        self.extra_infos = extra_infos
         self.rollouts: list[Optional[Rollout]] = [None] * len(self.seeds)
         self._rows = [_Rows(keep_states) for _ in self.seeds]
         self._infos: dict[str, np.ndarray] = {}
 
     def decided(self, observation: Observation, decision: Decision, active: Sequence[int]) -> None:
         self._infos = decision_infos(decision, observation, self.scenario)
+        if self.extra_infos is not None:
+            self._infos.update(self.extra_infos())
 
     def applied(self, step: Step) -> None:
         rows = self._rows[step.index]
@@ -149,7 +161,7 @@ class RolloutRecorder(Observer):
         rows.rewards.append(step.episode.reward)
 
     def finished(self, index: int, episode: HighwayEpisode) -> None:
-        self.rollouts[index] = self._rows[index].finish(self.seeds[index], episode)
+        self.rollouts[index] = self._rows[index].finish(self.seeds[index], episode, self.fields)
         if self.on_finished is not None:
             self.on_finished(self.rollouts[index])
 
@@ -164,12 +176,12 @@ class _Rows:
         self.infos: list[dict[str, np.ndarray]] = []
         self.states: Optional[list[Observation]] = [] if keep_states else None
 
-    def finish(self, seed: int, episode: HighwayEpisode) -> Rollout:
+    def finish(self, seed: int, episode: HighwayEpisode, fields: Mapping[str, tuple[type, tuple[int, ...], float]]) -> Rollout:
         final = episode.observe()
         self.observations.append(final.kinematics[0])
         steps = len(self.actions)
         infos = {}
-        for name, (dtype, shape, fill) in INFO_FIELDS.items():
+        for name, (dtype, shape, fill) in fields.items():
             column = np.full((steps + 1, *shape), fill, dtype=dtype)
             for t, row in enumerate(self.infos):
                 column[t] = row[name]
@@ -203,6 +215,8 @@ def rollout_lockstep(
     *,
     keep_states: bool = False,
     on_finished: Optional[Callable[[Rollout], None]] = None,
+    extra_fields: Mapping[str, tuple[type, tuple[int, ...], float]] = {},
+    extra_infos: Optional[Callable[[], dict[str, np.ndarray]]] = None,
 ) -> list[Rollout]:
     """Drive one episode per seed in lockstep with ``driver`` (:func:`mmpc.highway.run_lockstep`)
     and record every step (:class:`RolloutRecorder`).
@@ -214,10 +228,12 @@ def rollout_lockstep(
         driver: who drives (the MPC expert for demonstrations, a learner for DAgger).
         keep_states: also keep the driver's input of every step (:attr:`Rollout.states`).
         on_finished: called with each episode as soon as it ends.
+        extra_fields, extra_infos: more per-step infos (:class:`RolloutRecorder`).
 
     Returns:
         One :class:`Rollout` per seed, in the order of ``seeds``.
     """
-    recorder = RolloutRecorder(scenario, seeds, keep_states=keep_states, on_finished=on_finished)
+    recorder = RolloutRecorder(scenario, seeds, keep_states=keep_states, on_finished=on_finished,
+                               extra_fields=extra_fields, extra_infos=extra_infos)
     run_lockstep(scenario, seeds, driver=driver, observers=[recorder])
     return [rollout for rollout in recorder.rollouts if rollout is not None]

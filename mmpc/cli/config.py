@@ -19,6 +19,7 @@ KINDS = {
     "rl": ("mmpc.rl.config", "RLConfig"),
     "bc": ("mmpc.imitation.bc", "TrainConfig"),
     "dagger": ("mmpc.imitation.dagger", "DaggerConfig"),
+    "proposer": ("mmpc.imitation.proposer_dagger", "ProposerDaggerConfig"),
 }
 
 

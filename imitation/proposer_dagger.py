@@ -1,0 +1,210 @@
+"""DAgger for the mode proposer (``mmpc imitate proposer``): the proposer in the loop, the expert's
+full ranking as the label, one Minari dataset per round.
+
+Round 0: the expert drives ``episodes`` seeded episodes and labels every state
+(:mod:`mmpc.imitation.labels`). Round i >= 1: the proposer of round i - 1 picks the goal (among
+its proposals, certified by the optimizer) at each environment-step with probability
+``1 - beta_i``, ``beta_i = beta * beta_decay^(i - 1)``, and the expert labels every state. After
+each round a new proposer is trained from scratch on all labels so far
+(:func:`mmpc.imitation.listwise.train_proposer`) and drives ``check_episodes`` held-out seeds
+alone (:class:`mmpc.imitation.proposer_driver.ProposerDriver`, the same seeds every round) beside
+the expert: collisions, mean meta cost and the share of escalated steps are the round's check.
+
+Writes ``RUN/labels/round_<i>/`` (staged episodes and the round's Minari dataset),
+``RUN/round_<i>/proposer.pt``, ``RUN/proposer.json`` (config, per round: beta, labelled states,
+labelling throughput, held-out top-k agreement, the check) and TensorBoard events in ``RUN/tb``;
+at the end ``RUN/proposer.pt``, the best round's (fewest check collisions, then lowest check meta
+cost). Re-running the same command resumes: finished rounds are kept, an unfinished round's staged
+episodes are reused, and more ``rounds`` extend the run (another configuration is refused).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from mmpc.config import to_dict
+from mmpc.files import atomic_write_text
+from mmpc.highway import run_lockstep
+from mmpc.imitation.features import scene_geometry
+from mmpc.imitation.labels import label_episodes, read_labels
+from mmpc.imitation.listwise import ProposerTrainConfig, train_proposer
+from mmpc.imitation.proposer import ModeProposer, load_proposer, save_proposer
+from mmpc.imitation.proposer_driver import ProposerDriver
+from mmpc.drivers import MPCDriver
+from mmpc.scenario import ScenarioConfig, build_mpc
+
+logger = logging.getLogger(__name__)
+
+REPORT = "proposer.json"
+
+
+@dataclass(frozen=True)
+class ProposerDaggerConfig:
+    """Settings of :func:`run_proposer_dagger` (``mmpc config show proposer``).
+
+    Attributes:
+        rounds: rounds after round 0 [-].
+        episodes: episodes driven and labelled per round [-].
+        beta: probability that the expert drives an environment-step in round 1, in [0, 1] [-].
+        beta_decay: factor on beta from one round to the next, in [0, 1] [-].
+        seed_start: first seed of the labelled episodes (rounds draw consecutive disjoint seeds;
+            keep them apart from evaluation seeds).
+        lockstep: episodes driven together (one optimizer call per step for all) [-].
+        check_episodes: held-out episodes each round's proposer drives alone (0: no check) [-].
+        check_seed_start: first seed of those episodes.
+        train: training of each round's proposer (its ``keep`` is the driver's).
+    """
+
+    rounds: int = 3
+    episodes: int = 64
+    beta: float = 0.5
+    beta_decay: float = 0.5
+    seed_start: int = 40000
+    lockstep: int = 64
+    check_episodes: int = 32
+    check_seed_start: int = 49000
+    train: ProposerTrainConfig = field(default_factory=ProposerTrainConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("rounds", "episodes", "seed_start", "lockstep", "check_episodes", "check_seed_start"):
+            value = getattr(self, name)
+            low = 1 if name in ("episodes", "lockstep") else 0
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ValueError(f"`{name}` must be an int >= {low}; got {value!r}")
+        for name in ("beta", "beta_decay"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"`{name}` must be in [0, 1]; got {getattr(self, name)!r}")
+        labelled = range(self.seed_start, self.seed_start + (self.rounds + 1) * self.episodes)
+        checked = range(self.check_seed_start, self.check_seed_start + self.check_episodes)
+        if self.check_episodes and max(labelled.start, checked.start) < min(labelled.stop, checked.stop):
+            raise ValueError(f"check seeds {checked.start}-{checked.stop - 1} overlap the labelled seeds "
+                             f"{labelled.start}-{labelled.stop - 1}: the check must be held out")
+
+    def beta_of(self, round_index: int) -> float:
+        """The expert's share of the driving in round ``round_index`` (1 in round 0)."""
+        return 1.0 if round_index == 0 else self.beta * self.beta_decay ** (round_index - 1)
+
+    def seeds_of(self, round_index: int) -> list[int]:
+        first = self.seed_start + round_index * self.episodes
+        return list(range(first, first + self.episodes))
+
+
+def check_drive(scenario: ScenarioConfig, driver, seeds: list[int], lockstep: int) -> dict:
+    """Collisions and mean meta cost of ``driver`` over ``seeds`` (lockstep groups of ``lockstep``)."""
+    collisions, costs = 0, []
+    for start in range(0, len(seeds), lockstep):
+        for result in run_lockstep(scenario, seeds[start:start + lockstep], driver=driver):
+            collisions += int(result.metrics["collisions"] > 0)
+            costs.append(result.metrics["meta_cost_mean"])
+    return {"collisions": collisions, "meta_cost_mean": float(np.mean(costs)), "episodes": len(seeds)}
+
+
+def _best_round(rounds: list[dict]) -> int:
+    checked = [entry for entry in rounds if "check" in entry]
+    if not checked:
+        return rounds[-1]["round"]
+    return min(checked, key=lambda e: (e["check"]["collisions"], e["check"]["meta_cost_mean"]))["round"]
+
+
+def _identity(scenario: ScenarioConfig, config: ProposerDaggerConfig) -> dict:
+    """What a resumed run must match (``rounds`` may grow)."""
+    settings = {key: value for key, value in to_dict(config).items() if key != "rounds"}
+    return {"scenario": {k: v for k, v in to_dict(scenario).items() if k != "seeds"}, "config": settings}
+
+
+def _read_report(path: Path, identity: dict) -> list[dict]:
+    if not path.exists():
+        return []
+    try:
+        report = json.loads(path.read_text())
+        rounds = list(report["rounds"])
+    except (ValueError, KeyError, TypeError) as error:
+        raise ValueError(f"{path} is corrupt ({type(error).__name__}: {error}); remove the run folder or choose "
+                         "another --out") from error
+    if report.get("identity") != identity:
+        raise ValueError(f"{path.parent} holds a proposer run of another configuration; re-run with the same scenario "
+                         "and config to resume, or choose another --out")
+    return rounds
+
+
+def run_proposer_dagger(
+    scenario: ScenarioConfig,
+    out: Path,
+    config: ProposerDaggerConfig = ProposerDaggerConfig(),
+    *,
+    on_round: Optional[Callable[[dict], None]] = None,
+    on_progress: Optional[Callable[[int, int], None]] = None,
+) -> dict:
+    """Run (or resume) the proposer's DAgger (see the module docstring).
+
+    Args:
+        scenario: the scenario (``scenario.sim`` picks the world; the batched simulator for scale).
+        out: the run folder.
+        config: the settings.
+        on_round: called with each finished round's entry of ``proposer.json``.
+        on_progress: called as ``on_progress(finished, total)`` while a round's episodes get labelled.
+
+    Returns:
+        The content of ``proposer.json``.
+    """
+    from torch.utils.tensorboard import SummaryWriter
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    identity = _identity(scenario, config)
+    rounds = [entry for entry in _read_report(out / REPORT, identity) if entry["round"] <= config.rounds]
+    name = "".join(c if c.isalnum() else "_" for c in scenario.name)
+    scene = scene_geometry(scenario)
+    check_seeds = list(range(config.check_seed_start, config.check_seed_start + config.check_episodes))
+    expert_check = next((entry["expert_check"] for entry in rounds if "expert_check" in entry), None)
+    writer = SummaryWriter(str(out / "tb"))
+    try:
+        for index in range(len(rounds), config.rounds + 1):
+            proposer: Optional[ModeProposer] = load_proposer(out / f"round_{index - 1}" / "proposer.pt") if index else None
+            beta = config.beta_of(index)
+            report = label_episodes(
+                scenario, config.seeds_of(index), out / "labels" / f"round_{index}", proposer=proposer, beta=beta,
+                keep=config.train.keep, lockstep=config.lockstep, seed=index,
+                dataset_id=f"mmpc/{name}-rankings-round{index}-v0", on_progress=on_progress,
+            )
+            labels = read_labels([out / "labels" / f"round_{i}" for i in range(index + 1)])
+            trained, history = train_proposer(labels, scenario.road, config.train, scene=scene, writer=writer,
+                                              tag=f"round_{index}/")
+            entry = {
+                "round": index, "beta": beta, "episodes": config.episodes, "states": labels.num_states,
+                "labelled_now": report.states,
+                "labels_per_s": report.states / report.seconds if report.generated and report.seconds > 0 else None,
+                "top_k_agreement": history.val_agreement[history.best_epoch],
+                "feasible_recall": history.val_recall[history.best_epoch],
+                "best_epoch": history.best_epoch,
+            }
+            save_proposer(out / f"round_{index}" / "proposer.pt", trained, scenario=scenario.name,
+                          info={"keep": config.train.keep, "round": index, "states": labels.num_states})
+            if check_seeds:
+                driver = ProposerDriver(build_mpc(scenario), trained, keep=config.train.keep)
+                entry["check"] = check_drive(scenario, driver, check_seeds, config.lockstep)
+                entry["check"]["escalated_share"] = driver.escalated_rows / max(driver.decided_rows, 1)
+                if expert_check is None:
+                    expert_check = check_drive(scenario, MPCDriver(build_mpc(scenario)), check_seeds, config.lockstep)
+                entry["expert_check"] = expert_check
+                writer.add_scalar("check/collisions", entry["check"]["collisions"], labels.num_states)
+                writer.add_scalar("check/meta_cost_mean", entry["check"]["meta_cost_mean"], labels.num_states)
+            writer.add_scalar("labels/top_k_agreement", entry["top_k_agreement"], labels.num_states)
+            writer.flush()
+            rounds.append(entry)
+            best = _best_round(rounds)
+            shutil.copyfile(out / f"round_{best}" / "proposer.pt", out / "proposer.pt")
+            atomic_write_text(out / REPORT, json.dumps({"identity": identity, "rounds": rounds, "best_round": best},
+                                                       indent=2) + "\n")
+            if on_round is not None:
+                on_round(entry)
+    finally:
+        writer.close()
+    return json.loads((out / REPORT).read_text())

@@ -1,0 +1,145 @@
+"""The proposer drives, the optimizer guarantees (spec ``proposer:RUN/proposer.pt``).
+
+Per step and environment: the MPC builds its full goal set (cheap: the goal sampler and the stop
+goals), the :class:`mmpc.imitation.proposer.ModeProposer` keeps the ``keep`` goals it scores
+highest plus the stop goal on the ego's lane (a certified way to slow down that no proposal can
+leave out), and the optimizer solves only those. The MPC ranks and certifies them exactly as it
+ranks its own set (feasibility, meta cost, tie-break, the same fallback), so a bad proposal costs
+meta cost, never safety checks. Where none of the proposed goals is feasible the step escalates:
+the full goal set is solved for those environments (``escalate``), so the proposer never leaves
+the ego on the fallback while the expert would have had a feasible plan.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from mmpc.drivers import Candidates, Decision, Driver, Observation
+from mmpc.imitation.features import nearest_neighbours
+from mmpc.imitation.proposer import ModeProposer, load_proposer_checkpoint, proposer_from_checkpoint
+from mmpc.mpc import MPC
+from mmpc.problem import EGO_Y, ProblemBatch
+from mmpc.scenario import ScenarioConfig, build_mpc
+
+logger = logging.getLogger(__name__)
+
+#: Goals kept per step besides the stop goal, unless the checkpoint or the spec says otherwise.
+DEFAULT_KEEP = 4
+
+
+def ego_lane_stop_goal(mpc: MPC, ego: torch.Tensor, num_goals: int) -> Optional[torch.Tensor]:
+    """(E,) slot of the stop goal on the ego's lane in the MPC's goal set (the stop goals come
+    last, one per lane of :meth:`mmpc.Road.lanes_around`); ``None`` when the MPC has no stop goals."""
+    lanes_either_side = mpc.config.stop_lanes
+    if lanes_either_side is None:
+        return None
+    lanes = mpc.road.lanes_around(ego[:, EGO_Y], lanes_either_side)  # (E, S)
+    own = (lanes == mpc.road.lane_index(ego[:, EGO_Y])[:, None]).long().argmax(dim=1)
+    return num_goals - lanes.shape[1] + own
+
+
+def subset_problem(problem: ProblemBatch, slots: torch.Tensor) -> ProblemBatch:
+    """The problems with only the goals of ``slots`` (E, K) kept."""
+    goals = torch.gather(problem.goals, 1, slots[..., None].expand(-1, -1, 2))
+    return problem._replace(goals=goals)
+
+
+def problem_rows(problem: ProblemBatch, rows: torch.Tensor) -> ProblemBatch:
+    """The problems of ``rows`` (long indices)."""
+    mask = None if problem.obstacle_mask is None else problem.obstacle_mask[rows]
+    return ProblemBatch(problem.ego[rows], problem.goals[rows], problem.obstacles[rows], mask)
+
+
+class ProposerDriver(Driver):
+    """The MPC restricted to the proposer's goals (see the module docstring).
+
+    Args:
+        mpc: the scenario's MPC (goal set, optimizer, ranking, fallback).
+        proposer: a proposer trained on this MPC's goal set.
+        keep: goals kept per step besides the ego lane's stop goal, 1 <= keep <= G.
+        escalate: solve the full goal set where no proposed goal is feasible.
+        name: the driver's name in tables.
+
+    Attributes:
+        decided_rows, escalated_rows: environment-steps decided, and those that escalated.
+    """
+
+    def __init__(self, mpc: MPC, proposer: ModeProposer, *, keep: int = DEFAULT_KEEP, escalate: bool = True,
+                 name: str = "proposer") -> None:
+        if proposer.road != mpc.road:
+            raise ValueError(f"the proposer was trained on {proposer.road}; the MPC drives {mpc.road}")
+        if not isinstance(keep, int) or isinstance(keep, bool) or not 1 <= keep <= proposer.num_goals:
+            raise ValueError(f"`keep` must be an int in [1, {proposer.num_goals}] (the goal set); got {keep!r}")
+        self.mpc = mpc
+        self.proposer = proposer.eval()
+        self.keep = keep
+        self.escalate = escalate
+        self.name = name
+        self.decided_rows = 0
+        self.escalated_rows = 0
+
+    def propose(self, observation: Observation, problem: ProblemBatch) -> torch.Tensor:
+        """(E, K) goal slots to solve: the ego lane's stop goal and the best ``keep``, in the goal
+        set's order (so that ties between equal candidates break as the expert breaks them)."""
+        if problem.num_goals != self.proposer.num_goals:
+            raise ValueError(f"the proposer scores {self.proposer.num_goals} goals; this MPC's goal set has "
+                             f"{problem.num_goals} (was it trained on another scenario?)")
+        mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
+        ego = observation.ego.numpy()
+        neighbours = nearest_neighbours(ego, observation.vehicles.numpy(), mask, ellipse=self.proposer.scene.ellipse)
+        forced = ego_lane_stop_goal(self.mpc, problem.ego, problem.num_goals)
+        count = min(self.keep + (forced is not None), problem.num_goals)
+        return self.proposer.top_goals(self.proposer.features(ego, neighbours), count, forced=forced).sort(dim=1).values
+
+    def decide(self, observation: Observation) -> Decision:
+        start = time.perf_counter()
+        problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
+        slots = self.propose(observation, problem)
+        subset = subset_problem(problem, slots)
+        plan = self.mpc.plan_problem(subset)
+        compile_ms = plan.compile_ms
+        selection = plan.selection
+        acceleration, steering = plan.acceleration.clone(), plan.steering.clone()
+        goal_index = slots.gather(1, selection.index[:, None]).squeeze(1)
+        feasible_goals = plan.result.feasible.sum(dim=1)
+        fallback = ~selection.feasible
+        plan_cost = selection.cost.clone()
+        # what was considered, laid out over the full goal set (unsolved goals: NaN paths, infeasible)
+        solved = torch.stack([plan.result.trajectories.x, plan.result.trajectories.y], dim=-1)  # (E, K, N, 2)
+        paths = solved.new_full((problem.num_problems, problem.num_goals, *solved.shape[2:]), float("nan"))
+        paths.scatter_(1, slots[:, :, None, None].expand_as(solved), solved)
+        feasible = torch.zeros(problem.num_problems, problem.num_goals, dtype=torch.bool).scatter(1, slots, plan.result.feasible)
+        escalated = fallback & self.escalate
+        if bool(escalated.any()):
+            rows = escalated.nonzero().flatten()
+            full = self.mpc.plan_problem(problem_rows(problem, rows))
+            compile_ms += full.compile_ms
+            acceleration[rows], steering[rows] = full.acceleration, full.steering
+            goal_index[rows] = full.selection.index
+            feasible_goals[rows] = full.result.feasible.sum(dim=1)
+            fallback[rows] = ~full.selection.feasible
+            plan_cost[rows] = full.selection.cost
+            paths[rows] = torch.stack([full.result.trajectories.x, full.result.trajectories.y], dim=-1).to(paths.dtype)
+            feasible[rows] = full.result.feasible
+        self.decided_rows += observation.num_envs
+        self.escalated_rows += int(escalated.sum())
+        candidates = Candidates(paths, feasible, goal_index, problem.goals)
+        elapsed_ms = (time.perf_counter() - start) * 1e3 - compile_ms
+        return Decision(acceleration, steering, elapsed_ms, goal_index, feasible_goals, fallback, plan_cost, candidates)
+
+
+def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:
+    """Driver factory of the spec ``proposer:PATH`` (a checkpoint of
+    :func:`mmpc.imitation.proposer.save_proposer`; it keeps the goal count it was trained with)."""
+    if not argument:
+        raise ValueError("driver 'proposer' needs a checkpoint path: 'proposer:RUN/proposer.pt'")
+    checkpoint = load_proposer_checkpoint(Path(argument))
+    if checkpoint.get("scenario") not in (None, scenario.name):
+        logger.warning("proposer %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)
+    keep = int(checkpoint.get("info", {}).get("keep", DEFAULT_KEEP))
+    return ProposerDriver(build_mpc(scenario), proposer_from_checkpoint(checkpoint), keep=keep, name=f"proposer:{argument}")
