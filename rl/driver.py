@@ -395,15 +395,16 @@ class ExpertSafeAgentDriver(SafeAgentDriver):
 
 
 def _stand_in_run(scenario: "ScenarioConfig", config: Optional[str], **env_settings: Any) -> "TrainedRun":
-    """A run of the RL config ``config`` (name, path or None: the defaults) on ``scenario``, with
-    ``env_settings`` on top, for a stand-in model."""
+    """A run of the RL config ``config`` (a shipped name, a YAML path, a training run's folder or
+    its ``config.yaml``, or None: the defaults) on ``scenario``, with ``env_settings`` on top, for
+    a stand-in model."""
     import dataclasses
 
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
-    from mmpc.rl.train import TrainedRun
+    from mmpc.rl.train import TrainedRun, recorded_config
 
-    run_config = load_config(RLConfig, config or None)
+    run_config = (recorded_config(config) if config else None) or load_config(RLConfig, config or None)
     run_config = dataclasses.replace(run_config, scenario=scenario, env=dataclasses.replace(run_config.env, **env_settings))
     return TrainedRun(None, "stand-in", "safe", False, run_config)
 
@@ -411,8 +412,9 @@ def _stand_in_run(scenario: "ScenarioConfig", config: Optional[str], **env_setti
 def make_random_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -> Driver:
     """The driver of ``safe-random[:RL_CONFIG]`` (registry entry ``"safe-random"``): random
     discrete actions behind the safety layer of ``scenario``, with the environment settings (goal
-    grid, ``replan``, ...) of the RL config ``RL_CONFIG`` (a shipped name such as ``high_speed``
-    or a YAML path; default: the defaults, :class:`mmpc.rl.config.SafeEnvConfig`)."""
+    grid, ``replan``, ...) of the RL config ``RL_CONFIG`` (a shipped name such as ``high_speed``,
+    a YAML path, or a training run's folder: the agent's own settings; default: the defaults,
+    :class:`mmpc.rl.config.SafeEnvConfig`)."""
     from mmpc.rl.envs import KINEMATICS_FEATURES
 
     run = _stand_in_run(scenario, config)

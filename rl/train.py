@@ -389,6 +389,22 @@ def shipped_models() -> list[str]:
     return sorted(p.parent.name for p in SHIPPED_MODELS.glob("*/model.zip"))
 
 
+def recorded_config(path: str | Path) -> Optional[RLConfig]:
+    """The RL config a training run recorded, given its folder or its ``config.yaml``; ``None``
+    where ``path`` is neither (e.g. a plain RL config file)."""
+    path = Path(path)
+    path = path / "config.yaml" if path.is_dir() else path
+    if not path.is_file():
+        return None
+    try:
+        record = yaml.safe_load(path.read_text())
+    except yaml.YAMLError:
+        return None
+    if not (isinstance(record, dict) and {"algo", "config"} <= set(record)):
+        return None
+    return from_dict(RLConfig, record["config"], where=f"{path}: config")
+
+
 def load_run(path: str | Path) -> TrainedRun:
     """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
     (the model's folder or the one above, for checkpoints); or a shipped agent by name

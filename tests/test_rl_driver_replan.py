@@ -10,6 +10,7 @@ import types
 
 import numpy as np
 import pytest
+import yaml
 import torch
 
 from mmpc.config import load_config
@@ -211,6 +212,17 @@ def test_random_goals_behind_the_layer_drive_highway_env_from_the_registry(repla
     result = run_episode(scenario, seed=3, driver=driver)
     assert [record.goal_index for record in result.records] == first
     assert make_registered("safe-random", scenario).config == SafeEnvConfig()  # the defaults
+    # a training run's folder (or its config.yaml) gives the agent's own settings
+    from mmpc.config import to_dict
+    from mmpc.rl.config import RLConfig
+
+    record = {"algo": "ppo", "env": "safe", "action": "discrete", "seed": 0, "timesteps": 10,
+              "config": to_dict(RLConfig(env=SafeEnvConfig(decision_frames=3, speeds=(12.0,))))}
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "config.yaml").write_text(yaml.safe_dump(record))
+    for spec in (tmp_path / "run", tmp_path / "run" / "config.yaml"):
+        recorded = make_registered(f"safe-random:{spec}", scenario).config
+        assert recorded.decision_frames == 3 and recorded.speeds == (12.0,)
     with pytest.raises(FileNotFoundError, match="sometimes"):
         make_registered("safe-random:sometimes", scenario)
 
