@@ -30,7 +30,7 @@ import torch
 from mmpc.config import to_dict
 from mmpc.drivers import Candidates, Decision, Driver, Observation
 from mmpc.evaluate.tasks import lockstep_groups
-from mmpc.imitation.dataset import DemonstrationsError, Manifest, build_minari, built_seeds, load_episode, package_versions, save_episode
+from mmpc.imitation.dataset import DemonstrationsError, Manifest, build_minari, built_seeds, load_episode, package_versions
 from mmpc.imitation.demos import locked_directory, sigterm_as_interrupt
 from mmpc.imitation.listwise import RankingLabels
 from mmpc.imitation.proposer import ModeProposer

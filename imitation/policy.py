@@ -28,8 +28,8 @@ from torch import nn
 
 from mmpc.config import from_dict, to_dict
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.files import atomic_write
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE
+from mmpc.imitation.checkpoint import read_checkpoint, write_checkpoint
 from mmpc.imitation.features import (
     LEGACY_SCENE, STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, nearest_neighbours, road_dict, road_features, road_of,
 )
@@ -195,37 +195,20 @@ def fold(policy: MLPPolicy) -> nn.Sequential:
 def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None, info: Optional[dict] = None) -> Path:
     """Write a checkpoint (architecture, road, scene geometry, weights and statistics, plus
     JSON-able ``info``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    checkpoint = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
+    return write_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, {
         "config": to_dict(policy.config),
         "road": road_dict(policy.road),
         "scene": to_dict(policy.scene),
         "state_dict": policy.state_dict(),
         "scenario": scenario,
         "info": info or {},
-    }
-    atomic_write(path, lambda handle: torch.save(checkpoint, handle))
-    return path
+    })
 
 
 def load_checkpoint(path: Path) -> dict:
     """Read a checkpoint written by :func:`save_policy` (tensors and plain data only)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"policy checkpoint {path} does not exist (train one with `mmpc imitate bc` or `dagger`)")
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises several types for a file that is not a checkpoint
-        raise ValueError(f"{path} is not a readable torch checkpoint ({type(error).__name__}: {error})") from error
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not an mmpc policy checkpoint (format {CHECKPOINT_FORMAT!r} expected)")
-    if checkpoint.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: checkpoint version {checkpoint.get('version')!r}; this mmpc reads {CHECKPOINT_VERSION} "
-                         "(retrain the policy)")
-    return checkpoint
+    return read_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, what="policy",
+                           hint="train one with `mmpc imitate bc` or `dagger`")
 
 
 def load_policy(path: Path) -> MLPPolicy:

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from mmpc.config import from_dict, to_dict
-from mmpc.files import atomic_write
+from mmpc.imitation.checkpoint import read_checkpoint, write_checkpoint
 from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, road_dict, road_features, road_of
 from mmpc.road import Road
 
@@ -145,11 +145,7 @@ class ModeProposer(nn.Module):
 
 def save_proposer(path: Path, proposer: ModeProposer, *, scenario: Optional[str] = None, info: Optional[dict] = None) -> Path:
     """Write a checkpoint (architecture, goal count, road, scene, weights, statistics, JSON-able ``info``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    checkpoint = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
+    return write_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, {
         "config": to_dict(proposer.config),
         "num_goals": proposer.num_goals,
         "road": road_dict(proposer.road),
@@ -157,25 +153,13 @@ def save_proposer(path: Path, proposer: ModeProposer, *, scenario: Optional[str]
         "state_dict": proposer.state_dict(),
         "scenario": scenario,
         "info": info or {},
-    }
-    atomic_write(path, lambda handle: torch.save(checkpoint, handle))
-    return path
+    })
 
 
 def load_proposer_checkpoint(path: Path) -> dict:
     """Read a checkpoint written by :func:`save_proposer`; a missing, foreign or damaged file raises."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"proposer checkpoint {path} does not exist (train one with `mmpc imitate proposer`)")
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises several types for a file that is not a checkpoint
-        raise ValueError(f"{path} is not a readable torch checkpoint ({type(error).__name__}: {error})") from error
-    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not an mmpc proposer checkpoint (format {CHECKPOINT_FORMAT!r} expected)")
-    if checkpoint.get("version") != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: checkpoint version {checkpoint.get('version')!r}; this mmpc reads {CHECKPOINT_VERSION}")
-    return checkpoint
+    return read_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, what="proposer",
+                           hint="train one with `mmpc imitate proposer`")
 
 
 def load_proposer(path: Path) -> ModeProposer:
