@@ -84,6 +84,10 @@ class RankingExpert(Driver):
         self.name = "ranking-expert"
         self._labels: dict[str, np.ndarray] = {}
 
+    def reset(self, num_envs: int) -> None:
+        if self.learner is not None:
+            self.learner.reset(num_envs)
+
     def labels(self) -> dict[str, np.ndarray]:
         """The :func:`ranking_fields` of the last decision, (E, ...) arrays."""
         return self._labels
@@ -104,6 +108,8 @@ class RankingExpert(Driver):
             learner = learner_rows & restricted.feasible  # where none is feasible, the learner's driver escalates
             selection = Selection(torch.where(learner, restricted.index, expert.index),
                                   torch.where(learner, restricted.cost, expert.cost), expert.feasible | learner)
+        if self.learner is not None:
+            self.learner.remember(observation, selection.index)
         plan = self.mpc.choose(problem, scored, lambda result, cost, violation: selection)
         self._labels = {
             "goal_cost": scored.cost.float().numpy(),

@@ -133,13 +133,15 @@ class ModeProposer(nn.Module):
         Args:
             features: (B, D) road features.
             count: goals to keep, 1 <= count <= G.
-            forced: (B,) long slots that are always kept (first), e.g. the stop goal on the ego's lane.
+            forced: (B,) or (B, F) long slots that are always kept (first), e.g. the stop goal on
+                the ego's lane; a slot forced twice in a row frees a place for one more proposal.
         """
         if not 1 <= count <= self.num_goals:
             raise ValueError(f"`count` must be in [1, {self.num_goals}] (the goal set); got {count}")
         scores, _ = self(torch.as_tensor(features, dtype=torch.float32))
         if forced is not None:
-            scores = scores.scatter(1, forced[:, None], torch.inf)
+            forced = forced[:, None] if forced.ndim == 1 else forced
+            scores = scores.scatter(1, forced, torch.inf)
         return scores.topk(count, dim=1).indices
 
 

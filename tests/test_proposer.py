@@ -169,6 +169,11 @@ def test_a_proposal_without_a_feasible_goal_escalates_to_the_full_set(scenario, 
     assert torch.equal(decision.goal_index, expert.goal_index)
     assert torch.allclose(decision.acceleration, expert.acceleration, atol=1e-5)
     assert decision.candidates.goals.shape == (6, proposer.num_goals, 2)
+    decision = escalating.decide(states)  # the goals driven at the last step are kept in the proposal
+    assert escalating.escalated_rows == 6 and torch.equal(decision.goal_index, expert.goal_index)
+    escalating.reset(6)  # new episodes: nothing driven yet
+    escalating.decide(states)
+    assert escalating.escalated_rows == 12
 
 
 def test_the_labelling_driver_labels_the_full_set_whoever_drives(scenario, mpc, states):
