@@ -32,6 +32,14 @@ logger = logging.getLogger(__name__)
 #: Goals kept per step besides the stop goal, unless the checkpoint or the spec says otherwise.
 DEFAULT_KEEP = 4
 
+#: Proposers shipped with mmpc: ``models/<name>.pt`` beside this module (``proposer:NAME`` drives one).
+SHIPPED_PROPOSERS = Path(__file__).resolve().parent / "models"
+
+
+def shipped_proposers() -> list[str]:
+    """Names of the shipped proposers."""
+    return sorted(p.stem for p in SHIPPED_PROPOSERS.glob("*.pt"))
+
 
 def ego_lane_stop_goal(mpc: MPC, ego: torch.Tensor, num_goals: int) -> Optional[torch.Tensor]:
     """(E,) slot of the stop goal on the ego's lane in the MPC's goal set (the stop goals come
@@ -150,10 +158,15 @@ class ProposerDriver(Driver):
 
 def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:
     """Driver factory of the spec ``proposer:PATH`` (a checkpoint of
-    :func:`mmpc.imitation.proposer.save_proposer`; it keeps the goal count it was trained with)."""
+    :func:`mmpc.imitation.proposer.save_proposer`; it keeps the goal count it was trained with) or
+    ``proposer:NAME`` (a shipped proposer, :func:`shipped_proposers`)."""
     if not argument:
-        raise ValueError("driver 'proposer' needs a checkpoint path: 'proposer:RUN/proposer.pt'")
-    checkpoint = load_proposer_checkpoint(Path(argument))
+        raise ValueError("driver 'proposer' needs a checkpoint path or a shipped name: 'proposer:RUN/proposer.pt' "
+                         f"(shipped: {', '.join(shipped_proposers()) or 'none'})")
+    path = Path(argument)
+    if not path.is_file() and argument in shipped_proposers():
+        path = SHIPPED_PROPOSERS / f"{argument}.pt"
+    checkpoint = load_proposer_checkpoint(path)
     if checkpoint.get("scenario") not in (None, scenario.name):
         logger.warning("proposer %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)
     keep = int(checkpoint.get("info", {}).get("keep", DEFAULT_KEEP))

@@ -17,7 +17,10 @@ from mmpc.evaluate import EvaluationConfig
 from mmpc.imitation.bc import TrainConfig as BCTrainConfig
 from mmpc.imitation.dagger import DAGGER_POLICY, DaggerConfig
 from mmpc.imitation.features import FeatureConfig, SceneGeometry
+from mmpc.imitation.listwise import ProposerTrainConfig
 from mmpc.imitation.policy import PolicyConfig
+from mmpc.imitation.proposer import ProposerConfig
+from mmpc.imitation.proposer_dagger import ProposerDaggerConfig
 from mmpc.rl.config import RL_SCENARIO, RewardConfig, RLConfig, SafeEnvConfig
 from mmpc.rl.config import TrainConfig as RLTrainConfig
 from mmpc.sim import SimConfig
@@ -41,6 +44,7 @@ CONFIGS = [
     EvaluationConfig(drivers=("mpc", "frenet"), seeds=(3, 1), ray="auto", episode_layout="{driver}/{seed}"),
     SimConfig(), TrackingConfig(speed_gain=2.0, max_lateral_error=0.3), SafeEnvConfig(replan="decision"),
     RewardConfig(source="meta_cost", meta_cost_scale=50.0),
+    ProposerConfig(hidden=(64,)), ProposerTrainConfig(), ProposerDaggerConfig(),
 ]
 
 
