@@ -109,7 +109,7 @@ class RankingExpert(Driver):
             selection = Selection(torch.where(learner, restricted.index, expert.index),
                                   torch.where(learner, restricted.cost, expert.cost), expert.feasible | learner)
         if self.learner is not None:
-            self.learner.remember(observation, selection.index)
+            self.learner.remember(observation, problem, selection.index)
         plan = self.mpc.choose(problem, scored, lambda result, cost, violation: selection)
         self._labels = {
             "goal_cost": scored.cost.float().numpy(),

@@ -24,7 +24,7 @@ from mmpc.drivers import Candidates, Decision, Driver, Observation
 from mmpc.imitation.features import nearest_neighbours
 from mmpc.imitation.proposer import ModeProposer, load_proposer_checkpoint, proposer_from_checkpoint
 from mmpc.mpc import MPC
-from mmpc.problem import EGO_Y, ProblemBatch
+from mmpc.problem import EGO_X, EGO_Y, ProblemBatch
 from mmpc.scenario import ScenarioConfig, build_mpc
 
 logger = logging.getLogger(__name__)
@@ -91,14 +91,34 @@ class ProposerDriver(Driver):
         self.name = name
         self.decided_rows = 0
         self.escalated_rows = 0
-        self._previous: dict[int, int] = {}  # environment id -> the goal slot driven at its last step
+        # environment id -> the goal driven at its last step, (x ahead of the ego [m], y [m])
+        self._previous: dict[int, tuple[float, float]] = {}
 
     def reset(self, num_envs: int) -> None:
         self._previous = {}
 
-    def remember(self, observation: Observation, slots: torch.Tensor) -> None:
-        """Note the (E,) goal slots driven in the environments of ``observation`` (kept at their next step)."""
-        self._previous.update(zip(observation.ids().tolist(), slots.tolist()))
+    def remember(self, observation: Observation, problem: ProblemBatch, slots: torch.Tensor) -> None:
+        """Note the goals of ``slots`` (E,) driven in the environments of ``observation``, whose
+        goal set is ``problem``'s, for their next step."""
+        goals = problem.goals[torch.arange(problem.num_problems), slots]
+        ahead = goals[:, 0] - problem.ego[:, EGO_X]
+        self._previous.update(zip(observation.ids().tolist(), zip(ahead.tolist(), goals[:, 1].tolist())))
+
+    def previous_goal(self, observation: Observation, problem: ProblemBatch) -> Optional[torch.Tensor]:
+        """(E,) slot of the goal nearest the one each environment drove at its last step (the same
+        lane first, then the same distance ahead; -1 where it has not driven yet): a goal slot of the
+        ego's neighbour lanes names another lane once the ego has changed lanes, so the goal is
+        found again by place, not by slot. ``None`` when no environment has driven yet."""
+        previous = [self._previous.get(i) for i in observation.ids().tolist()]
+        if all(p is None for p in previous):
+            return None
+        known = torch.tensor([p is not None for p in previous])
+        target = problem.goals.new_tensor([p if p is not None else (0.0, 0.0) for p in previous])  # (E, 2)
+        ahead = problem.goals[..., 0] - problem.ego[:, EGO_X, None]
+        lane_width = self.mpc.road.lane_width
+        distance = ((problem.goals[..., 1] - target[:, 1:]).abs() / lane_width).round() * 1e3 \
+            + (ahead - target[:, :1]).abs()
+        return torch.where(known, distance.argmin(dim=1), -1)
 
     def propose(self, observation: Observation, problem: ProblemBatch) -> torch.Tensor:
         """(E, K) goal slots to solve: the ego lane's stop goal, the goal driven at the previous
@@ -111,8 +131,8 @@ class ProposerDriver(Driver):
         ego = observation.ego.numpy()
         neighbours = nearest_neighbours(ego, observation.vehicles.numpy(), mask, ellipse=self.proposer.scene.ellipse)
         forced = [slot for slot in (ego_lane_stop_goal(self.mpc, problem.ego, problem.num_goals),) if slot is not None]
-        previous = torch.tensor([self._previous.get(i, -1) for i in observation.ids().tolist()], dtype=torch.long)
-        if bool((previous >= 0).any()):
+        previous = self.previous_goal(observation, problem)
+        if previous is not None:
             forced.append(torch.where(previous >= 0, previous, forced[0] if forced else previous.clamp_min(0)))
         count = min(self.keep + len(forced), problem.num_goals)
         stacked = torch.stack(forced, dim=1) if forced else None
@@ -148,7 +168,7 @@ class ProposerDriver(Driver):
             plan_cost[rows] = full.selection.cost
             paths[rows] = torch.stack([full.result.trajectories.x, full.result.trajectories.y], dim=-1).to(paths.dtype)
             feasible[rows] = full.result.feasible
-        self.remember(observation, goal_index)
+        self.remember(observation, problem, goal_index)
         self.decided_rows += observation.num_envs
         self.escalated_rows += int(escalated.sum())
         candidates = Candidates(paths, feasible, goal_index, problem.goals)

@@ -273,3 +273,22 @@ def test_cli_runs_dagger_rounds_resumes_and_the_proposer_drives_in_evaluate(tmp_
                  "--sim", "batched", "--seeds", "0-1", "--duration", "0.5", "--out", str(evaluation)]) == 0
     rows = (evaluation / "episodes.csv").read_text().splitlines()
     assert sum(f"proposer:{out / 'proposer.pt'}" in row for row in rows) == 2
+
+
+def test_the_goal_kept_from_the_last_step_is_found_again_by_place_after_a_lane_change(scenario, mpc, states):
+    driver = ProposerDriver(mpc, untrained(scenario, mpc))
+    first = states._replace(ego=states.ego[:1].clone(), vehicles=states.vehicles[:1], vehicle_mask=states.vehicle_mask[:1],
+                            env_ids=torch.tensor([7]))
+    first.ego[0, EGO_Y] = 8.0  # lane 2
+    problem = mpc.build_problem(first.ego, first.vehicles, first.vehicle_mask)
+    goals = problem.goals[0]
+    right_fast = int(((goals[:, 1] == 12.0) & (goals[:, 0] - first.ego[0, 0] == 24.0 * 8.0)).nonzero()[0])
+    driver.remember(first, problem, torch.tensor([right_fast]))
+    later = first._replace(ego=first.ego.clone())
+    later.ego[0, EGO_Y] = 12.0  # the lane change is done: lane 3 is the ego's lane, its slots shifted
+    moved = mpc.build_problem(later.ego, later.vehicles, later.vehicle_mask)
+    slot = int(driver.previous_goal(later, moved)[0])
+    assert slot != right_fast and float(moved.goals[0, slot, 1]) == 12.0
+    assert float(moved.goals[0, slot, 0] - later.ego[0, 0]) == pytest.approx(24.0 * 8.0)
+    other = later._replace(env_ids=torch.tensor([8]))  # an environment that has not driven yet
+    assert driver.previous_goal(other, moved) is None
