@@ -186,6 +186,9 @@ def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> D
     path = Path(argument)
     if not path.is_file() and argument in shipped_proposers():
         path = SHIPPED_PROPOSERS / f"{argument}.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"no proposer checkpoint {argument} (shipped proposers: "
+                                f"{', '.join(shipped_proposers()) or 'none'}; train one with `mmpc imitate proposer`)")
     checkpoint = load_proposer_checkpoint(path)
     if checkpoint.get("scenario") not in (None, scenario.name):
         logger.warning("proposer %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)

@@ -76,6 +76,16 @@ def test_wheel_ships_the_trained_agents(installed_wheel):
             assert shipped.read_bytes() == (SHIPPED_MODELS / name / part).read_bytes()
 
 
+def test_wheel_ships_the_trained_proposers(installed_wheel):
+    from mmpc.imitation.proposer_driver import SHIPPED_PROPOSERS, shipped_proposers
+
+    assert shipped_proposers() == ["cruise", "high_speed"]
+    for name in shipped_proposers():
+        shipped = installed_wheel / "mmpc" / "imitation" / "models" / f"{name}.pt"
+        assert shipped.read_bytes() == (SHIPPED_PROPOSERS / f"{name}.pt").read_bytes()
+        assert shipped.stat().st_size < 5 * 2**20
+
+
 def test_wheel_ships_every_package_and_declares_the_drivers(installed_wheel):
     def modules(root: Path, package: str) -> set[str]:
         found = set()

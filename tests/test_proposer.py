@@ -292,3 +292,15 @@ def test_the_goal_kept_from_the_last_step_is_found_again_by_place_after_a_lane_c
     assert float(moved.goals[0, slot, 0] - later.ego[0, 0]) == pytest.approx(24.0 * 8.0)
     other = later._replace(env_ids=torch.tensor([8]))  # an environment that has not driven yet
     assert driver.previous_goal(other, moved) is None
+
+
+@pytest.mark.parametrize("name", ["cruise", "high_speed"])
+def test_the_shipped_proposers_drive_their_scenario_by_name(name):
+    scenario = load_scenario(name).replace(sim="batched")
+    driver = make_driver(f"proposer:{name}", scenario)
+    assert driver.keep == 4 and driver.proposer.num_goals == goal_count(driver.mpc)
+    observation, _ = make_world(scenario, [7, 8]).observe([0, 1])
+    decision = driver.decide(observation)
+    assert decision.goal_index.shape == (2,) and not bool(decision.fallback.any())
+    with pytest.raises(FileNotFoundError, match="shipped proposers: cruise, high_speed"):
+        make_driver("proposer:no_such_proposer", scenario)
