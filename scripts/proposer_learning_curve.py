@@ -130,7 +130,9 @@ def plot(result: dict, path: Path) -> None:
     left.legend(loc="lower right", fontsize=8)
     if result["expert_check"] is not None:
         right.plot(states, [row["check_meta_cost_mean"] for row in rows], "o-", label="proposer + optimizer")
-        right.axhline(result["expert_check"]["meta_cost_mean"], color="k", ls=":", label="MPC expert (all goals)")
+        expert = result["expert_check"]["meta_cost_mean"]
+        right.axhline(expert, color="k", ls=":", label="MPC expert (all goals)")
+        right.set_ylim(0.0, 1.1 * max([expert] + [row["check_meta_cost_mean"] for row in rows]))
         right.set(xscale="log", xlabel="labelled states", ylabel="mean meta cost (lower is better)",
                   title=f"closed loop, {len(result['check_seeds'])} held-out episodes")
         right.legend(fontsize=8)
