@@ -134,14 +134,16 @@ class ModeProposer(nn.Module):
             features: (B, D) road features.
             count: goals to keep, 1 <= count <= G.
             forced: (B,) or (B, F) long slots that are always kept (first), e.g. the stop goal on
-                the ego's lane; a slot forced twice in a row frees a place for one more proposal.
+                the ego's lane; -1: none. A slot forced twice in a row (or -1) frees a place for
+                one more proposal.
         """
         if not 1 <= count <= self.num_goals:
             raise ValueError(f"`count` must be in [1, {self.num_goals}] (the goal set); got {count}")
         scores, _ = self(torch.as_tensor(features, dtype=torch.float32))
         if forced is not None:
             forced = forced[:, None] if forced.ndim == 1 else forced
-            scores = scores.scatter(1, forced, torch.inf)
+            best = scores.argmax(dim=1, keepdim=True)  # kept anyway: forcing it changes nothing
+            scores = scores.scatter(1, torch.where(forced >= 0, forced, best), torch.inf)
         return scores.topk(count, dim=1).indices
 
 

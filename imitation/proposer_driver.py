@@ -70,7 +70,7 @@ class ProposerDriver(Driver):
     Args:
         mpc: the scenario's MPC (goal set, optimizer, ranking, fallback).
         proposer: a proposer trained on this MPC's goal set.
-        keep: goals kept per step besides the ego lane's stop goal, 1 <= keep <= G.
+        keep: goals kept per step besides the ego lane's stop goal and the last step's goal, 1 <= keep <= G.
         escalate: solve the full goal set where no proposed goal is feasible.
         name: the driver's name in tables.
 
@@ -133,7 +133,7 @@ class ProposerDriver(Driver):
         forced = [slot for slot in (ego_lane_stop_goal(self.mpc, problem.ego, problem.num_goals),) if slot is not None]
         previous = self.previous_goal(observation, problem)
         if previous is not None:
-            forced.append(torch.where(previous >= 0, previous, forced[0] if forced else previous.clamp_min(0)))
+            forced.append(previous)
         count = min(self.keep + len(forced), problem.num_goals)
         stacked = torch.stack(forced, dim=1) if forced else None
         return self.proposer.top_goals(self.proposer.features(ego, neighbours), count, forced=stacked).sort(dim=1).values

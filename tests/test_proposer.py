@@ -106,6 +106,8 @@ def test_checkpoint_round_trip_forced_goal_and_refusals(scenario, mpc, tmp_path)
     forced = torch.tensor([7, 33])
     top = loaded.top_goals(features, 3, forced=forced)
     assert top[:, 0].tolist() == [7, 33] and len(set(top[0].tolist())) == 3
+    unforced = loaded.top_goals(features, 3)
+    assert torch.equal(loaded.top_goals(features, 3, forced=torch.tensor([[-1], [-1]])), unforced)  # -1: none
     with pytest.raises(ValueError, match="count"):
         loaded.top_goals(features, loaded.num_goals + 1)
     with pytest.raises(ValueError, match="shape"):
