@@ -25,6 +25,7 @@ torch functions.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -57,6 +58,9 @@ _COMPILED_CHUNK = 10
 COMPILE_ENV = "MMPC_COMPILE"
 #: Widest SIMD register the compiled CPU kernels use (AVX-512) [bytes].
 _SIMD_BYTES = 64
+#: Recompiles of each compiled function a process allows (torch's default: 8): one per call layout.
+_RECOMPILE_LIMIT = 64
+
 #: Elements per call of the compiled CPU path: a tile's (3N, 2, tile) samples and residuals
 #: (~0.6 MB in float32) stay in a core's L2 cache between the products and the fused steps.
 _CPU_TILE_SIZE = 256
@@ -241,6 +245,17 @@ class BatchOptimizer(nn.Module):
             if not self._fallback_logged:
                 logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
                 self._fallback_logged = True
+        # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
+        # functions, shared by every optimizer of the process: one driver mixing goal counts (a
+        # proposer and its escalations) or several scenarios in one worker pass torch's default
+        # limit of 8, where a fullgraph compile fails hard.
+        limit = torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT) if compiled else contextlib.nullcontext()
+        with limit:
+            return self._solve_batch(ego, goals, obstacles, mask, history, compiled)
+
+    def _solve_batch(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                     history: bool, compiled: bool) -> SolveResult:
+        """:meth:`forward` on validated inputs: one call, or tiles of :attr:`tile_size` elements."""
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:

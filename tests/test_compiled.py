@@ -46,3 +46,20 @@ def test_goal_padding_fills_whole_vectors_only_where_cheap():
     assert _goal_padding(1, 32, 4) == 0
     assert _goal_padding(5, 11, 4) == 0  # 5 x 16 would add 25 elements a row: more than a vector
     assert _goal_padding(64, 11, 4) == 0  # 704 = 44 vectors already
+
+
+def test_compiled_solves_allow_more_recompiles_than_torchs_default(monkeypatch):
+    """Each call layout recompiles the same functions (shared by every optimizer of a process):
+    a proposer driver with its escalations, or several scenarios in one worker, pass torch's
+    default limit of 8, where a fullgraph compile fails hard. The compiled path raises the limit
+    for its own calls only."""
+    from mmpc import optimizer as module
+
+    default = torch._dynamo.config.recompile_limit
+    seen = []
+    monkeypatch.setattr(module.BatchOptimizer, "_solve_batch", lambda self, *args: seen.append(torch._dynamo.config.recompile_limit))
+    scene = synthetic_scenes(1, seed=0)[0]
+    module.BatchOptimizer(compile=True)(scene.problem)
+    module.BatchOptimizer(compile=False)(scene.problem)
+    assert seen == [module._RECOMPILE_LIMIT, default] and module._RECOMPILE_LIMIT > default
+    assert torch._dynamo.config.recompile_limit == default  # restored after the call
