@@ -11,7 +11,8 @@ training config), then measures on data no training saw:
 - closed loop on the run's world: the proposer's driver alone on ``--check-episodes`` seeds,
   collisions, mean meta cost and the share of escalated steps, beside the expert on the same seeds.
 
-Prints a table, writes ``OUT/learning_curve.json`` and ``OUT/learning_curve.png``.
+Prints a table, writes ``OUT/learning_curve.json`` and ``OUT/learning_curve.png`` (the held-out
+labels go to ``RUN/held_out``, reused by a later call).
 
     python scripts/proposer_learning_curve.py --run runs/proposer/high_speed --sizes 10000,30000,100000 --out docs/imitation/proposer_high_speed
 """
@@ -76,9 +77,9 @@ def main() -> None:
     labels = read_labels(rounds)
     held_out_seeds = list(range(args.held_out_seed_start, args.held_out_seed_start + args.held_out_episodes))
     name = "".join(c if c.isalnum() else "_" for c in scenario.name)
-    label_episodes(scenario, held_out_seeds, out / "held_out", lockstep=config.lockstep,
+    label_episodes(scenario, held_out_seeds, run / "held_out", lockstep=config.lockstep,  # beside the run's labels
                    dataset_id=f"mmpc/{name}-rankings-heldout-v0")
-    held_out = read_labels([out / "held_out"])
+    held_out = read_labels([run / "held_out"])
     mpc = build_mpc(scenario)
     check_seeds = list(range(args.check_seed_start, args.check_seed_start + args.check_episodes))
     expert = check_drive(scenario, MPCDriver(mpc), check_seeds, config.lockstep) if check_seeds else None
