@@ -149,8 +149,7 @@ def _proposer(args: argparse.Namespace) -> int:
     bar = tqdm(total=config.episodes, desc="labelling round", unit="ep")
 
     def on_progress(finished: int, total: int) -> None:
-        bar.reset(total) if finished < bar.n else None
-        bar.update(finished - bar.n)
+        bar.update(finished - bar.n)  # on_round resets the bar between rounds
 
     def on_round(entry: dict) -> None:
         bar.write(_round_line(entry, config.train.keep))

@@ -34,7 +34,7 @@ from mmpc.files import atomic_write_text
 from mmpc.highway import run_lockstep
 from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.labels import label_episodes, read_labels
-from mmpc.imitation.listwise import ProposerTrainConfig, train_proposer
+from mmpc.imitation.listwise import ProposerTrainConfig, RankingLabels, train_proposer
 from mmpc.imitation.proposer import ModeProposer, load_proposer, save_proposer
 from mmpc.imitation.proposer_driver import ProposerDriver
 from mmpc.drivers import MPCDriver
@@ -165,6 +165,9 @@ def run_proposer_dagger(
     scene = scene_geometry(scenario)
     check_seeds = list(range(config.check_seed_start, config.check_seed_start + config.check_episodes))
     expert_check = next((entry["expert_check"] for entry in rounds if "expert_check" in entry), None)
+    # the labels so far, read once; each round adds its own (episode ids continue across rounds)
+    resumed = 0 < len(rounds) <= config.rounds
+    labels = read_labels([out / "labels" / f"round_{i}" for i in range(len(rounds))]) if resumed else None
     writer = SummaryWriter(str(out / "tb"))
     try:
         for index in range(len(rounds), config.rounds + 1):
@@ -175,7 +178,9 @@ def run_proposer_dagger(
                 keep=config.train.keep, lockstep=config.lockstep, seed=index,
                 dataset_id=f"mmpc/{name}-rankings-round{index}-v0", on_progress=on_progress,
             )
-            labels = read_labels([out / "labels" / f"round_{i}" for i in range(index + 1)])
+            first_episode = 0 if labels is None else int(labels.episodes.max()) + 1
+            new = read_labels([out / "labels" / f"round_{index}"], first_episode=first_episode)
+            labels = new if labels is None else RankingLabels.concatenate([labels, new])
             trained, history = train_proposer(labels, scenario.road, config.train, scene=scene, writer=writer,
                                               tag=f"round_{index}/")
             entry = {

@@ -255,6 +255,8 @@ def test_cli_runs_dagger_rounds_resumes_and_the_proposer_drives_in_evaluate(tmp_
     args = ["imitate", "proposer", "--scenario", "high_speed", "--sim", "batched", "--duration", "0.5", "--rounds", "1",
             "--set", "episodes=2", "--set", "lockstep=2", "--set", "check_episodes=2", "--set", "train.epochs=2",
             "--set", "train.proposer.hidden=[16]", "--out", str(out)]
+    rounds = args.index("--rounds") + 1
+    assert main(args[:rounds] + ["0"] + args[rounds + 1:]) == 0  # round 0 alone, then extended to round 1
     assert main(args) == 0
     report = json.loads((out / "proposer.json").read_text())
     assert [entry["round"] for entry in report["rounds"]] == [0, 1]
