@@ -401,6 +401,13 @@ class OptimizerConfig:
             ``max_heading_deg``: the smooth heading polynomial overshoots clipped targets
             slightly [deg].
         start_acceleration: also constrain the initial acceleration to the ego's current one.
+        lane_weight: lane keeping, ``lane_weight/2 sum_t s(t) (y(t) - y_goal)^2`` added to the
+            lateral smoothness cost, with s rising from 0 at the start to 1 at
+            ``lane_settle_time`` (:func:`mmpc.operators.lane_keeping_profile`): the path reaches
+            its goal's lane early and stays centred on it rather than drifting across over the
+            whole horizon. Soft: the constraint penalties outgrow it as rho grows. 0: the
+            paper's cost [1/s^4, like ``weight_xy``'s ``Pddot``].
+        lane_settle_time: time by which the lane-keeping weight is full [s].
         obstacle_tolerance: feasible trajectories keep normalised obstacle distance >= 1 - this [-].
         acceleration_tolerance: allowed excess of the acceleration norm over a_max [m/s^2].
         nonholonomic_tolerance: allowed max |(xdot, ydot) - v (cos psi, sin psi)| [m/s].
@@ -424,6 +431,8 @@ class OptimizerConfig:
     max_heading_deg: float = 13.0
     heading_target_deg: Optional[float] = None
     start_acceleration: bool = True
+    lane_weight: float = 0.0
+    lane_settle_time: float = 3.0
     obstacle_tolerance: float = 0.01
     acceleration_tolerance: float = 0.05
     nonholonomic_tolerance: float = 0.1
@@ -453,6 +462,8 @@ class OptimizerConfig:
         )
         require(self.weight_xy > 0, f"`weight_xy` must be > 0; got {self.weight_xy}")
         require(self.weight_psi > 0, f"`weight_psi` must be > 0; got {self.weight_psi}")
+        require(self.lane_weight >= 0, f"`lane_weight` must be >= 0; got {self.lane_weight}")
+        require(self.lane_settle_time > 0, f"`lane_settle_time` must be > 0 s; got {self.lane_settle_time}")
         require(self.ellipse_a > 0, f"`ellipse_a` must be > 0 m; got {self.ellipse_a}")
         require(self.ellipse_b > 0, f"`ellipse_b` must be > 0 m; got {self.ellipse_b}")
         require(self.a_max > 0, f"`a_max` must be > 0 m/s^2; got {self.a_max}")

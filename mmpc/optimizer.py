@@ -94,7 +94,7 @@ class BatchOptimizer(nn.Module):
 
     Solves, for each of E problems and each of its G goals, ::
 
-        min  sum_t xddot^2 + yddot^2 + psiddot^2   (weighted)
+        min  sum_t xddot^2 + yddot^2 + psiddot^2   (weighted)  [+ lane keeping on y, config.lane_weight]
         s.t. xdot = v cos psi, ydot = v sin psi, v_min <= v <= v_max, |(xddot, yddot)| <= a_max,
              outside every obstacle ellipse (a, b) at every sample, boundary conditions,
 
@@ -312,9 +312,9 @@ class BatchOptimizer(nn.Module):
         for first in range(0, self.config.iterations, self.chunk):
             last = min(first + self.chunk, self.config.iterations)
             if prepared.uniform_count is not None:
-                position = self.position[first:last, prepared.uniform_count]  # (U, K, D)
+                position = self.position[first:last, prepared.uniform_count]  # (U, 2, K, D)
             else:
-                position = self.position[first:last].index_select(1, prepared.counts)  # (U, E, K, D)
+                position = self.position[first:last].index_select(1, prepared.counts)  # (U, E, 2, K, D)
             state, step = iterate(
                 state, prepared.b_position, prepared.b_heading, prepared.obstacles, position,
                 self.gather[first:last], self.heading[first:last], self.heading_gather[first:last],
@@ -542,8 +542,8 @@ def _iterate(
 ) -> tuple[_State, _Step]:
     """Run U = ``gather.shape[0]`` iterations; every operator argument is sliced to those U.
 
-    Shapes: ``position`` (U, K, D) when every problem has the same obstacle count, else
-    (U, E, K, D); ``gather`` (U, K, 3N); ``heading`` (U, K, N + K + 4); ``heading_gather``
+    Shapes: ``position`` (U, 2, K, D) when every problem has the same obstacle count, else
+    (U, E, 2, K, D); ``gather`` (U, K, 3N); ``heading`` (U, K, N + K + 4); ``heading_gather``
     (U, K, N); see :class:`mmpc.operators.Operators`. Pure tensor code without host
     synchronisation, so that it can be compiled.
     """
@@ -572,14 +572,15 @@ def _iterate(
 
 
 def _position_qp(operator: torch.Tensor, stacked: torch.Tensor, num_problems: int) -> torch.Tensor:
-    """x, y QP: ``stacked`` (D, 2B) -> (K, 2B); ``operator`` (K, D) shared or (E, K, D) per problem."""
-    if operator.ndim == 2:
-        return operator @ stacked
+    """x, y QP: ``stacked`` (D, 2B) -> (K, 2B); ``operator`` (2, K, D), one per axis, shared by
+    every problem, or (E, 2, K, D) per problem."""
     rows = stacked.shape[0]
-    per_problem = stacked.view(rows, 2, num_problems, -1).permute(2, 0, 1, 3)
-    solved = operator @ per_problem.reshape(num_problems, rows, -1)  # (E, K, 2G)
-    solved = solved.view(num_problems, operator.shape[1], 2, -1).permute(1, 2, 0, 3)
-    return solved.reshape(operator.shape[1], -1)
+    if operator.ndim == 3:
+        solved = operator @ stacked.view(rows, 2, -1).transpose(0, 1)  # (2, K, B)
+        return solved.transpose(0, 1).reshape(operator.shape[1], -1)
+    per_problem = stacked.view(rows, 2, num_problems, -1).permute(2, 1, 0, 3)  # (E, 2, D, G)
+    solved = operator @ per_problem  # (E, 2, K, G)
+    return solved.permute(2, 1, 0, 3).reshape(operator.shape[2], -1)
 
 
 def _closed_form_steps(
@@ -676,7 +677,7 @@ def _start(
     """
     num_problems = obstacles.shape[3]
     n = samples_operator.shape[0] // 3
-    c = position_init @ b_position  # (K, 2B)
+    c = _position_qp(position_init, b_position, num_problems)  # (K, 2B)
     samples = (samples_operator @ c).view(3 * n, 2, num_problems, -1)
     psi = _atan2(samples[2 * n :, 1], samples[2 * n :, 0], limits)
     residuals = _closed_form_steps(samples, psi, obstacles, limits)

@@ -11,7 +11,7 @@ def test_every_constant_matrix_is_a_buffer_built_once():
     names = {name for name, _ in opt.named_buffers()}
     assert {"position", "position_init", "heading", "gather", "heading_gather", "samples"} <= names
     cfg = opt.config
-    assert opt.position.shape == (cfg.iterations, cfg.max_obstacles + 1, cfg.order + 1, 3 * (cfg.order + 1) + 4)
+    assert opt.position.shape == (cfg.iterations, cfg.max_obstacles + 1, 2, cfg.order + 1, 3 * (cfg.order + 1) + 4)
     assert opt.state_dict() == {}  # derived from the config, not parameters
 
 
