@@ -53,3 +53,27 @@ class HighSpeedCost:
         speed_term = (trajectories.v - self.v_max) ** 2
         lane_term = (trajectories.y - road.right_lane_y) ** 2
         return (self.w_speed * speed_term + self.w_lane * lane_term).sum(dim=-1)
+
+
+@dataclass(frozen=True)
+class LaneChangeCost:
+    """``base`` plus ``per_lane`` for every lane between the lane a trajectory starts in and the
+    lane it ends in (nearest lane centres): hysteresis on the chosen lane. A change must gain at
+    least ``per_lane`` to start; past the lane line the new lane is the current one, so going
+    back costs as much, and a change once started is completed.
+
+    Attributes:
+        base: the driving objective.
+        per_lane: cost of one lane changed, in ``base``'s units.
+    """
+
+    base: MetaCost
+    per_lane: float
+
+    def __post_init__(self) -> None:
+        if not self.per_lane >= 0:
+            raise ValueError(f"`per_lane` must be >= 0 (meta-cost units per lane); got {self.per_lane}")
+
+    def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
+        lanes = road.lane_index(trajectories.y[..., -1]) - road.lane_index(trajectories.y[..., 0])
+        return self.base(trajectories, road) + self.per_lane * lanes.abs().to(trajectories.y.dtype)

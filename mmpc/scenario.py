@@ -21,11 +21,11 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
 
-from mmpc.config import OptimizerConfig, load_config, require, require_positive
+from mmpc.config import OptimizerConfig, load_config, require, require_non_negative, require_positive
 from mmpc.configs import shipped_config_dir
 from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
-from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
+from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig
 from mmpc.optimizer import COMPILE_ENV, BatchOptimizer
 from mmpc.road import Road
@@ -74,16 +74,21 @@ class CruiseObjective:
         near_lanes: those goals sit on the ego's lane and this many lanes either side;
             ``None``: on every lane. (2: behind a wall of slow cars the way out can be two
             lanes over.)
+        lane_change_cost: added to a candidate's meta cost per lane it changes
+            (:class:`mmpc.meta_costs.LaneChangeCost`, hysteresis on the lane) [(m/s)^2 summed
+            over the horizon]; 0: the paper's meta cost.
     """
 
     kind: ClassVar[str] = "cruise"
     v_cruise: float = 15.0
     near_lane_speeds: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0)
     near_lanes: Optional[int] = 2
+    lane_change_cost: float = 0.0
 
     def __post_init__(self) -> None:
         require_positive("objective cruise", v_cruise=self.v_cruise)
         _near_lane_goals("objective cruise", self.near_lane_speeds, self.near_lanes)
+        require_non_negative("objective cruise", lane_change_cost=self.lane_change_cost)
 
     @property
     def reference_speed(self) -> float:
@@ -102,7 +107,7 @@ class CruiseObjective:
         return NearLaneGoals(lanes, speeds=self.near_lane_speeds, horizon=horizon, lanes_around=self.near_lanes)
 
     def meta_cost(self) -> MetaCost:
-        return CruiseCost(self.v_cruise)
+        return _with_lane_changes(CruiseCost(self.v_cruise), self.lane_change_cost)
 
     def stage_cost(self, v: float, y: float, road: Road) -> float:
         """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""
@@ -128,6 +133,8 @@ class HighSpeedObjective:
             over 8 s, slower than the road allows.
         near_lanes: those goals sit on the ego's lane and this many lanes either side;
             ``None``: on every lane.
+        lane_change_cost: added to a candidate's meta cost per lane it changes
+            (:class:`mmpc.meta_costs.LaneChangeCost`); 0: the paper's meta cost.
     """
 
     kind: ClassVar[str] = "high_speed"
@@ -140,10 +147,12 @@ class HighSpeedObjective:
     other_distance: float = 160.0
     near_lane_speeds: tuple[float, ...] = (4.0, 8.0, 12.0, 16.0, 20.0, 22.0, 24.0)
     near_lanes: Optional[int] = 1
+    lane_change_cost: float = 0.0
 
     def __post_init__(self) -> None:
         require_positive("objective high_speed", v_max=self.v_max, w_speed=self.w_speed, w_lane=self.w_lane)
         _near_lane_goals("objective high_speed", self.near_lane_speeds, self.near_lanes)
+        require_non_negative("objective high_speed", lane_change_cost=self.lane_change_cost)
         self._layout()  # validates the layout fields
 
     @property
@@ -166,11 +175,16 @@ class HighSpeedObjective:
         return NearLaneGoals(self._layout(), speeds=self.near_lane_speeds, horizon=horizon, lanes_around=self.near_lanes)
 
     def meta_cost(self) -> MetaCost:
-        return HighSpeedCost(self.v_max, self.w_speed, self.w_lane)
+        return _with_lane_changes(HighSpeedCost(self.v_max, self.w_speed, self.w_lane), self.lane_change_cost)
 
     def stage_cost(self, v: float, y: float, road: Road) -> float:
         """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""
         return self.w_speed * (v - self.v_max) ** 2 + self.w_lane * (y - road.right_lane_y) ** 2
+
+
+def _with_lane_changes(cost: MetaCost, per_lane: float) -> MetaCost:
+    """``cost`` with :class:`mmpc.meta_costs.LaneChangeCost` where ``per_lane`` > 0."""
+    return LaneChangeCost(cost, per_lane) if per_lane > 0 else cost
 
 
 Objective = Union[CruiseObjective, HighSpeedObjective]

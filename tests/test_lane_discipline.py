@@ -1,4 +1,5 @@
-"""Lane keeping in the optimizer's lateral cost (OptimizerConfig.lane_weight)."""
+"""Lane discipline: lane keeping in the optimizer's lateral cost (OptimizerConfig.lane_weight) and the
+lane-change cost of the meta costs (hysteresis on the lane)."""
 
 import torch
 
@@ -61,3 +62,37 @@ def test_lane_weight_must_be_non_negative():
         OptimizerConfig(lane_weight=-1.0)
     with pytest.raises(ValueError, match="lane_settle_time"):
         OptimizerConfig(lane_settle_time=0.0)
+
+
+def _trajectories(y_start: float, y_end: float, v: float = 15.0) -> mmpc.Trajectories:
+    """One problem, one candidate: y moving linearly from y_start to y_end at constant speed v."""
+    times = torch.linspace(0.0, 8.0, 5)
+    y = torch.linspace(y_start, y_end, 5)[None, None]
+    full = lambda value: torch.full((1, 1, 5), value)  # noqa: E731
+    return mmpc.Trajectories(times, full(0.0), y, full(0.0), full(v), full(v), full(0.0), full(0.0), full(0.0), full(0.0))
+
+
+def test_lane_change_cost_charges_every_lane_between_start_and_end():
+    from mmpc.meta_costs import CruiseCost, LaneChangeCost
+
+    road, base = mmpc.Road(), CruiseCost(15.0)
+    cost = LaneChangeCost(base, per_lane=20.0)
+    assert float(cost(_trajectories(4.0, 4.0), road)) == float(base(_trajectories(4.0, 4.0), road)) == 0.0
+    assert float(cost(_trajectories(4.0, 12.0), road)) == 40.0  # two lanes over
+    assert float(cost(_trajectories(4.4, 5.9), road)) == 0.0  # drifting within lane 1
+    # past the lane line the new lane is the current one: going back costs, finishing does not
+    assert float(cost(_trajectories(6.2, 4.0), road)) == 20.0
+    assert float(cost(_trajectories(6.2, 8.0), road)) == 0.0
+
+
+def test_scenario_objectives_add_the_lane_change_cost_only_when_asked():
+    import pytest
+    from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost
+    from mmpc.scenario import CruiseObjective, HighSpeedObjective
+
+    assert isinstance(CruiseObjective().meta_cost(), CruiseCost)  # the paper's by default
+    assert isinstance(HighSpeedObjective().meta_cost(), HighSpeedCost)
+    kept = HighSpeedObjective(lane_change_cost=50.0).meta_cost()
+    assert isinstance(kept, LaneChangeCost) and kept.per_lane == 50.0
+    with pytest.raises(ValueError, match="lane_change_cost"):
+        CruiseObjective(lane_change_cost=-1.0)
