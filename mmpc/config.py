@@ -400,7 +400,8 @@ class OptimizerConfig:
             ``None`` leaves the targets unclipped, as in the paper. Set it a little inside
             ``max_heading_deg``: the smooth heading polynomial overshoots clipped targets
             slightly [deg].
-        start_acceleration: also constrain the initial acceleration to the ego's current one.
+        start_acceleration: also constrain the initial acceleration to the ego's current one (held
+            to the a_max disc: a harder brake than a plan may use would make every plan infeasible).
         lane_weight: lane keeping, ``lane_weight/2 sum_t s(t) (y(t) - y_goal)^2`` added to the
             lateral smoothness cost, with s rising from 0 at the start to 1 at
             ``lane_settle_time`` (:func:`mmpc.operators.lane_keeping_profile`): the path reaches

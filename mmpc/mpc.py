@@ -402,8 +402,8 @@ class MPC:
 
     @torch.no_grad()
     def score(self, problem: ProblemBatch) -> Scored:
-        """Solve every (problem, goal) of the batch and score it: road filter, meta cost and the
-        ranking of infeasible candidates. One optimizer call; :meth:`choose` may then pick from
+        """Solve every (problem, goal) of the batch and score it: road filter, escapes from a
+        start inside an ellipse (:meth:`_allow_escape`), meta cost and the ranking of infeasible candidates. One optimizer call; :meth:`choose` may then pick from
         the same scores more than once (e.g. for several agents' choices)."""
         start = time.perf_counter()
         result = self.optimizer(problem)
@@ -412,6 +412,7 @@ class MPC:
         compile_ms = self.optimizer.last_compile_ms
         solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
         result, road_excess = self._keep_on_road(result, problem.ego)
+        result = self._allow_escape(result, problem)
         cost = self.meta_cost(result.trajectories, self.road)
         return Scored(result, cost, self._violation(result, road_excess), solve_ms, compile_ms)
 
@@ -505,6 +506,33 @@ class MPC:
         excess = torch.maximum(low - y.amin(dim=-1), y.amax(dim=-1) - high).clamp_min(0.0)
         status = result.status | (excess > 0).to(result.status.dtype) * int(Status.OFF_ROAD)
         return result._replace(status=status, feasible=status == 0), excess
+
+    def _allow_escape(self, result: SolveResult, problem: ProblemBatch) -> SolveResult:
+        """Clear :attr:`Status.START_IN_COLLISION` and :attr:`Status.OBSTACLE` of the candidates
+        that start inside an obstacle's ellipse but never go deeper into it than at the start
+        (and keep clear of every other one, to the optimizer's tolerance).
+
+        The ellipse holds the two cars with room to spare, so an ego inside it has not collided
+        (e.g. beside a car with a lane line between them, or riding a plan's boundary with a
+        tracking error); every candidate shares that start, and without this rule each is
+        infeasible and the ego drives the never-accelerating fallback.
+        """
+        inside = (result.status & int(Status.START_IN_COLLISION)) != 0
+        if not bool(inside.any()):
+            return result
+        a, b = self.ellipse
+        trajectories, obstacles = result.trajectories, problem.obstacles.to(result.trajectories.x.dtype)
+        dx = (trajectories.x[:, :, None, :] - obstacles[:, None, :, :, 0]) / a  # (E, G, M, N)
+        dy = (trajectories.y[:, :, None, :] - obstacles[:, None, :, :, 1]) / b
+        distance = torch.hypot(dx, dy)
+        floor = distance[..., :1].clamp_max(1.0) - self.optimizer.config.obstacle_tolerance
+        mask = problem.obstacle_mask
+        present = (torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask)[:, None, :]
+        clear = ((distance >= floor).all(dim=-1) | ~present).all(dim=-1)  # (E, G)
+        obstacle_bits = int(Status.START_IN_COLLISION | Status.OBSTACLE)
+        escaping = inside & clear & ((result.status & ~obstacle_bits) == 0)
+        status = torch.where(escaping, result.status & ~obstacle_bits, result.status)
+        return result._replace(status=status, feasible=status == 0)
 
     def _violation(self, result: SolveResult, road_excess: torch.Tensor) -> torch.Tensor:
         """(E, G) ranking of infeasible candidates: drivable ones first, then the optimizer's

@@ -356,7 +356,7 @@ class BatchOptimizer(nn.Module):
             goals = _repeat_last(goals, 1, goals.shape[1] + padding)
         layout = self._layout if compiled else _layout
         origin, b_position, b_heading, obstacles, goal_ahead, counts = layout(
-            ego, goals, obstacles, mask, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b)
+            ego, goals, obstacles, mask, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b), cfg.a_max
         )
         count_values = counts.unique()
         uniform = int(count_values[0]) if count_values.numel() == 1 else None
@@ -382,8 +382,13 @@ def _layout(
     mask: torch.Tensor,
     start_acceleration: bool,
     semi_axes: tuple[float, float],
+    a_max: float,
 ) -> tuple[torch.Tensor, ...]:
     """Inputs in the ego-relative frame and the solver layout (see :class:`_Prepared`).
+
+    The start acceleration ``(a, v psidot)`` is held to the disc of radius ``a_max``: an ego
+    braking harder than a plan may (the fallback's full brake) would otherwise make every
+    candidate infeasible from its first sample, and the fallback would follow itself.
 
     Returns:
         origin (E, 2) [m]; b_position (n_eq, 2 E G); b_heading (4, E G); obstacles
@@ -400,7 +405,10 @@ def _layout(
     start_velocity = torch.stack([v0 * cos0, v0 * sin0])  # (2, E)
     rows = [torch.zeros_like(start_velocity), start_velocity]
     if start_acceleration:
-        rows.append(torch.stack([a0 * cos0 - v0 * psidot0 * sin0, a0 * sin0 + v0 * psidot0 * cos0]))
+        tangential, normal = a0, v0 * psidot0
+        scale = (a_max * torch.rsqrt((tangential * tangential + normal * normal).clamp_min(_EPS_SQUARED))).clamp_max(1.0)
+        tangential, normal = tangential * scale, normal * scale
+        rows.append(torch.stack([tangential * cos0 - normal * sin0, tangential * sin0 + normal * cos0]))
     start = torch.stack(rows)[..., None].expand(-1, -1, -1, num_goals)  # (n_start, 2, E, G)
     end = relative_goals.permute(2, 0, 1).unsqueeze(0)  # (1, 2, E, G)
     b_position = torch.cat([start, end]).reshape(len(rows) + 1, -1)
@@ -760,7 +768,7 @@ def _summarise(
             | (path_speed.amin(dim=0) < config.v_min - config.speed_tolerance),
             Status.SPEED,
         ),
-        (start_distance < 1.0, Status.START_IN_COLLISION),
+        (start_distance < (1.0 - config.obstacle_tolerance) ** 2, Status.START_IN_COLLISION),
         (~goal_ahead[:, goals], Status.GOAL_BEHIND),
     ]
     status = torch.zeros(num_problems, num_goals, dtype=torch.int32, device=c.device)

@@ -17,7 +17,7 @@ class Status(enum.IntFlag):
     NONHOLONOMIC = 4  #: (xdot, ydot) departs from v (cos psi, sin psi) by more than tolerance
     HEADING = 8  #: heading leaves the +-max_heading band around the road direction
     SPEED = 16  #: path speed outside [v_min, v_max] by more than tolerance
-    START_IN_COLLISION = 32  #: the ego starts inside an obstacle ellipse
+    START_IN_COLLISION = 32  #: the ego starts inside an obstacle ellipse (beyond the obstacle tolerance)
     GOAL_BEHIND = 64  #: the goal is not ahead of the ego
     NUMERICAL = 128  #: the iterations produced non-finite values; outputs replaced by the initial guess
     OFF_ROAD = 256  #: leaves the road surface (set by :class:`mmpc.MPC`'s road filter, not by the optimizer)

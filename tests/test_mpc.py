@@ -98,6 +98,30 @@ def test_no_feasible_candidate_falls_back_to_the_least_infeasible(cruise_mpc):
     assert abs(float(plan.steering[0])) <= cruise_mpc.config.max_steering
 
 
+def test_an_ego_inside_a_neighbours_ellipse_may_drive_away_from_it(cruise_mpc):
+    # On the lane line beside a car (0.5 m between their sides): inside its 5.6 m x 3 m ellipse, not touching.
+    ego = mmpc.ego_state(0.0, 5.5, 0.0, 15.0)
+    beside = torch.tensor([[[1.0, 8.0, 15.0, 0.0]]])
+    plan = cruise_mpc.plan(ego, beside)
+    best = int(plan.selection.index[0])
+    assert bool(plan.selection.feasible[0])
+    inside = (plan.result.status[0] & mmpc.Status.START_IN_COLLISION) != 0
+    assert plan.result.feasible[0].any() and inside.any()  # cleared where escaping, kept where not
+    towards = (plan.problem.goals[0, :, 1] == 8.0) & (plan.problem.goals[0, :, 0] > 60.0)
+    assert not plan.result.feasible[0, towards].all()
+    gap = torch.hypot((plan.trajectory.x[0] - (1.0 + 15.0 * plan.trajectory.times)) / 5.6, (plan.trajectory.y[0] - 8.0) / 3.0)
+    assert float(gap.min()) >= float(gap[0]) - cruise_mpc.optimizer.config.obstacle_tolerance  # never deeper
+    assert float(plan.problem.goals[0, best, 1]) != 8.0
+
+
+def test_an_ego_braking_harder_than_a_max_still_has_feasible_plans(cruise_mpc):
+    # the fallback brakes at up to 5 m/s^2, beyond the plans' 4: the next plans start at the disc's edge
+    at_edge = cruise_mpc.plan(mmpc.ego_state(0.0, 8.0, 0.0, 15.0, a=-4.0), torch.zeros(1, 0, 4))
+    beyond = cruise_mpc.plan(mmpc.ego_state(0.0, 8.0, 0.0, 15.0, a=-5.0), torch.zeros(1, 0, 4))
+    assert bool(beyond.selection.feasible[0]) and int(beyond.result.feasible.sum()) > 10
+    assert torch.equal(beyond.result.status, at_edge.result.status)
+
+
 def test_steering_inverts_the_kinematic_turn_rate(cruise_mpc):
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 15.0)
     plan = cruise_mpc.plan(ego, torch.tensor([[[30.0, 4.0, 8.0, 0.0]]]))
