@@ -99,8 +99,8 @@ def test_no_feasible_candidate_falls_back_to_the_least_infeasible(cruise_mpc):
 
 
 def test_an_ego_inside_a_neighbours_ellipse_may_drive_away_from_it(cruise_mpc):
-    # On the lane line beside a car (0.5 m between their sides): inside its 5.6 m x 3 m ellipse, not touching.
-    ego = mmpc.ego_state(0.0, 5.5, 0.0, 15.0)
+    # Beside a car with a lane line between them: just inside its 5.6 m x 3 m ellipse, not touching.
+    ego = mmpc.ego_state(0.0, 5.1, 0.0, 15.0)  # normalised distance 0.97
     beside = torch.tensor([[[1.0, 8.0, 15.0, 0.0]]])
     plan = cruise_mpc.plan(ego, beside)
     best = int(plan.selection.index[0])
@@ -112,6 +112,8 @@ def test_an_ego_inside_a_neighbours_ellipse_may_drive_away_from_it(cruise_mpc):
     gap = torch.hypot((plan.trajectory.x[0] - (1.0 + 15.0 * plan.trajectory.times)) / 5.6, (plan.trajectory.y[0] - 8.0) / 3.0)
     assert float(gap.min()) >= float(gap[0]) - cruise_mpc.optimizer.config.obstacle_tolerance  # never deeper
     assert float(plan.problem.goals[0, best, 1]) != 8.0
+    deeper = cruise_mpc.plan(mmpc.ego_state(0.0, 5.5, 0.0, 15.0), beside)  # 0.84: a contour could reach the car's corner
+    assert not deeper.result.feasible.any()
 
 
 def test_an_ego_braking_harder_than_a_max_still_has_feasible_plans(cruise_mpc):
