@@ -408,8 +408,9 @@ class MPC:
     @torch.no_grad()
     def score(self, problem: ProblemBatch) -> Scored:
         """Solve every (problem, goal) of the batch and score it: road filter, escapes from a
-        start inside an ellipse (:meth:`_allow_escape`), meta cost and the ranking of infeasible candidates. One optimizer call; :meth:`choose` may then pick from
-        the same scores more than once (e.g. for several agents' choices)."""
+        start inside an ellipse (:meth:`_allow_escape`), meta cost and the ranking of infeasible
+        candidates. One optimizer call; :meth:`choose` may then pick from the same scores more
+        than once (e.g. for several agents' choices)."""
         start = time.perf_counter()
         result = self.optimizer(problem)
         if result.status.is_cuda:
@@ -533,8 +534,10 @@ class MPC:
         start = distance[..., :1]
         floor = start.clamp_max(1.0) - self.optimizer.config.obstacle_tolerance
         mask = problem.obstacle_mask
-        present = (torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask)[:, None, :]
-        clear = (((distance >= floor).all(dim=-1) & (start[..., 0] >= 1.0 - ESCAPE_DEPTH)) | ~present).all(dim=-1)  # (E, G)
+        if mask is None:
+            mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device)
+        never_deeper = (distance >= floor).all(dim=-1) & (start[..., 0] >= 1.0 - ESCAPE_DEPTH)  # (E, G, M)
+        clear = (never_deeper | ~mask[:, None, :]).all(dim=-1)  # (E, G)
         obstacle_bits = int(Status.START_IN_COLLISION | Status.OBSTACLE)
         escaping = inside & clear & ((result.status & ~obstacle_bits) == 0)
         status = torch.where(escaping, result.status & ~obstacle_bits, result.status)

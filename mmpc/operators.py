@@ -9,16 +9,18 @@ Per axis (x or y) with M present obstacles the position QP of iteration k is::
     F_M = [P; ...; P (M times); Pddot; Pdot]
 
 Its KKT solution is ``c = Kcc (rho_k F_M^T g + lambda) + Kcb b`` with (Kcc, Kcb) blocks of the
-inverse KKT matrix. The lateral axis may add lane keeping, ``w/2 sum_t s(t) (y(t) - y_goal)^2``
-(:attr:`mmpc.OptimizerConfig.lane_weight`): ``w P^T S P`` joins its Hessian and, as ``y_goal`` is
-the end-position row of ``b``, its linear term ``w P^T S 1 y_goal`` folds into the ``b`` block,
-so the y axis gets matrices of its own and the iterations stay one constant matrix per axis. Writing ``F_M^T g = F_M^T F_M c_prev - u`` with ``u = F^T (F c_prev - g)``
+inverse KKT matrix. Writing ``F_M^T g = F_M^T F_M c_prev - u`` with ``u = F^T (F c_prev - g)``
 (the residual already mapped back to coefficient space) makes the update one constant matrix
 times the stacked vector ``[c_prev; u; lambda; b]`` (with the penalty weights folded in, see
 :class:`Operators`); :func:`build_operators` returns that matrix
 for every iteration and every obstacle count 0 ... M_max, so that absent obstacles change
 nothing. The heading QP is the same with ``F = P`` and target ``atan2(ydot, xdot)``: one matrix
 times ``[psi_target; lambda_psi; b_psi]``.
+
+The lateral axis may add lane keeping, ``w/2 sum_t s(t) (y(t) - y_goal)^2``
+(:attr:`mmpc.OptimizerConfig.lane_weight`): ``w P^T S P`` joins its Hessian and, as ``y_goal`` is
+the end-position row of ``b``, its linear term ``w P^T S 1 y_goal`` folds into the ``b`` block.
+The y axis then has matrices of its own, and the iterations stay one constant matrix per axis.
 """
 
 from __future__ import annotations
