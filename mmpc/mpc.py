@@ -23,7 +23,7 @@ from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
     EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
 )
-from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best
+from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
 from mmpc.result import SolveResult, Status, Trajectories
 from mmpc.road import Road
 from mmpc.stopping import conflict_deceleration, stop_goals
@@ -526,11 +526,8 @@ class MPC:
         inside = (result.status & int(Status.START_IN_COLLISION)) != 0
         if not bool(inside.any()):
             return result
-        a, b = self.ellipse
-        trajectories, obstacles = result.trajectories, problem.obstacles.to(result.trajectories.x.dtype)
-        dx = (trajectories.x[:, :, None, :] - obstacles[:, None, :, :, 0]) / a  # (E, G, M, N)
-        dy = (trajectories.y[:, :, None, :] - obstacles[:, None, :, :, 1]) / b
-        distance = torch.hypot(dx, dy)
+        obstacles = problem.obstacles.to(result.trajectories.x.dtype)
+        distance = squared_obstacle_distance(result.trajectories, obstacles, self.ellipse).sqrt()  # (E, G, M, N)
         start = distance[..., :1]
         floor = start.clamp_max(1.0) - self.optimizer.config.obstacle_tolerance
         mask = problem.obstacle_mask

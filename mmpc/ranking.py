@@ -43,6 +43,20 @@ def constraint_violation(result: SolveResult, config: OptimizerConfig) -> torch.
     return 10.0 * penetration + acceleration + nonholonomic / max(config.v_max, 1.0) + heading
 
 
+def squared_obstacle_distance(trajectories: Trajectories, obstacles: torch.Tensor, ellipse: tuple[float, float]) -> torch.Tensor:
+    """(E, C, M, N) squared ellipse-normalised distance ``(dx / a)^2 + (dy / b)^2`` of every
+    candidate's samples to every obstacle slot (< 1: inside its ellipse).
+
+    Args:
+        trajectories: the candidates, fields (E, C, N).
+        obstacles: (E, M, N, 2) predicted centres at the same instants [m].
+        ellipse: (a, b) semi-axes [m].
+    """
+    dx = (trajectories.x[:, :, None, :] - obstacles[:, None, :, :, 0]) / ellipse[0]
+    dy = (trajectories.y[:, :, None, :] - obstacles[:, None, :, :, 1]) / ellipse[1]
+    return dx**2 + dy**2
+
+
 def lateral_move(trajectories: Trajectories, ego: torch.Tensor) -> torch.Tensor:
     """(E, G) how far each candidate ends from the ego's lateral position [m]: the preference
     that breaks ties between candidates of (nearly) equal meta cost towards the smaller lane move."""

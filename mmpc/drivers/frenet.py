@@ -33,6 +33,7 @@ from mmpc.config import require_positive
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
+from mmpc.ranking import squared_obstacle_distance
 from mmpc.result import Trajectories
 
 
@@ -237,9 +238,7 @@ class FrenetPlanner:
         low = torch.clamp(ego[:, EGO_Y, None, None], max=left + margin)
         high = torch.clamp(ego[:, EGO_Y, None, None], min=right - margin)
         road_ok = ((tr.y >= low - 1e-9) & (tr.y <= high + 1e-9)).all(-1)
-        dx = (tr.x[:, :, None, :] - obstacles[:, None, :, :, 0]) / opt.ellipse_a  # (E, C, M, N)
-        dy = (tr.y[:, :, None, :] - obstacles[:, None, :, :, 1]) / opt.ellipse_b
-        inside = (dx**2 + dy**2 < 1.0) & mask[:, None, :, None]
+        inside = (squared_obstacle_distance(tr, obstacles, opt.ellipse) < 1.0) & mask[:, None, :, None]  # (E, C, M, N)
         clear = ~inside[..., 1:].any(-1).any(-1)
         return speed_ok & acceleration_ok & curvature_ok & heading_ok & road_ok & clear
 
