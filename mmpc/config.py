@@ -409,6 +409,12 @@ class OptimizerConfig:
             whole horizon. Soft: the constraint penalties outgrow it as rho grows. 0: the
             paper's cost [1/s^4, like ``weight_xy``'s ``Pddot``].
         lane_settle_time: time by which the lane-keeping weight is full [s].
+        obstacle_backoff: the iterations project points onto the ellipses scaled by
+            ``1 + obstacle_backoff`` while the feasibility check keeps the true ones: a plan
+            still closing in on the larger ellipse after the last iteration is feasible
+            already (0: the paper's projection) [-].
+        acceleration_backoff: likewise, the iterations project onto the disc of radius
+            ``a_max - acceleration_backoff`` [m/s^2].
         obstacle_tolerance: feasible trajectories keep normalised obstacle distance >= 1 - this [-].
         acceleration_tolerance: allowed excess of the acceleration norm over a_max [m/s^2].
         nonholonomic_tolerance: allowed max |(xdot, ydot) - v (cos psi, sin psi)| [m/s].
@@ -434,6 +440,8 @@ class OptimizerConfig:
     start_acceleration: bool = True
     lane_weight: float = 0.0
     lane_settle_time: float = 3.0
+    obstacle_backoff: float = 0.0
+    acceleration_backoff: float = 0.0
     obstacle_tolerance: float = 0.01
     acceleration_tolerance: float = 0.05
     nonholonomic_tolerance: float = 0.1
@@ -465,6 +473,11 @@ class OptimizerConfig:
         require(self.weight_psi > 0, f"`weight_psi` must be > 0; got {self.weight_psi}")
         require(self.lane_weight >= 0, f"`lane_weight` must be >= 0; got {self.lane_weight}")
         require(self.lane_settle_time > 0, f"`lane_settle_time` must be > 0 s; got {self.lane_settle_time}")
+        require(0 <= self.obstacle_backoff < 1, f"`obstacle_backoff` must be in [0, 1); got {self.obstacle_backoff}")
+        require(
+            0 <= self.acceleration_backoff < self.a_max,
+            f"`acceleration_backoff` must be in [0, a_max={self.a_max}) m/s^2; got {self.acceleration_backoff}",
+        )
         require(self.ellipse_a > 0, f"`ellipse_a` must be > 0 m; got {self.ellipse_a}")
         require(self.ellipse_b > 0, f"`ellipse_b` must be > 0 m; got {self.ellipse_b}")
         require(self.a_max > 0, f"`a_max` must be > 0 m/s^2; got {self.a_max}")

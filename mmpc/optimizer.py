@@ -182,7 +182,8 @@ class BatchOptimizer(nn.Module):
         # mmpc.trig is exact to float32 rounding, not to float64's.
         polynomial_trig = compile and on_cpu and dtype == torch.float32
         self._limits = _Limits(
-            cfg.v_min, cfg.v_max, cfg.a_max, heading, cfg.ellipse_a, cfg.ellipse_b, polynomial_trig=polynomial_trig
+            cfg.v_min, cfg.v_max, cfg.a_max - cfg.acceleration_backoff, heading, cfg.ellipse_a, cfg.ellipse_b,
+            1.0 + cfg.obstacle_backoff, polynomial_trig=polynomial_trig,
         )
         self.compiled = compile
         self._eager_limits = self._limits._replace(polynomial_trig=False)  # for inputs that require grad
@@ -498,10 +499,11 @@ class _Limits(NamedTuple):
 
     v_min: float  # m/s
     v_max: float  # m/s
-    a_max: float  # m/s^2
+    a_max: float  # m/s^2, radius of the disc the acceleration step projects onto (a_max less the back-off)
     heading: Optional[float]  # rad, the band the heading targets are clipped to; None: unclipped
     ellipse_a: float  # m, obstacle ellipse semi-axis along x
     ellipse_b: float  # m, along y
+    obstacle_radius: float  # normalised radius the obstacle step projects onto (1 + back-off)
     polynomial_trig: bool = False  # sin, cos, atan2 from mmpc.trig (compiled CPU float32) or torch
 
 
@@ -622,16 +624,17 @@ def _closed_form_steps(
 def _obstacle_offsets(
     position: torch.Tensor, obstacles: torch.Tensor, limits: _Limits
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every point relative to every ellipse, in semi-axis units: ``(dx, dy, (1/r - 1)_+)``.
+    """Every point relative to every ellipse, in semi-axis units: ``(dx, dy, (R/r - 1)_+)``.
 
-    ``r = sqrt(dx^2 + dy^2)`` is the normalised distance; the projection of a point inside
-    the ellipse (r < 1) onto its boundary moves it by ``(dx, dy) (1/r - 1)`` (times the
-    semi-axes in metres), a point outside is left where it is.
+    ``r = sqrt(dx^2 + dy^2)`` is the normalised distance; the projection of a point with
+    r < R onto the ellipse scaled by R (``limits.obstacle_radius``: 1, or 1 + the back-off)
+    moves it by ``(dx, dy) (R/r - 1)`` (times the semi-axes in metres), a point outside is
+    left where it is.
 
     Args:
         position: (N, 2, E, G) sample positions relative to the start [m].
         obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
-        limits: holds the ellipse semi-axes (a, b) [m].
+        limits: holds the ellipse semi-axes (a, b) [m] and R.
 
     Returns:
         dx, dy, outward, each (M, N, E, G). Inside a compiled chunk these are never stored:
@@ -642,14 +645,18 @@ def _obstacle_offsets(
     offset_x = position[:, 0] * (1.0 / limits.ellipse_a) - obstacles[:, :, 0]
     offset_y = position[:, 1] * (1.0 / limits.ellipse_b) - obstacles[:, :, 1]
     distance_squared = offset_x * offset_x + offset_y * offset_y
-    outward = distance_squared.clamp_min(_EPS_SQUARED).rsqrt().sub(1.0).clamp_min(0.0)
+    inverse_distance = distance_squared.clamp_min(_EPS_SQUARED).rsqrt()
+    if limits.obstacle_radius != 1.0:  # a Python constant: no branch in the compiled kernels
+        inverse_distance = inverse_distance * limits.obstacle_radius
+    outward = inverse_distance.sub(1.0).clamp_min(0.0)
     return offset_x, offset_y, outward
 
 
 def _residual_norms(
     residuals: _Residuals, offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor], limits: _Limits
 ) -> torch.Tensor:
-    """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals.
+    """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals:
+    distances to the sets the iterations project onto (backed off where the config says so).
 
     The obstacle norm is over every (obstacle, sample) gap, hence the per-obstacle ``offsets``
     of :func:`_obstacle_offsets` rather than the push summed over obstacles.

@@ -69,8 +69,10 @@ class SolveResult(NamedTuple):
         coefficients: (E, G, 3, K) Bernstein coefficients of x, y (relative to the ego's start
             position) and psi.
         residual_obstacle: (E, G) L2 norm over obstacles and time of the distance from each
-            trajectory point to its projection out of each ellipse [m].
-        residual_acceleration: (E, G) L2 norm over time of the excess acceleration [m/s^2].
+            trajectory point to its projection out of each ellipse [m] (the ellipses the iterations
+            project onto: scaled by 1 + ``OptimizerConfig.obstacle_backoff``).
+        residual_acceleration: (E, G) L2 norm over time of the excess acceleration over the
+            disc the iterations project onto (``a_max - acceleration_backoff``) [m/s^2].
         residual_nonholonomic: (E, G) L2 norm over time of (xdot, ydot) - v (cos psi, sin psi) [m/s].
         min_obstacle_distance: (E, G) smallest normalised ellipse distance
             sqrt((dx/a)^2 + (dy/b)^2) over present obstacles and time; < 1 means overlap, +inf

@@ -9,8 +9,10 @@ from tests.conftest import small_config
 
 
 def test_compiled_matches_eager():
-    # heading_target_deg: the clipped heading step is part of the compiled graph too
-    config = small_config(num_steps=100, order=10, iterations=20, max_obstacles=10, heading_target_deg=6.0)
+    # heading_target_deg and the back-offs: the clipped heading step and the scaled projections are
+    # part of the compiled graph too
+    config = small_config(num_steps=100, order=10, iterations=20, max_obstacles=10, heading_target_deg=6.0,
+                          obstacle_backoff=0.03, acceleration_backoff=0.2)
     eager = mmpc.BatchOptimizer(config)
     compiled = mmpc.BatchOptimizer(config, compile=True)
     assert compiled.chunk == 10
