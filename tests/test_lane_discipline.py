@@ -1,6 +1,7 @@
 """Lane discipline: lane keeping in the optimizer's lateral cost (OptimizerConfig.lane_weight) and the
 lane-change cost of the meta costs (hysteresis on the lane)."""
 
+import pytest
 import torch
 
 import mmpc
@@ -56,7 +57,6 @@ def test_lane_keeping_completes_a_lane_change_early_and_stays_in_the_lane():
 
 
 def test_lane_weight_must_be_non_negative():
-    import pytest
 
     with pytest.raises(ValueError, match="lane_weight"):
         OptimizerConfig(lane_weight=-1.0)
@@ -86,7 +86,6 @@ def test_lane_change_cost_charges_every_lane_between_start_and_end():
 
 
 def test_scenario_objectives_add_the_lane_change_cost_only_when_asked():
-    import pytest
     from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost
     from mmpc.scenario import CruiseObjective, HighSpeedObjective
 
@@ -96,3 +95,22 @@ def test_scenario_objectives_add_the_lane_change_cost_only_when_asked():
     assert isinstance(kept, LaneChangeCost) and kept.per_lane == 50.0
     with pytest.raises(ValueError, match="lane_change_cost"):
         CruiseObjective(lane_change_cost=-1.0)
+
+
+def test_cruise_cost_along_the_road_does_not_count_lateral_speed_as_progress():
+    from mmpc.meta_costs import CruiseCost
+    from mmpc.scenario import CruiseObjective
+
+    road = mmpc.Road()
+    times = torch.linspace(0.0, 8.0, 5)
+    full = lambda value: torch.full((1, 1, 5), value)  # noqa: E731
+    # a lane change at 15 m/s of path speed: 14.5 m/s along the road, 3.84 m/s across it
+    changing = mmpc.Trajectories(times, full(0.0), full(4.0), full(0.0), full(15.0), full(14.5), full(3.84),
+                                 full(0.0), full(0.0), full(0.0))
+    assert float(CruiseCost(15.0)(changing, road)) == 0.0  # the paper's path speed: on target
+    assert float(CruiseCost(15.0, along_road=True)(changing, road)) == pytest.approx(5 * 0.5**2)
+    objective = CruiseObjective(speed_along_road=True)
+    assert objective.meta_cost().along_road and not CruiseObjective().meta_cost().along_road
+    assert objective.stage_cost(14.0, 4.0, road) == 1.0  # the driven metric stays the path speed's
+    with pytest.raises(ValueError, match="speed_along_road"):
+        CruiseObjective(speed_along_road="yes")
