@@ -27,17 +27,12 @@ class CruiseCost:
 
     Attributes:
         v_cruise: cruise speed [m/s].
-        along_road: measure the speed along the road, ``xdot``, instead of the path speed (the
-            paper's): a lane change's lateral speed is then no progress, and a lane change from
-            behind a slower car is not cheaper than following it for its own sake.
     """
 
     v_cruise: float = 15.0
-    along_road: bool = False
 
     def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
-        speed = trajectories.xdot if self.along_road else trajectories.v
-        return ((speed - self.v_cruise) ** 2).sum(dim=-1)
+        return ((trajectories.v - self.v_cruise) ** 2).sum(dim=-1)
 
 
 @dataclass(frozen=True)

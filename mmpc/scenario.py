@@ -83,9 +83,6 @@ class CruiseObjective:
         lane_change_cost: added to a candidate's meta cost per lane it changes
             (:class:`mmpc.meta_costs.LaneChangeCost`, hysteresis on the lane) [(m/s)^2 summed
             over the horizon]; 0: the paper's meta cost.
-        speed_along_road: the meta cost measures the speed along the road (``xdot``) rather than
-            the path speed (the paper's; :attr:`mmpc.CruiseCost.along_road`). The driven
-            metric (:meth:`stage_cost`) stays the path speed.
     """
 
     kind: ClassVar[str] = "cruise"
@@ -93,14 +90,11 @@ class CruiseObjective:
     near_lane_speeds: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0)
     near_lanes: Optional[int] = 2
     lane_change_cost: float = 0.0
-    speed_along_road: bool = False
 
     def __post_init__(self) -> None:
         require_positive("objective cruise", v_cruise=self.v_cruise)
         _near_lane_goals("objective cruise", self.near_lane_speeds, self.near_lanes)
         require_non_negative("objective cruise", lane_change_cost=self.lane_change_cost)
-        require(isinstance(self.speed_along_road, bool),
-                f"objective cruise: `speed_along_road` must be true or false; got {self.speed_along_road!r}")
 
     @property
     def reference_speed(self) -> float:
@@ -119,7 +113,7 @@ class CruiseObjective:
         return NearLaneGoals(lanes, speeds=self.near_lane_speeds, horizon=horizon, lanes_around=self.near_lanes)
 
     def meta_cost(self) -> MetaCost:
-        return _with_lane_changes(CruiseCost(self.v_cruise, self.speed_along_road), self.lane_change_cost)
+        return _with_lane_changes(CruiseCost(self.v_cruise), self.lane_change_cost)
 
     def stage_cost(self, v: float, y: float, road: Road) -> float:
         """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""

@@ -96,21 +96,3 @@ def test_scenario_objectives_add_the_lane_change_cost_only_when_asked():
     with pytest.raises(ValueError, match="lane_change_cost"):
         CruiseObjective(lane_change_cost=-1.0)
 
-
-def test_cruise_cost_along_the_road_does_not_count_lateral_speed_as_progress():
-    from mmpc.meta_costs import CruiseCost
-    from mmpc.scenario import CruiseObjective
-
-    road = mmpc.Road()
-    times = torch.linspace(0.0, 8.0, 5)
-    full = lambda value: torch.full((1, 1, 5), value)  # noqa: E731
-    # a lane change at 15 m/s of path speed: 14.5 m/s along the road, 3.84 m/s across it
-    changing = mmpc.Trajectories(times, full(0.0), full(4.0), full(0.0), full(15.0), full(14.5), full(3.84),
-                                 full(0.0), full(0.0), full(0.0))
-    assert float(CruiseCost(15.0)(changing, road)) == 0.0  # the paper's path speed: on target
-    assert float(CruiseCost(15.0, along_road=True)(changing, road)) == pytest.approx(5 * 0.5**2)
-    objective = CruiseObjective(speed_along_road=True)
-    assert objective.meta_cost().along_road and not CruiseObjective().meta_cost().along_road
-    assert objective.stage_cost(14.0, 4.0, road) == 1.0  # the driven metric stays the path speed's
-    with pytest.raises(ValueError, match="speed_along_road"):
-        CruiseObjective(speed_along_road="yes")
