@@ -98,9 +98,12 @@ class BatchOptimizer(nn.Module):
         s.t. xdot = v cos psi, ydot = v sin psi, v_min <= v <= v_max, |(xddot, yddot)| <= a_max,
              outside every obstacle ellipse (a, b) at every sample, boundary conditions,
 
-    in ``config.iterations`` alternating-minimisation iterations from a cold start. Internally
-    the batch is the last (column) dimension so that every step is a constant matrix times a
-    wide right-hand side; inputs and outputs keep the batch first.
+    in ``config.iterations`` alternating-minimisation iterations from a cold start. The
+    projections may aim a margin inside the feasible set (larger ellipses, a smaller
+    acceleration disc: ``config.obstacle_backoff``, ``acceleration_backoff``); the checks and the
+    status use the constraints themselves, with their tolerances. Internally the batch is the
+    last (column) dimension so that every step is a constant matrix times a wide right-hand
+    side; inputs and outputs keep the batch first.
 
     Args:
         config: optimizer settings; defaults are the paper authors' values.
