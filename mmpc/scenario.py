@@ -44,7 +44,7 @@ HIGHWAY_MAX_HEADING_DEG = 13.0
 HIGHWAY_HEADING_TARGET_DEG = 11.7
 #: Back-offs of the iterations' projections (:attr:`mmpc.OptimizerConfig.obstacle_backoff`,
 #: ``acceleration_backoff`` [m/s^2]): on the held-out problem corpus they find 8 % more
-#: high-speed goals feasible at the same iteration count, and closed-loop fallbacks fell 4-7x
+#: high-speed goals feasible at the same iteration count, and closed-loop fallbacks fell 2.5-9x
 #: (docs/experiments/2026-11-24-expert-quality.md).
 HIGHWAY_OBSTACLE_BACKOFF = 0.05
 HIGHWAY_ACCELERATION_BACKOFF = 0.16
