@@ -52,6 +52,7 @@ from mmpc.cli.arguments import add_compile, apply_compile, override
 from mmpc.config import ConfigError, to_dict
 from mmpc.mpc import MPC, Scored
 from mmpc.problem import ProblemBatch
+from mmpc.ranking import squared_obstacle_distance
 from mmpc.result import Status
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 
@@ -125,10 +126,8 @@ def obstacle_distance(scored: Scored, problem: ProblemBatch, ellipse: tuple[floa
     predicted obstacles at every instant (+inf without any), recomputed from ``x``, ``y`` and
     ``problem.obstacles``."""
     trajectories = scored.result.trajectories
-    x = trajectories.x.to(torch.float64)[:, :, None]  # (E, G, 1, N)
-    y = trajectories.y.to(torch.float64)[:, :, None]
-    centres = problem.obstacles.to(torch.float64)[:, None]  # (E, 1, M, N, 2)
-    distance = torch.hypot((x - centres[..., 0]) / ellipse[0], (y - centres[..., 1]) / ellipse[1])  # (E, G, M, N)
+    trajectories = trajectories._replace(x=trajectories.x.to(torch.float64), y=trajectories.y.to(torch.float64))
+    distance = squared_obstacle_distance(trajectories, problem.obstacles.to(torch.float64), ellipse).sqrt()  # (E, G, M, N)
     present = problem.obstacle_mask[:, None, :, None].expand_as(distance)
     distance = torch.where(present, distance, torch.full_like(distance, math.inf))
     return distance.amin(dim=2)
