@@ -25,7 +25,7 @@ torch functions.
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import logging
 import math
 import os
@@ -58,8 +58,9 @@ _COMPILED_CHUNK = 10
 COMPILE_ENV = "MMPC_COMPILE"
 #: Widest SIMD register the compiled CPU kernels use (AVX-512) [bytes].
 _SIMD_BYTES = 64
-#: Recompiles of each compiled function a process allows (torch's default: 8): one per call layout.
-_RECOMPILE_LIMIT = 64
+#: Recompiles of each compiled function a process allows (torch's default: 8): one per call layout
+#: (the CPU kernels are shape-specialised); past it, new layouts solve eagerly.
+_RECOMPILE_LIMIT = 256
 
 #: Elements per call of the compiled CPU path: a tile's (3N, 2, tile) samples and residuals
 #: (~0.6 MB in float32) stay in a core's L2 cache between the products and the fused steps.
@@ -120,11 +121,10 @@ class BatchOptimizer(nn.Module):
             as a CUDA graph. Eager (the default) is the reference and supports autograd
             everywhere: a compiled optimizer solves inputs that require grad (autograd enabled)
             eagerly, with torch's sin, cos and atan2 (the same values to float32 rounding), as
-            its compiled graphs are not differentiated. Like any ``torch.compile`` function, a
-            second batch shape recompiles with dynamic dims (torch's default), which serve
-            every later shape without compiling again but run slower (~5-15 % at B = 1024 on
-            the CPU): a process that solves one shape gets the fastest, shape-specialised
-            kernels. ``"auto"``: compiled on the CPU in float32 when a C++ compiler is found
+            its compiled graphs are not differentiated. On the CPU every call layout gets its
+            own shape-specialised kernels (a few seconds to compile each; torch's dynamic-shape
+            kernels, its default from a second shape on, ran up to 2x slower); on CUDA a second
+            batch shape recompiles with dynamic dims (torch's default). ``"auto"``: compiled on the CPU in float32 when a C++ compiler is found
             (inductor needs one), else eager; the environment variable ``MMPC_COMPILE=0``
             makes it eager (``1``: compiled).
             Compiled, the first call of every new call layout (problems, goals, obstacle slots,
@@ -191,6 +191,7 @@ class BatchOptimizer(nn.Module):
         self.compiled = compile
         self._eager_limits = self._limits._replace(polynomial_trig=False)  # for inputs that require grad
         self._fallback_logged = False
+        self._limit_logged = False
         self.last_compile_ms = 0.0
         self._compiled_layouts: set[tuple[int, int, int, bool]] = set()
         if tile_size is None and compile and on_cpu:
@@ -212,10 +213,11 @@ class BatchOptimizer(nn.Module):
                 # dispatch would cost as much as the iterations). Multiply-adds contract to
                 # fused multiply-adds (one rounding instead of two).
                 options = {"cpp_wrapper": True, "cpp.enable_floating_point_contract_flag": "fast"}
-                self._layout = torch.compile(_layout, fullgraph=True, options=options)
-                self._start = torch.compile(_start, fullgraph=True, options=options)
-                self._summarise = torch.compile(_summarise, fullgraph=True, options=options)
-                self._iterate = torch.compile(_iterate, fullgraph=True, options=options)
+                compile_cpu = functools.partial(torch.compile, fullgraph=True, dynamic=False, options=options)
+                self._layout = compile_cpu(_layout)
+                self._start = compile_cpu(_start)
+                self._summarise = compile_cpu(_summarise)
+                self._iterate = compile_cpu(_iterate)
             logger.info("BatchOptimizer: iterations compiled in chunks of %d", self.chunk)
 
     @property
@@ -249,13 +251,22 @@ class BatchOptimizer(nn.Module):
             if not self._fallback_logged:
                 logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
                 self._fallback_logged = True
+        if not compiled:
+            return self._solve_batch(ego, goals, obstacles, mask, history, compiled)
         # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
         # functions, shared by every optimizer of the process: one driver mixing goal counts (a
         # proposer and its escalations) or several scenarios in one worker pass torch's default
         # limit of 8, where a fullgraph compile fails hard.
-        limit = torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT) if compiled else contextlib.nullcontext()
-        with limit:
-            return self._solve_batch(ego, goals, obstacles, mask, history, compiled)
+        try:
+            with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT):
+                return self._solve_batch(ego, goals, obstacles, mask, history, compiled)
+        except torch._dynamo.exc.FailOnRecompileLimitHit:
+            if not self._limit_logged:
+                logger.warning("BatchOptimizer: %d compiled call layouts in this process (the limit); new layouts "
+                               "solve eagerly", _RECOMPILE_LIMIT)
+                self._limit_logged = True
+            self.last_compile_ms = 0.0
+            return self._solve_batch(ego, goals, obstacles, mask, history, False)
 
     def _solve_batch(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                      history: bool, compiled: bool) -> SolveResult:

@@ -65,3 +65,54 @@ def test_compiled_solves_allow_more_recompiles_than_torchs_default(monkeypatch):
     module.BatchOptimizer(compile=False)(scene.problem)
     assert seen == [module._RECOMPILE_LIMIT, default] and module._RECOMPILE_LIMIT > default
     assert torch._dynamo.config.recompile_limit == default  # restored after the call
+
+
+def _goals_widened(problem, num_goals):
+    """``problem`` with ``num_goals`` goals (its goals repeated): a call layout of its own."""
+    repeats = -(-num_goals // problem.goals.shape[1])
+    return problem._replace(goals=problem.goals.repeat(1, repeats, 1)[:, :num_goals])
+
+
+def test_each_compiled_layout_gets_shape_specialised_kernels():
+    """torch's default compiles a second shape with dynamic dims, whose CPU kernels ran up to 2x
+    slower (a proposer's 50 x 6 tiles after an expert's 7 x 35 ones): every new layout compiles
+    static iterations of its own, and a layout seen before compiles nothing."""
+    from torch._dynamo.eval_frame import _debug_get_cache_entry_list
+
+    from mmpc import optimizer as module
+
+    def iterate_graphs() -> int:
+        return len(_debug_get_cache_entry_list(module._iterate.__code__))
+
+    config = small_config(iterations=2, heading_target_deg=7.5)  # a config no other test compiles
+    compiled = mmpc.BatchOptimizer(config, compile=True)
+    problem = synthetic_scenes(2, seed=1, num_steps=config.num_steps)[1].problem
+    added = []
+    for num_goals in (16, 32, 48, 16, 32):  # multiples of the 16 float32 lanes: no goal padding
+        before = iterate_graphs()
+        compiled(_goals_widened(problem, num_goals))
+        added.append(iterate_graphs() - before)
+    assert added == [1, 1, 1, 0, 0]  # dynamic dims would serve the third layout with the second's graph
+
+
+def test_compiled_layouts_past_the_recompile_limit_solve_eagerly(monkeypatch, caplog):
+    """A fullgraph compile fails hard at torch's recompile limit: a layout past it solves eagerly
+    (the same answers to float32 rounding), with one warning."""
+    import logging
+
+    from mmpc import optimizer as module
+
+    config = small_config(iterations=2, heading_target_deg=8.5)
+    compiled, eager = module.BatchOptimizer(config, compile=True), module.BatchOptimizer(config)
+    problem = synthetic_scenes(2, seed=1, num_steps=config.num_steps)[1].problem
+    compiled(_goals_widened(problem, 16))  # every compiled function now holds at least one layout
+    monkeypatch.setattr(module, "_RECOMPILE_LIMIT", 1)
+    wide = _goals_widened(problem, 32)
+    with caplog.at_level(logging.WARNING, logger="mmpc.optimizer"):
+        result = compiled(wide)
+        compiled(wide)
+    assert caplog.text.count("solve eagerly") == 1
+    assert compiled.last_compile_ms == 0.0
+    expected = eager(wide)
+    torch.testing.assert_close(result.trajectories.x, expected.trajectories.x, atol=1e-3, rtol=1e-5)
+    assert torch.equal(result.feasible, expected.feasible)
