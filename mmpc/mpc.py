@@ -494,22 +494,24 @@ class MPC:
         steering = torch.atan(self.wheelbase * heading_rate / speed)
         return steering.clamp(-self.config.max_steering, self.config.max_steering)
 
-    def _keep_on_road(self, result: SolveResult, ego: torch.Tensor) -> tuple[SolveResult, torch.Tensor]:
-        """Flag candidates that leave the road as :attr:`Status.OFF_ROAD`.
+    def lateral_band(self, ego: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E,) lowest and highest y [m] a plan from the ego states ``ego`` (E, 6) may reach:
+        ``road_margin`` inside the road's edges, widened to the ego's own y where it is already
+        beyond (a plan may bring the ego back, not push it farther out)."""
+        left, right = self.road.bounds
+        y0 = ego[:, EGO_Y]
+        return torch.clamp(y0, max=left + self.config.road_margin), torch.clamp(y0, min=right - self.config.road_margin)
 
-        A candidate may come no closer than ``road_margin`` to an edge, or, where the ego is
-        already beyond that, go no farther out than the ego is now.
+    def _keep_on_road(self, result: SolveResult, ego: torch.Tensor) -> tuple[SolveResult, torch.Tensor]:
+        """Flag candidates that leave :meth:`lateral_band` as :attr:`Status.OFF_ROAD`.
 
         Returns:
             the result with status and feasibility updated, and (E, G) the largest distance
             beyond the allowed band [m].
         """
-        left, right = self.road.bounds
-        y0 = ego[:, EGO_Y, None]
-        low = torch.clamp(y0, max=left + self.config.road_margin)  # (E, 1)
-        high = torch.clamp(y0, min=right - self.config.road_margin)
+        low, high = self.lateral_band(ego)
         y = result.trajectories.y
-        excess = torch.maximum(low - y.amin(dim=-1), y.amax(dim=-1) - high).clamp_min(0.0)
+        excess = torch.maximum(low[:, None] - y.amin(dim=-1), y.amax(dim=-1) - high[:, None]).clamp_min(0.0)
         status = result.status | (excess > 0).to(result.status.dtype) * int(Status.OFF_ROAD)
         return result._replace(status=status, feasible=status == 0), excess
 

@@ -233,11 +233,8 @@ class FrenetPlanner:
         curvature_ok = (curvature.abs() <= self.config.max_curvature)[..., 1:].all(-1)
         band = torch.clamp(ego[:, EGO_PSI, None, None].abs(), min=math.radians(self.config.max_heading_deg))
         heading_ok = (tr.psi.abs() <= band + 1e-9)[..., 1:].all(-1)
-        left, right = self.mpc.road.bounds
-        margin = self.mpc.config.road_margin
-        low = torch.clamp(ego[:, EGO_Y, None, None], max=left + margin)
-        high = torch.clamp(ego[:, EGO_Y, None, None], min=right - margin)
-        road_ok = ((tr.y >= low - 1e-9) & (tr.y <= high + 1e-9)).all(-1)
+        low, high = self.mpc.lateral_band(ego)
+        road_ok = ((tr.y >= low[:, None, None] - 1e-9) & (tr.y <= high[:, None, None] + 1e-9)).all(-1)
         inside = (squared_obstacle_distance(tr, obstacles, opt.ellipse) < 1.0) & mask[:, None, :, None]  # (E, C, M, N)
         clear = ~inside[..., 1:].any(-1).any(-1)
         return speed_ok & acceleration_ok & curvature_ok & heading_ok & road_ok & clear
