@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from mmpc.imitation.dataset import Transitions
-from mmpc.config import from_dict
+from mmpc.config import from_dict, require_int
 from mmpc.imitation.features import SceneGeometry, road_features, scene_geometry
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
 from mmpc.road import Road
@@ -56,10 +56,8 @@ class TrainConfig:
     policy: PolicyConfig = field(default_factory=PolicyConfig)
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "seed"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name == "seed" else 1):
-                raise ValueError(f"`{name}` must be an int >= {0 if name == 'seed' else 1}; got {value!r}")
+        require_int("", low=1, epochs=self.epochs, batch_size=self.batch_size)
+        require_int("", low=0, seed=self.seed)
         if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
             raise ValueError(f"`learning_rate` must be a finite number > 0; got {self.learning_rate}")
         if not self.weight_decay >= 0:

@@ -55,7 +55,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 import numpy as np
 import torch
 
-from mmpc.config import from_dict, to_dict
+from mmpc.config import from_dict, require_int, to_dict
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway.worlds import stack_observations
 from mmpc.evaluate import Backend, run_tasks
@@ -122,12 +122,10 @@ class DaggerConfig:
     train: TrainConfig = field(default_factory=lambda: TrainConfig(policy=DAGGER_POLICY))
 
     def __post_init__(self) -> None:
-        for name in ("iterations", "initial_episodes", "episodes_per_iteration", "seed_start", "lockstep", "label_batch",
-                     "check_episodes", "check_seed_start"):
-            value = getattr(self, name)
-            low = 0 if name in ("iterations", "seed_start", "check_episodes", "check_seed_start") else 1
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise ValueError(f"`{name}` must be an int >= {low}; got {value!r}")
+        require_int("", low=1, initial_episodes=self.initial_episodes, episodes_per_iteration=self.episodes_per_iteration,
+                    lockstep=self.lockstep, label_batch=self.label_batch)
+        require_int("", low=0, iterations=self.iterations, seed_start=self.seed_start, check_episodes=self.check_episodes,
+                    check_seed_start=self.check_seed_start)
         if isinstance(self.noise, list):
             object.__setattr__(self, "noise", tuple(self.noise))
         if len(self.noise) != 2 or not all(isinstance(v, (int, float)) and 0 <= v < math.inf for v in self.noise):

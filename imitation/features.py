@@ -40,7 +40,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from mmpc.config import from_dict
+from mmpc.config import from_dict, require_int
 from mmpc.problem import EGO_X, EGO_Y
 from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
@@ -106,8 +106,7 @@ class FeatureConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.scene, SceneGeometry):
             raise ValueError(f"`scene` must be a SceneGeometry; got {type(self.scene).__name__}")
-        if not isinstance(self.neighbours, int) or isinstance(self.neighbours, bool) or not 0 <= self.neighbours <= STORED_NEIGHBOURS:
-            raise ValueError(f"`neighbours` must be an int in [0, {STORED_NEIGHBOURS}]; got {self.neighbours!r}")
+        require_int("", low=0, high=STORED_NEIGHBOURS, neighbours=self.neighbours)
         for name in ("ego_command", "lane_slots"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"`{name}` must be true or false; got {getattr(self, name)!r}")

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from mmpc.config import require_int
 from mmpc.imitation.bc import split_by_episode
 from mmpc.imitation.features import SceneGeometry
 from mmpc.imitation.proposer import ModeProposer, ProposerConfig
@@ -173,12 +174,8 @@ class ProposerTrainConfig:
     proposer: ProposerConfig = field(default_factory=ProposerConfig)
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size", "depth", "keep"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"`{name}` must be an int >= 1; got {value!r}")
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
-            raise ValueError(f"`seed` must be an int; got {self.seed!r}")
+        require_int("", low=1, epochs=self.epochs, batch_size=self.batch_size, depth=self.depth, keep=self.keep)
+        require_int("", seed=self.seed)
         for name in ("learning_rate", "weight_decay", "feasibility_weight"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and 0 <= value < math.inf) or (name == "learning_rate" and value == 0):

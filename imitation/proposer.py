@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from mmpc.config import from_dict, to_dict
+from mmpc.config import from_dict, require_int, to_dict
 from mmpc.imitation.checkpoint import read_checkpoint, write_checkpoint
 from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, road_dict, road_features, road_of
 from mmpc.road import Road
@@ -88,8 +88,7 @@ class ModeProposer(nn.Module):
     def __init__(self, road: Road, num_goals: int, config: ProposerConfig = ProposerConfig(), *,
                  scene: SceneGeometry) -> None:
         super().__init__()
-        if not isinstance(num_goals, int) or isinstance(num_goals, bool) or num_goals < 1:
-            raise ValueError(f"`num_goals` must be an int >= 1; got {num_goals!r}")
+        require_int("", low=1, num_goals=num_goals)
         self.road = road
         self.num_goals = num_goals
         self.config = config

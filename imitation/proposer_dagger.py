@@ -29,7 +29,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from mmpc.config import to_dict
+from mmpc.config import require_int, to_dict
 from mmpc.files import atomic_write_text
 from mmpc.highway import run_lockstep
 from mmpc.imitation.features import scene_geometry
@@ -74,11 +74,9 @@ class ProposerDaggerConfig:
     train: ProposerTrainConfig = field(default_factory=ProposerTrainConfig)
 
     def __post_init__(self) -> None:
-        for name in ("rounds", "episodes", "seed_start", "lockstep", "check_episodes", "check_seed_start"):
-            value = getattr(self, name)
-            low = 1 if name in ("episodes", "lockstep") else 0
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise ValueError(f"`{name}` must be an int >= {low}; got {value!r}")
+        require_int("", low=1, episodes=self.episodes, lockstep=self.lockstep)
+        require_int("", low=0, rounds=self.rounds, seed_start=self.seed_start, check_episodes=self.check_episodes,
+                    check_seed_start=self.check_seed_start)
         for name in ("beta", "beta_decay"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"`{name}` must be in [0, 1]; got {getattr(self, name)!r}")

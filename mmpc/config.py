@@ -366,6 +366,20 @@ def require_positive(where: str, **values: Any) -> None:
         require(is_finite_number(value) and value > 0, f"{prefix}`{name}` must be a finite number > 0; got {value!r}")
 
 
+def require_int(where: str, low: Optional[int] = None, high: Optional[int] = None, **values: Any) -> None:
+    """Check that every keyword value is an int (not a bool) in ``[low, high]`` (``None``: open).
+
+    Messages as :func:`require_positive`: ``"`name` must be an int >= low; got value"`` (``in
+    [low, high]`` with both bounds, ``<= high`` with the upper one alone).
+    """
+    prefix = f"{where}: " if where else ""
+    expected = ("" if low is None and high is None else f" >= {low}" if high is None else f" <= {high}" if low is None
+                else f" in [{low}, {high}]")
+    for name, value in values.items():
+        require(isinstance(value, int) and not isinstance(value, bool) and (low is None or value >= low)
+                and (high is None or value <= high), f"{prefix}`{name}` must be an int{expected}; got {value!r}")
+
+
 def require_non_negative(where: str, **values: Any) -> None:
     """Check that every keyword value is a finite number >= 0 (messages as :func:`require_positive`)."""
     prefix = f"{where}: " if where else ""
@@ -448,12 +462,8 @@ class OptimizerConfig:
     speed_tolerance: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("num_steps", "order", "iterations", "max_obstacles"):
-            value = getattr(self, name)
-            require(
-                isinstance(value, int) and not isinstance(value, bool),
-                f"`{name}` must be an int; got {value!r}",
-            )
+        require_int("", num_steps=self.num_steps, order=self.order, iterations=self.iterations,
+                    max_obstacles=self.max_obstacles)
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if isinstance(value, float):

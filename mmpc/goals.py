@@ -11,6 +11,7 @@ from typing import Optional, Protocol
 
 import torch
 
+from mmpc.config import require_int
 from mmpc.problem import EGO_X, EGO_Y
 from mmpc.road import Road
 
@@ -19,11 +20,6 @@ class GoalSampler(Protocol):
     def __call__(self, ego: torch.Tensor, road: Road) -> torch.Tensor:
         """Goals (E, G, 2) [m] for ego states (E, 6) on ``road``."""
         ...
-
-
-def _validate_count(name: str, value: int, minimum: int = 1) -> None:
-    if not isinstance(value, int) or value < minimum:
-        raise ValueError(f"`{name}` must be an int >= {minimum}; got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -43,7 +39,7 @@ class CruiseGoals:
     num_goals: int = 11
 
     def __post_init__(self) -> None:
-        _validate_count("num_goals", self.num_goals)
+        require_int("", low=1, num_goals=self.num_goals)
         if not self.v_cruise > 0 or not self.horizon > 0:
             raise ValueError(f"`v_cruise` and `horizon` must be > 0; got {self.v_cruise}, {self.horizon}")
 
@@ -74,7 +70,7 @@ class HighSpeedGoals:
     other_distance: float = 160.0
 
     def __post_init__(self) -> None:
-        _validate_count("num_goals", self.num_goals, minimum=2)
+        require_int("", low=2, num_goals=self.num_goals)
         if not 0 < self.right_lane_fraction < 1:
             raise ValueError(f"`right_lane_fraction` must be in (0, 1); got {self.right_lane_fraction}")
         near, far = self.right_lane_distances
@@ -136,7 +132,7 @@ class NearLaneGoals:
         if not self.horizon > 0:
             raise ValueError(f"`horizon` must be > 0 s; got {self.horizon}")
         if self.lanes_around is not None:
-            _validate_count("lanes_around", self.lanes_around, minimum=0)
+            require_int("", low=0, lanes_around=self.lanes_around)
 
     def __call__(self, ego: torch.Tensor, road: Road) -> torch.Tensor:
         kw = dict(dtype=ego.dtype, device=ego.device)

@@ -15,7 +15,7 @@ from typing import Callable, NamedTuple, Optional
 
 import torch
 
-from mmpc.config import require, require_non_negative, require_positive
+from mmpc.config import require, require_int, require_non_negative, require_positive
 from mmpc.footprint import HIGHWAY_VEHICLE
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
@@ -115,8 +115,7 @@ class MPCConfig:
     def __post_init__(self) -> None:
         require(self.prediction in PREDICTIONS,
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
-        if not isinstance(self.num_obstacles, int) or self.num_obstacles < 0:
-            raise ValueError(f"`num_obstacles` must be an int >= 0; got {self.num_obstacles!r}")
+        require_int("", low=0, num_obstacles=self.num_obstacles)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,

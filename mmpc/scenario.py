@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
 
-from mmpc.config import OptimizerConfig, load_config, require, require_non_negative, require_positive
+from mmpc.config import OptimizerConfig, load_config, require, require_int, require_non_negative, require_positive
 from mmpc.configs import shipped_config_dir
 from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
@@ -228,8 +228,7 @@ class IDMTraffic:
 
     def __post_init__(self) -> None:
         where = "traffic idm"
-        require(isinstance(self.vehicles_count, int) and self.vehicles_count >= 0,
-                 f"{where}: `vehicles_count` must be an int >= 0; got {self.vehicles_count!r}")
+        require_int(where, low=0, vehicles_count=self.vehicles_count)
         require_positive(where, vehicles_density=self.vehicles_density, initial_clearance=self.initial_clearance)
         require(isinstance(self.lane_changes, bool), f"{where}: `lane_changes` must be true or false; got {self.lane_changes!r}")
         if self.target_speeds is not None:
@@ -273,7 +272,7 @@ class ScriptedVehicle:
     brake_deceleration: float = 6.0
 
     def __post_init__(self) -> None:
-        require(isinstance(self.lane, int) and self.lane >= 0, f"scripted vehicle: `lane` must be an int >= 0; got {self.lane!r}")
+        require_int("scripted vehicle", low=0, lane=self.lane)
         require(isinstance(self.x, (int, float)) and math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
         require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
         require(self.cut_in_lane is None or (isinstance(self.cut_in_lane, int) and self.cut_in_lane >= 0),
@@ -448,7 +447,7 @@ class ScenarioConfig:
         where = f"scenario {self.name!r}"
         require(isinstance(self.objective, tuple(OBJECTIVES.values())), f"{where}: `objective` must be one of {sorted(OBJECTIVES)}")
         require(isinstance(self.traffic, tuple(TRAFFIC.values())), f"{where}: `traffic` must be one of {sorted(TRAFFIC)}")
-        require(isinstance(self.lanes, int) and self.lanes >= 1, f"{where}: `lanes` must be an int >= 1; got {self.lanes!r}")
+        require_int(where, low=1, lanes=self.lanes)
         require_positive(where, duration=self.duration, frequency=self.frequency)
         require(isinstance(self.seeds, tuple) and len(self.seeds) > 0 and all(isinstance(s, int) and s >= 0 for s in self.seeds),
                  f"{where}: `seeds` must be a non-empty list of ints >= 0; got {self.seeds!r}")

@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping, Optional
 
-from mmpc.config import is_finite_number, require, require_non_negative, require_positive
+from mmpc.config import is_finite_number, require, require_int, require_non_negative, require_positive
 from mmpc.scenario import ScenarioConfig, load_scenario
 from mmpc.tracking import TrackingConfig
 
@@ -177,8 +177,7 @@ class SafeEnvConfig:
 
     def __post_init__(self) -> None:
         where = "env"
-        require(isinstance(self.decision_frames, int) and self.decision_frames >= 1,
-                 f"{where}: `decision_frames` must be an int >= 1; got {self.decision_frames!r}")
+        require_int(where, low=1, decision_frames=self.decision_frames)
         require(self.replan in REPLAN_MODES, f"{where}: `replan` must be one of {list(REPLAN_MODES)}; got {self.replan!r}")
         require(isinstance(self.lane_offsets, tuple) and len(self.lane_offsets) > 0
                  and all(isinstance(o, int) and not isinstance(o, bool) for o in self.lane_offsets),
@@ -197,8 +196,7 @@ class SafeEnvConfig:
         require(isinstance(self.solver_features, bool), f"{where}: `solver_features` must be true or false; got {self.solver_features!r}")
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
         require_non_negative(where, intervention_penalty=self.intervention_penalty)
-        require(isinstance(self.kinematics_vehicles, int) and self.kinematics_vehicles >= 1,
-                 f"{where}: `kinematics_vehicles` must be an int >= 1; got {self.kinematics_vehicles!r}")
+        require_int(where, low=1, kinematics_vehicles=self.kinematics_vehicles)
 
     @property
     def num_discrete_goals(self) -> int:
@@ -247,13 +245,11 @@ class TrainConfig:
     expert_prior: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("n_envs", "log_every", "checkpoint_every", "eval_episodes", "eval_envs", "torch_threads"):
-            value = getattr(self, name)
-            require(isinstance(value, int) and not isinstance(value, bool) and value >= 1,
-                     f"train: `{name}` must be an int >= 1; got {value!r}")
+        require_int("train", low=1, n_envs=self.n_envs, log_every=self.log_every, checkpoint_every=self.checkpoint_every,
+                    eval_episodes=self.eval_episodes, eval_envs=self.eval_envs, torch_threads=self.torch_threads)
         require(is_finite_number(self.expert_prior) and 0.0 <= self.expert_prior < 1.0,
                  f"train: `expert_prior` must be a probability in [0, 1); got {self.expert_prior!r}")
-        require(isinstance(self.eval_seed, int) and self.eval_seed >= 0, f"train: `eval_seed` must be an int >= 0; got {self.eval_seed!r}")
+        require_int("train", low=0, eval_seed=self.eval_seed)
 
 
 @dataclass(frozen=True)

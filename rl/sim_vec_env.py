@@ -20,6 +20,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, VecEnvStepReturn
 
+from mmpc.config import require_int
 from mmpc.drivers import Observation
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.envs import WallTime, action_space, check_action, goal_commands, observation_space, observation_vectors
@@ -72,8 +73,7 @@ class SafeSimBatch:
 
     def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
                  continuous: bool = False, seed: Optional[int] = None) -> None:
-        if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
-            raise ValueError(f"`num_envs` must be an int >= 1; got {num_envs!r}")
+        require_int("", low=1, num_envs=num_envs)
         reason = batched_unsupported(scenario)
         if reason is not None:
             raise ValueError(f"scenario {scenario.name!r}: {reason}")

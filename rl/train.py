@@ -28,7 +28,7 @@ import numpy as np
 import torch
 import yaml
 
-from mmpc.config import from_dict, to_dict
+from mmpc.config import from_dict, require_int, to_dict
 from mmpc.rl.config import ALGORITHMS, RLConfig
 from mmpc.rl.envs import vehicle_meta_cost_reward
 
@@ -317,8 +317,7 @@ def train(
         raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
     if env_kind not in ENV_KINDS:
         raise ValueError(f"`env_kind` must be one of {ENV_KINDS}; got {env_kind!r}")
-    if not isinstance(timesteps, int) or timesteps < 1:
-        raise ValueError(f"`timesteps` must be an int >= 1; got {timesteps!r}")
+    require_int("", low=1, timesteps=timesteps)
     continuous = config.action_for(algo) == "continuous"
     expert_prior = config.train.expert_prior if algo == "ppo" else 0.0  # other algorithms ignore it, as algorithms.ppo
     if expert_prior > 0 and (continuous or env_kind != "safe" or not config.env.expert_action):

@@ -15,6 +15,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
+from mmpc.config import require_int
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
 from mmpc.rl.safety import SafetyLayer
@@ -46,8 +47,7 @@ class SafeHighwayVecEnv(DummyVecEnv):
         continuous: bool = False,
         batched: bool = True,
     ) -> None:
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"`num_envs` must be an int >= 1; got {num_envs!r}")
+        require_int("", low=1, num_envs=num_envs)
         layer = SafetyLayer(build_mpc(scenario), config)
         self.batched = batched
 

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 from mmpc.cli.arguments import seed_list
-from mmpc.config import require_positive
+from mmpc.config import require_int, require_positive
 from mmpc.scenario import SIMULATORS
 
 logger = logging.getLogger(__name__)
@@ -91,10 +91,7 @@ class BenchSpec:
         for name in ("scaling_batches", "scaling_nlp_batches"):
             if any(not isinstance(b, int) or b < 1 for b in getattr(self, name)):
                 raise ValueError(f"`{name}` must hold ints >= 1; got {getattr(self, name)!r}")
-        for name in ("scaling_repeats", "nlp_workers", "threads"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"`{name}` must be an int >= 1; got {value!r}")
+        require_int("", low=1, scaling_repeats=self.scaling_repeats, nlp_workers=self.nlp_workers, threads=self.threads)
 
 
 QUICK = dict(seeds=(0,), duration=1.0, scaling_batches=(1, 11), scaling_nlp_batches=(1, 6), scaling_repeats=1)

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from mmpc.cli.arguments import seed_list
-from mmpc.config import ConfigError, to_dict
+from mmpc.config import ConfigError, require_int, to_dict
 from mmpc.drivers.base import Decision, Observation
 from mmpc.drivers.batch_nlp import BatchNLPSolver, goal_subset
 from mmpc.drivers.mpc_driver import MPCDriver
@@ -127,11 +127,8 @@ class CorpusSpec:
             raise ValueError(f"--seeds names scenarios not in --scenarios {list(self.scenarios)}: {extra}")
         if not (isinstance(self.duration, float) and math.isfinite(self.duration) and self.duration > 0):
             raise ValueError(f"`duration` must be a finite number of seconds > 0; got {self.duration!r}")
-        for name in ("min_obstacles", "every", "min_states", "chunk"):
-            value = getattr(self, name)
-            low = 0 if name == "min_obstacles" else 1
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
-                raise ValueError(f"`{name}` must be an int >= {low}; got {value!r}")
+        require_int("", low=0, min_obstacles=self.min_obstacles)
+        require_int("", low=1, every=self.every, min_states=self.min_states, chunk=self.chunk)
         if self.goals is not None and (not isinstance(self.goals, int) or self.goals < 1):
             raise ValueError(f"`goals` must be an int >= 1 or None (all); got {self.goals!r}")
         if self.label_limit is not None and (not isinstance(self.label_limit, int) or self.label_limit < 0):

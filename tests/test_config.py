@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from mmpc import MPCConfig, OptimizerConfig
-from mmpc.config import from_dict, load_config, to_dict, with_overrides
+from mmpc.config import ConfigError, from_dict, load_config, require_int, to_dict, with_overrides
 from mmpc.drivers.frenet import FrenetConfig
 from mmpc.drivers.nlp import NLPConfig
 from mmpc.evaluate import EvaluationConfig
@@ -312,3 +312,21 @@ def test_config_modules_define_no_per_class_serialisation():
         for value in vars(loaded).values():
             if isinstance(value, type) and dataclasses.is_dataclass(value) and value.__module__ == module:
                 assert not {"from_dict", "to_dict", "from_yaml"} & set(vars(value)), value
+
+
+def test_require_int_names_the_value_and_the_range():
+    require_int("", low=1, lockstep=1, episodes=7)
+    require_int("train", low=0, high=8, neighbours=8)
+    require_int("", seed=-3)  # no bound
+    cases = [
+        (dict(where="", low=1, lockstep=0), "`lockstep` must be an int >= 1; got 0"),
+        (dict(where="train", low=0, eval_seed=-1), "train: `eval_seed` must be an int >= 0; got -1"),
+        (dict(where="", low=0, high=8, neighbours=9), r"`neighbours` must be an int in \[0, 8\]; got 9"),
+        (dict(where="", high=4, keep=5), "`keep` must be an int <= 4; got 5"),
+        (dict(where="", seed=2.0), "`seed` must be an int; got 2.0"),
+        (dict(where="", low=0, lanes=True), "`lanes` must be an int >= 0; got True"),  # a bool is not a count
+        (dict(where="", low=1, episodes=3, lockstep="8"), "`lockstep` must be an int >= 1; got '8'"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises(ConfigError, match=f"^{message}$"):
+            require_int(kwargs.pop("where"), **kwargs)

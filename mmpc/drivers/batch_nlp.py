@@ -25,7 +25,7 @@ import torch
 
 from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
 from mmpc.drivers.nlp import NLPConfig, TrajectoryNLP, resample
-from mmpc.config import OptimizerConfig
+from mmpc.config import OptimizerConfig, require_int
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.road import Road
@@ -65,8 +65,7 @@ class BatchNLPSolver:
     """
 
     def __init__(self, mpc: MPC, workers: int, config: Optional[NLPConfig] = None) -> None:
-        if not isinstance(workers, int) or workers < 0:
-            raise ValueError(f"`workers` must be an int >= 0; got {workers!r}")
+        require_int("", low=0, workers=workers)
         self.config = config if config is not None else NLPConfig()
         arguments = (mpc.optimizer.config, mpc.road, mpc.config.road_margin, mpc.config.num_obstacles, self.config)
         self.workers = workers

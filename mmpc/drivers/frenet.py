@@ -29,7 +29,7 @@ from typing import Optional
 import torch
 
 from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
-from mmpc.config import require_positive
+from mmpc.config import require_int, require_positive
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
@@ -58,10 +58,7 @@ class FrenetConfig:
     max_curvature: float = 0.2
 
     def __post_init__(self) -> None:
-        for name in ("num_offsets", "num_speeds"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"frenet: `{name}` must be an int >= 1; got {value!r}")
+        require_int("frenet", low=1, num_offsets=self.num_offsets, num_speeds=self.num_speeds)
         if not isinstance(self.durations, tuple) or not self.durations or any(
             not (isinstance(t, (int, float)) and math.isfinite(t) and t > 0) for t in self.durations
         ):

@@ -41,7 +41,7 @@ from typing import Any, Callable, NamedTuple, Optional
 import numpy as np
 import torch
 
-from mmpc.config import OptimizerConfig, require_non_negative, require_positive
+from mmpc.config import OptimizerConfig, require_int, require_non_negative, require_positive
 from mmpc.result import Trajectories
 from mmpc.road import Road
 
@@ -88,10 +88,8 @@ class NLPConfig:
     max_cpu_time: float = 5.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.intervals, int) or isinstance(self.intervals, bool) or self.intervals < 2:
-            raise ValueError(f"`intervals` must be an int >= 2; got {self.intervals!r}")
-        if not isinstance(self.max_iter, int) or isinstance(self.max_iter, bool) or self.max_iter < 1:
-            raise ValueError(f"`max_iter` must be an int >= 1; got {self.max_iter!r}")
+        require_int("", low=2, intervals=self.intervals)
+        require_int("", low=1, max_iter=self.max_iter)
         require_positive("", tol=self.tol, feasibility_tolerance=self.feasibility_tolerance, max_cpu_time=self.max_cpu_time)
         require_non_negative("", jerk_weight=self.jerk_weight)
 

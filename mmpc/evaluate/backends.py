@@ -26,6 +26,7 @@ from typing import Callable, Iterator, Optional, Sequence, TypeVar
 
 import torch
 
+from mmpc.config import require_int
 from mmpc.optimizer import COMPILE_ENV
 
 logger = logging.getLogger(__name__)
@@ -58,12 +59,9 @@ class Backend:
     def __post_init__(self) -> None:
         if self.workers is None and self.ray is None:
             raise ValueError("`workers` may be None (the cluster's CPUs) only with `ray`; got workers=None, ray=None")
-        for name in ("workers", "threads"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
-                raise ValueError(f"`{name}` must be an int >= 1; got {value!r}")
-        if not isinstance(self.retries, int) or isinstance(self.retries, bool) or self.retries < 0:
-            raise ValueError(f"`retries` must be an int >= 0; got {self.retries!r}")
+        require_int("", low=1, **{name: value for name, value in (("workers", self.workers), ("threads", self.threads))
+                                   if value is not None})
+        require_int("", low=0, retries=self.retries)
         if self.ray is not None and (not isinstance(self.ray, str) or not self.ray):
             raise ValueError(f"`ray` must be None, 'local', 'auto' or a cluster address; got {self.ray!r}")
 

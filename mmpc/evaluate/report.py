@@ -19,6 +19,7 @@ from pathlib import Path
 from statistics import NormalDist
 from typing import Optional, Sequence
 
+from mmpc.config import require_int
 from mmpc.files import file_slug
 
 #: Metrics averaged over episodes, with a confidence interval (``<key>_ci``).
@@ -70,8 +71,7 @@ def t_quantile_975(dof: int) -> float:
     Cornish-Fisher expansion in 1/dof to the fourth order around the normal quantile (relative
     error < 2e-3 at dof = 3, < 1e-5 from dof = 10).
     """
-    if not isinstance(dof, int) or dof < 1:
-        raise ValueError(f"`dof` must be an int >= 1; got {dof!r}")
+    require_int("", low=1, dof=dof)
     if dof == 1:
         return math.tan(0.475 * math.pi)
     if dof == 2:

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence
 
+from mmpc.config import require_int
 from mmpc.drivers import check_spec, make_driver
 from mmpc.evaluate.backends import Backend, error_text, worker_name
 from mmpc.evaluate.store import Key, new_row
@@ -75,8 +76,7 @@ class EvaluationConfig:
             raise ValueError(f"`seeds` must be a non-empty tuple of ints >= 0; got {self.seeds!r}")
         if len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"`seeds` must be distinct; got {len(self.seeds)} seeds, {len(set(self.seeds))} distinct")
-        if not isinstance(self.lockstep, int) or isinstance(self.lockstep, bool) or self.lockstep < 1:
-            raise ValueError(f"`lockstep` must be an int >= 1; got {self.lockstep!r}")
+        require_int("", low=1, lockstep=self.lockstep)
         self.backend  # validates workers, threads, ray and retries
         if self.episode_layout is not None:
             try:
@@ -195,8 +195,7 @@ def lockstep_groups(seeds: Sequence[int], lockstep: int) -> dict[int, list[int]]
     their first seed in ``seeds``). A group always has the same members, so a resumed run drives
     an unfinished group exactly as an uninterrupted run would (lockstep batches round
     differently from single solves, so membership matters)."""
-    if not isinstance(lockstep, int) or isinstance(lockstep, bool) or lockstep < 1:
-        raise ValueError(f"`lockstep` must be an int >= 1; got {lockstep!r}")
+    require_int("", low=1, lockstep=lockstep)
     groups: dict[int, list[int]] = {}
     for seed in seeds:
         groups.setdefault(seed // lockstep, []).append(seed)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from mmpc.config import require, require_non_negative, require_positive
+from mmpc.config import require, require_int, require_non_negative, require_positive
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,7 @@ class SimConfig:
             lane_change_max_braking_imposed=self.lane_change_max_braking_imposed, lane_change_delay=self.lane_change_delay,
         )
         require_non_negative("SimConfig", politeness=self.politeness, lane_change_min_acc_gain=self.lane_change_min_acc_gain)
-        require(isinstance(self.lanes, int) and self.lanes >= 1, f"SimConfig: `lanes` must be an int >= 1; got {self.lanes!r}")
+        require_int("SimConfig", low=1, lanes=self.lanes)
         require(self.lane_margin >= 0, f"SimConfig: `lane_margin` must be >= 0 m; got {self.lane_margin}")
         require(self.min_speed < self.max_speed,
                 f"SimConfig: `min_speed` must be < `max_speed`; got {self.min_speed} and {self.max_speed} m/s")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import torch
 
+from mmpc.config import require_int
 from mmpc.sim.config import SimConfig
 from mmpc.sim.state import VehicleState, check_state
 
@@ -79,8 +80,7 @@ def kinematics_observation(state: VehicleState, config: SimConfig, *, vehicles_c
 def _check_inputs(state: VehicleState, config: SimConfig, vehicles_count: int) -> None:
     """Raise ``ValueError`` unless ``vehicles_count`` is an int >= 1, ``config`` a :class:`SimConfig`
     and ``state`` a consistent state whose egos are all present."""
-    if not isinstance(vehicles_count, int) or isinstance(vehicles_count, bool) or vehicles_count < 1:
-        raise ValueError(f"`vehicles_count` must be an int >= 1; got {vehicles_count!r}")
+    require_int("", low=1, vehicles_count=vehicles_count)
     if not isinstance(config, SimConfig):
         raise ValueError(f"`config` must be a SimConfig; got {type(config).__name__}")
     check_state(state, config)
