@@ -47,8 +47,9 @@ REPORT = "proposer.json"
 
 @dataclass(frozen=True)
 class ProposerDaggerConfig:
-    """Settings of :func:`run_proposer_dagger` (``mmpc config show proposer``). The defaults are
-    the recipe of the shipped proposers (8 rounds of 128 episodes of 40 s: ~4x10^5 labelled states).
+    """Settings of :func:`run_proposer_dagger` (``mmpc config show proposer``). The defaults (8
+    rounds of 128 episodes of 40 s: ~4x10^5 labelled states) made the shipped high-speed proposer;
+    the shipped cruise one ran ``rounds`` 8 (4.6x10^5).
 
     Attributes:
         rounds: rounds after round 0 [-].
