@@ -114,7 +114,7 @@ class BatchOptimizer(nn.Module):
         device: where the buffers live; inputs must already be there.
         compile: True to run the iterations through ``torch.compile`` (fused elementwise kernels, one
             call per chunk of iterations). The first solve of every new batch shape compiles
-            (tens of seconds on a CPU); later solves are several times faster than eager. On
+            (seconds on a CPU); later solves are several times faster than eager. On
             the CPU the cold start and the outputs are compiled too, C++ wrappers call the
             kernels, and a small batch is padded with copies of its last goal to whole SIMD
             vectors (the copies are dropped from the result). On CUDA each chunk is replayed
@@ -124,9 +124,9 @@ class BatchOptimizer(nn.Module):
             its compiled graphs are not differentiated. On the CPU every call layout gets its
             own shape-specialised kernels (a few seconds to compile each; torch's dynamic-shape
             kernels, its default from a second shape on, ran up to 2x slower); on CUDA a second
-            batch shape recompiles with dynamic dims (torch's default). ``"auto"``: compiled on the CPU in float32 when a C++ compiler is found
-            (inductor needs one), else eager; the environment variable ``MMPC_COMPILE=0``
-            makes it eager (``1``: compiled).
+            batch shape recompiles with dynamic dims (torch's default). ``"auto"``: compiled on
+            the CPU in float32 when a C++ compiler is found (inductor needs one), else eager;
+            the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
             Compiled, the first call of every new call layout (problems, goals, obstacle slots,
             same or mixed obstacle counts; per tile) runs twice: once to compile, once timed as
             a solve; :attr:`last_compile_ms` reports the first.
