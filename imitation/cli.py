@@ -38,25 +38,18 @@ def _demos(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     scenario = _scenario(args, scenario_overrides(args))
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
-    bar = tqdm(total=len(seeds), desc=f"demos {scenario.name}", unit="ep")
+    with tqdm(total=len(seeds), desc=f"demos {scenario.name}", unit="ep") as bar:  # closed before an interrupt's message
+        def progress(finished: int, total: int) -> None:
+            if finished > bar.n:
+                bar.update(finished - bar.n)
 
-    def progress(finished: int, total: int) -> None:
-        if finished > bar.n:
-            bar.update(finished - bar.n)
-
-    try:
-        report = generate_demonstrations(scenario, seeds, Path(args.out), workers=args.workers, lockstep=args.lockstep,
-                                         threads=args.threads, on_progress=progress)
-    except DemonstrationsError as error:
-        bar.close()
-        print(f"mmpc imitate demos: error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        bar.close()
-        print(f"mmpc imitate demos: interrupted; {bar.n} of {len(seeds)} episodes are kept in {args.out}; "
-              "re-run the same command to resume", file=sys.stderr)
-        return 130
-    bar.close()
+        try:
+            report = generate_demonstrations(scenario, seeds, Path(args.out), workers=args.workers,
+                                             lockstep=args.lockstep, threads=args.threads, on_progress=progress)
+        except DemonstrationsError as error:
+            bar.close()
+            print(f"mmpc imitate demos: error: {error}", file=sys.stderr)
+            return 2
     print(f"{len(report.seeds)} episodes ({len(report.generated)} driven now, {len(report.reused)} from an earlier run); "
           f"Minari dataset {report.dataset_id} {'written' if report.rebuilt else 'up to date'} at {report.dataset_path}")
     print(f"load it with: MINARI_DATASETS_PATH={(Path(args.out) / 'minari').resolve()} python -c "
@@ -137,6 +130,7 @@ def _proposer(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mmpc.config import load_config
+    from mmpc.files import OutputFolderError
     from mmpc.imitation.dataset import DemonstrationsError
     from mmpc.imitation.proposer_dagger import ProposerDaggerConfig, run_proposer_dagger
 
@@ -146,27 +140,20 @@ def _proposer(args: argparse.Namespace) -> int:
         overrides["rounds"] = args.rounds
     config = load_config(ProposerDaggerConfig, args.config, overrides)
     scenario = _scenario(args, scenario_overrides(args, list(routed_scenario.items())))
-    bar = tqdm(total=config.episodes, desc="labelling round", unit="ep")
+    with tqdm(total=config.episodes, desc="labelling round", unit="ep") as bar:  # closed before an interrupt's message
+        def on_progress(finished: int, total: int) -> None:
+            bar.update(finished - bar.n)  # on_round resets the bar between rounds
 
-    def on_progress(finished: int, total: int) -> None:
-        bar.update(finished - bar.n)  # on_round resets the bar between rounds
+        def on_round(entry: dict) -> None:
+            bar.write(_round_line(entry, config.train.keep))
+            bar.reset()
 
-    def on_round(entry: dict) -> None:
-        bar.write(_round_line(entry, config.train.keep))
-        bar.reset()
-
-    try:
-        report = run_proposer_dagger(scenario, Path(args.out), config, on_round=on_round, on_progress=on_progress)
-    except (ValueError, DemonstrationsError) as error:
-        bar.close()
-        print(f"mmpc imitate proposer: error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        bar.close()
-        print(f"mmpc imitate proposer: interrupted; finished rounds and staged episodes are kept in {args.out}; "
-              "re-run the same command to resume", file=sys.stderr)
-        return 130
-    bar.close()
+        try:
+            report = run_proposer_dagger(scenario, Path(args.out), config, on_round=on_round, on_progress=on_progress)
+        except (ValueError, DemonstrationsError, OutputFolderError) as error:
+            bar.close()
+            print(f"mmpc imitate proposer: error: {error}", file=sys.stderr)
+            return 2
     print(f"wrote {Path(args.out) / 'proposer.pt'} (round {report['best_round']}), proposer.json, labels/ (a Minari "
           f"dataset per round) and TensorBoard events in {Path(args.out) / 'tb'}")
     print(f"drive it: mmpc evaluate --driver mpc,proposer:{Path(args.out) / 'proposer.pt'} --scenarios {scenario.name}")
@@ -222,7 +209,7 @@ def add_subcommands(sub) -> None:
     demos.add_argument("--lockstep", type=int, default=4,
                        help="episodes per optimizer call (chunk k = seeds with seed // lockstep == k) (default 4)")
     demos.add_argument("--out", default="runs/demos", help="demonstrations directory (default runs/demos)")
-    demos.set_defaults(func=_demos)
+    demos.set_defaults(func=_demos, kept="the finished episodes stay staged in {out}")
 
     bc = commands.add_parser("bc", help="behaviour cloning of an MLP policy from a demonstrations directory")
     bc.add_argument("--dataset", required=True, help="an `mmpc imitate demos --out` directory")
@@ -240,7 +227,7 @@ def add_subcommands(sub) -> None:
     add_config(dagger, "DAgger config (mmpc.imitation.dagger.DaggerConfig); the scenario's as scenario.KEY, "
                        "e.g. --set train.epochs=10 --set scenario.traffic.lane_changes=false")
     dagger.add_argument("--out", default="runs/dagger", help="run folder (default runs/dagger)")
-    dagger.set_defaults(func=_dagger)
+    dagger.set_defaults(func=_dagger, kept="the finished rounds are kept in {out}")
 
     proposer = commands.add_parser("proposer", help="a mode proposer trained on the expert's rankings, with DAgger on "
                                                     "the scenario's world (--sim batched for scale); re-run to resume")
@@ -249,7 +236,7 @@ def add_subcommands(sub) -> None:
     add_config(proposer, "proposer DAgger config (mmpc.imitation.proposer_dagger.ProposerDaggerConfig); the "
                          "scenario's as scenario.KEY, e.g. --set episodes=256 --set train.epochs=20")
     proposer.add_argument("--out", default="runs/proposer", help="run folder (default runs/proposer)")
-    proposer.set_defaults(func=_proposer)
+    proposer.set_defaults(func=_proposer, kept="finished rounds and staged episodes are kept in {out}")
 
     export = commands.add_parser("export", help="a cloned policy as a stable-baselines3 policy (PPO can start from it)")
     export.add_argument("--policy", required=True, help="RUN/policy.pt")

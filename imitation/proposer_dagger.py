@@ -15,7 +15,8 @@ Writes ``RUN/labels/round_<i>/`` (staged episodes and the round's Minari dataset
 labelling throughput, held-out top-k agreement, the check) and TensorBoard events in ``RUN/tb``;
 at the end ``RUN/proposer.pt``, the best round's (fewest check collisions, then lowest check meta
 cost). Re-running the same command resumes: finished rounds are kept, an unfinished round's staged
-episodes are reused, and more ``rounds`` extend the run (another configuration is refused).
+episodes are reused, and more ``rounds`` extend the run (another configuration is refused). One run
+at a time writes a folder: a run holds the lock file :data:`LOCK` in it and a second is refused.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from mmpc.config import require_int, to_dict
-from mmpc.files import atomic_write_text
+from mmpc.files import atomic_write_text, exclusive
 from mmpc.highway import run_lockstep
 from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.labels import label_episodes, read_labels
@@ -43,6 +44,8 @@ from mmpc.scenario import ScenarioConfig, build_mpc
 logger = logging.getLogger(__name__)
 
 REPORT = "proposer.json"
+#: The lock file a run holds in its folder while it writes (:func:`mmpc.files.exclusive`).
+LOCK = ".proposer.lock"
 
 
 @dataclass(frozen=True)
@@ -153,11 +156,22 @@ def run_proposer_dagger(
 
     Returns:
         The content of ``proposer.json``.
-    """
-    from torch.utils.tensorboard import SummaryWriter
 
+    Raises:
+        mmpc.files.OutputFolderError: another run holds ``out`` (its :data:`LOCK`).
+        ValueError: ``out`` holds a run of another configuration, or a corrupt ``proposer.json``.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    with exclusive(out, LOCK, "another `mmpc imitate proposer` run"):
+        return _run_rounds(scenario, out, config, on_round, on_progress)
+
+
+def _run_rounds(scenario: ScenarioConfig, out: Path, config: ProposerDaggerConfig,
+                on_round: Optional[Callable[[dict], None]], on_progress: Optional[Callable[[int, int], None]]) -> dict:
+    """:func:`run_proposer_dagger` in the folder ``out``, whose lock this process holds."""
+    from torch.utils.tensorboard import SummaryWriter
+
     identity = _identity(scenario, config)
     rounds = [entry for entry in _read_report(out / REPORT, identity) if entry["round"] <= config.rounds]
     name = "".join(c if c.isalnum() else "_" for c in scenario.name)

@@ -15,6 +15,11 @@ from typing import IO, Callable, Iterator
 TEMPORARY_PREFIX = ".tmp-"
 
 
+class OutputFolderError(RuntimeError):
+    """An output folder a command will not write to: another process holds its lock, or it holds
+    what the command would overwrite. The command line prints it without a traceback."""
+
+
 def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
     """Write through ``write(handle)`` (a binary file) to a temporary file in ``path``'s folder,
     flush it to disk, then rename it onto ``path``; the temporary file is removed on an error."""
@@ -39,7 +44,7 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 @contextlib.contextmanager
 def exclusive(
-    out: Path, lock: str, holder: str, error: type[Exception] = RuntimeError,
+    out: Path, lock: str, holder: str, error: type[Exception] = OutputFolderError,
 ) -> Iterator[None]:
     """Hold the lock file ``out / lock`` while the block runs (released by the OS if this process
     dies); when another process holds it, raise ``error`` naming ``holder``, the folder and the lock."""

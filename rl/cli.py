@@ -36,7 +36,8 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     evaluate.add_argument("--model", required=True, help="MODEL.zip written by mmpc rl train (or a checkpoint)")
     evaluate.add_argument("--episodes", type=int, default=None, help="override train.eval_episodes of the run's config")
     evaluate.add_argument("--out", default=None, help="write the summary here (default: print only)")
-    add_set(evaluate, "run's RL config", example=", e.g. --set scenario.traffic.vehicles_count=30")
+    add_set(evaluate, "run's RL config (not the road, observation or actions the agent was trained with)",
+            example=", e.g. --set scenario.traffic.vehicles_count=30")
     add_compile(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
@@ -49,6 +50,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
 def _train(args: argparse.Namespace) -> int:
     from mmpc.cli.arguments import apply_compile
     from mmpc.config import load_config
+    from mmpc.files import OutputFolderError
     from mmpc.rl.config import RLConfig
     from mmpc.rl.train import train
 
@@ -69,8 +71,12 @@ def _train(args: argparse.Namespace) -> int:
             print("mmpc rl train: error: --eval-episodes must be >= 1", file=sys.stderr)
             return 2
         config = _with_episodes(config, args.eval_episodes)
-    summary = train(config, args.algo, args.timesteps, Path(args.out), env_kind=args.env, seed=args.seed,
-                    progress_bar=args.progress, evaluate_after=not args.no_eval)
+    try:
+        summary = train(config, args.algo, args.timesteps, Path(args.out), env_kind=args.env, seed=args.seed,
+                        progress_bar=args.progress, evaluate_after=not args.no_eval)
+    except OutputFolderError as error:  # another run writes there, or an earlier run's files are there
+        print(f"mmpc rl train: error: {error}", file=sys.stderr)
+        return 2
     if summary:
         print(format_summary(summary))
     print(f"wrote {args.out}/model.zip, {args.out}/tb/" + ("" if args.no_eval else f", {args.out}/eval.json"))
@@ -82,11 +88,13 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     from mmpc.cli.arguments import apply_compile
     from mmpc.config import with_overrides
+    from mmpc.rl.config import require_same_agent_inputs
     from mmpc.rl.train import evaluate_run, load_run
 
     apply_compile(args.compile)
     run = load_run(args.model)
     config = with_overrides(run.config, dict(args.set))
+    require_same_agent_inputs(run.config, config)
     config = config if args.episodes is None else _with_episodes(config, args.episodes)
     with tqdm(total=config.train.eval_episodes, desc="episodes", unit="ep") as bar:
         summary = evaluate_run(run.model, config, env_kind=run.env_kind, continuous=run.continuous,

@@ -16,6 +16,7 @@ stable-baselines3.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Mapping, Optional
 
@@ -29,6 +30,16 @@ REPLAN_MODES = ("frame", "decision")
 ALGORITHMS: dict[str, str] = {"dqn": "discrete", "ppo": "discrete", "sac": "continuous"}
 #: Action spaces each algorithm supports (stable-baselines3: DQN discrete only, SAC Box only).
 SUPPORTED_ACTIONS: dict[str, tuple[str, ...]] = {"dqn": ("discrete",), "ppo": ("discrete", "continuous"), "sac": ("continuous",)}
+
+
+#: Settings a trained agent's observation and actions are made of (dotted keys of
+#: :class:`RLConfig`): highway-env scales the ``Kinematics`` rows by the road's width
+#: (``scenario.lanes``), ``env`` sets the observation's rows and solver features and the action
+#: grid, and an action lasts ``decision_frames / frequency`` seconds. Evaluated with other values,
+#: the agent would read inputs that mean something else (:func:`require_same_agent_inputs`).
+AGENT_INPUTS = ("action", "scenario.lanes", "scenario.frequency", "env.decision_frames", "env.lane_offsets",
+                "env.speeds", "env.lateral_range", "env.speed_range", "env.expert_action", "env.solver_features",
+                "env.feature_cost_scale", "env.kinematics_vehicles")
 
 
 #: The scenario of the RL environments (``configs/scenarios/rl_highway_fast.yaml``): highway-env's
@@ -303,3 +314,14 @@ class RLConfig:
         require(action in SUPPORTED_ACTIONS[algo],
                  f"algorithm {algo!r} cannot train on {action} actions; it supports {list(SUPPORTED_ACTIONS[algo])}")
         return action
+
+
+def require_same_agent_inputs(trained: RLConfig, requested: RLConfig) -> None:
+    """Raise :class:`mmpc.config.ConfigError` where ``requested`` (e.g. a trained run's config with
+    ``--set`` overrides) changes a setting of :data:`AGENT_INPUTS` from ``trained``, the message
+    naming the key, the trained value and the requested one."""
+    for dotted in AGENT_INPUTS:
+        before, after = (functools.reduce(getattr, dotted.split("."), config) for config in (trained, requested))
+        require(before == after, f"`{dotted}` must stay {before!r}, the value the agent was trained with; got {after!r} "
+                                 "(the agent's observation or actions are made of it; other settings, such as the "
+                                 "traffic, the duration or the reward, may change)")

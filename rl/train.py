@@ -10,10 +10,15 @@ A run directory holds::
     model.zip            the final model
     eval.json            the evaluation: collision_rate, mean_speed, mean_return,
                          intervention_rate, episodes, and one row per episode
+    .train.lock          held by the run while it writes (:data:`RUN_LOCK`)
+
+A run gets a folder of its own: :func:`train` refuses a folder another run is writing to, and
+one holding anything (an earlier run's files would be replaced or mixed with the new run's).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 import json
@@ -21,7 +26,7 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from typing import Any, Callable, Iterator, NamedTuple, Optional, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -29,6 +34,7 @@ import torch
 import yaml
 
 from mmpc.config import from_dict, require_int, to_dict
+from mmpc.files import OutputFolderError, exclusive
 from mmpc.rl.config import ALGORITHMS, RLConfig
 from mmpc.rl.envs import vehicle_meta_cost_reward
 
@@ -36,6 +42,8 @@ logger = logging.getLogger(__name__)
 
 #: Environments ``train`` can train on: the safe layer or plain highway-env.
 ENV_KINDS = ("safe", "highway")
+#: The lock file a training run holds in its folder (:func:`mmpc.files.exclusive`).
+RUN_LOCK = ".train.lock"
 #: stable-baselines3 classes by algorithm name.
 ALGORITHM_CLASSES = {"dqn": "DQN", "ppo": "PPO", "sac": "SAC"}
 
@@ -300,7 +308,7 @@ def train(
         config: the run's configuration.
         algo: ``dqn``, ``ppo`` or ``sac``.
         timesteps: environment (agent) steps, summed over the vectorized environments.
-        out: the run directory (created; see the module docstring).
+        out: the run directory: new, empty or missing (created; see the module docstring).
         env_kind: ``safe`` (the goal-choosing environments) or ``highway`` (plain highway-env).
         seed: seeds the model and the training environments.
         progress_bar: SB3's progress bar.
@@ -308,6 +316,9 @@ def train(
 
     Returns:
         The evaluation summary (``{}`` without evaluation).
+
+    Raises:
+        mmpc.files.OutputFolderError: ``out`` is held by another run or holds files (:func:`run_folder`).
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 
@@ -327,33 +338,67 @@ def train(
     kwargs = algorithm_kwargs(config, algo)
     torch.set_num_threads(config.train.torch_threads)
     out = Path(out)
+    with run_folder(out):
+        run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete",
+               "timesteps": timesteps, "seed": seed, "config": to_dict(config)}
+        (out / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
+        # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
+        (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
+        env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
+        model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
+        if expert_prior > 0:
+            prefer_expert_action(model, expert_prior)
+        checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1),
+                                         str(out / "checkpoints"), name_prefix=algo)
+        start = time.perf_counter()
+        try:
+            model.learn(timesteps, callback=CallbackList([checkpoints, SafetyTensorboardCallback(config.train.log_every)]),
+                        tb_log_name=algo, progress_bar=progress_bar)
+        finally:
+            env.close()
+        train_s = time.perf_counter() - start
+        model.save(out / "model.zip")
+        logger.info("trained %s on %s for %d steps in %.0f s", algo, env_kind, timesteps, train_s)
+        if not evaluate_after:
+            return {}
+        summary = evaluate_run(model, config, env_kind=env_kind, continuous=continuous)
+        summary = {"algo": algo, "env": env_kind, "timesteps": timesteps, "train_seconds": train_s, **summary}
+        (out / "eval.json").write_text(json.dumps(summary, indent=2) + "\n")
+        return summary
+
+
+@contextlib.contextmanager
+def run_folder(out: Path) -> Iterator[None]:
+    """Hold the run folder ``out`` (created when missing) while the block writes it: its
+    :data:`RUN_LOCK` keeps a second run out, and a folder holding anything else is refused, since
+    the run would replace or mix with what is there (``mmpc rl train`` does not resume).
+
+    Raises:
+        mmpc.files.OutputFolderError: another run holds ``out``, or ``out`` holds files.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete", "timesteps": timesteps,
-           "seed": seed, "config": to_dict(config)}
-    (out / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
-    # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
-    (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
-    env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
-    model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
-    if expert_prior > 0:
-        prefer_expert_action(model, expert_prior)
-    checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1), str(out / "checkpoints"),
-                                     name_prefix=algo)
-    start = time.perf_counter()
+    if not (out / RUN_LOCK).exists():
+        _require_empty(out)  # before the lock file goes in: a refused folder is left as it was
+    with exclusive(out, RUN_LOCK, "another `mmpc rl train` run", OutputFolderError):
+        _require_empty(out)
+        yield
+
+
+def _require_empty(out: Path) -> None:
+    names = sorted(p.name for p in out.iterdir() if p.name != RUN_LOCK)
+    if names:
+        raise OutputFolderError(f"`out` {out} already holds {_held_run(out)}: {', '.join(names)}; a training run "
+                                "neither resumes nor overwrites one: choose another --out (or remove that folder)")
+
+
+def _held_run(out: Path) -> str:
+    """What an occupied run folder holds, as words (the run its config.yaml records, or files)."""
     try:
-        model.learn(timesteps, callback=CallbackList([checkpoints, SafetyTensorboardCallback(config.train.log_every)]),
-                    tb_log_name=algo, progress_bar=progress_bar)
-    finally:
-        env.close()
-    train_s = time.perf_counter() - start
-    model.save(out / "model.zip")
-    logger.info("trained %s on %s for %d steps in %.0f s", algo, env_kind, timesteps, train_s)
-    if not evaluate_after:
-        return {}
-    summary = evaluate_run(model, config, env_kind=env_kind, continuous=continuous)
-    summary = {"algo": algo, "env": env_kind, "timesteps": timesteps, "train_seconds": train_s, **summary}
-    (out / "eval.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return summary
+        run = yaml.safe_load((out / "config.yaml").read_text())
+        described = f"{run['algo']} on {run['env']}, seed {run['seed']}"
+    except (OSError, yaml.YAMLError, TypeError, KeyError):
+        return "files"
+    return f"a {'finished' if (out / 'model.zip').is_file() else 'unfinished'} run ({described})"
 
 
 def evaluate_run(model: Any, config: RLConfig, *, env_kind: str, continuous: bool,

@@ -14,6 +14,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table, read_episodes
+    from mmpc.files import OutputFolderError
     from mmpc.scenario import load_scenario
 
     apply_compile(args.compile)
@@ -62,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             evaluation = evaluate(scenarios, out, config, on_episode=progress)
-        except EvaluationFolderError as error:  # scenarios.json damaged or of other scenarios
+        # scenarios.json damaged or of other scenarios, or another evaluation writing there
+        except (EvaluationFolderError, OutputFolderError) as error:
             bar.close()
             print(f"mmpc evaluate: error: {error}", file=sys.stderr)
             return 2
@@ -111,4 +113,4 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--collision-videos", action="store_true",
                         help="with --episode-outputs: replay episodes that collided with a video")
     parser.add_argument("--out", default="runs/evaluate", help="output folder; an earlier run there is resumed (default runs/evaluate)")
-    parser.set_defaults(func=run)
+    parser.set_defaults(func=run, kept="the finished episodes are kept in {out}/episodes.csv")

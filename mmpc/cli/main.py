@@ -1,7 +1,9 @@
 """The ``mmpc`` command: ``solve``, ``drive``, ``evaluate``, ``config show``, ``rl ...`` and ``imitate ...``.
 
 Each verb's module adds its subcommand and keeps its heavy imports (CasADi, Ray,
-stable-baselines3, Minari) inside the command function.
+stable-baselines3, Minari) inside the command function. A verb whose interrupted run a re-run
+resumes says what it keeps with ``set_defaults(kept="... {out} ...")`` (formatted with its
+arguments): an interrupt (Ctrl-C) prints that and the resume hint, without a traceback.
 """
 
 from __future__ import annotations
@@ -14,6 +16,21 @@ from typing import Optional, Sequence
 from mmpc.cli import config, drive, evaluate, solve
 from mmpc.imitation import cli as imitation_cli
 from mmpc.rl import cli as rl_cli
+
+
+#: The exit status of an interrupted command: 128 + SIGINT, what a shell reports for Ctrl-C.
+INTERRUPTED = 130
+
+
+def interrupted(args: argparse.Namespace) -> str:
+    """The line telling that the command of ``args`` was interrupted, with what it kept (its
+    ``kept`` default) and how to resume."""
+    sub = getattr(args, f"{args.command}_command", None)
+    verb = args.command if sub is None else f"{args.command} {sub}"
+    kept = getattr(args, "kept", None)
+    if kept is None:
+        return f"mmpc {verb}: interrupted"
+    return f"mmpc {verb}: interrupted; {kept.format(**vars(args))}; re-run the same command to resume"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -49,6 +66,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except ConfigError as error:  # a bad config, --set or --sim: the message says what came and what was expected
         print(f"mmpc {args.command}: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(interrupted(args), file=sys.stderr)
+        return INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -13,11 +13,13 @@ worker process died ``retries + 1`` times or Ray could not run it.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import multiprocessing
 import os
 import signal
 import socket
+import sys
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -86,9 +88,22 @@ def _label(task: object) -> str:
     return str(getattr(task, "label", task))
 
 
-def _ignore_interrupts() -> None:
-    """Worker processes leave Ctrl-C to the coordinating process, which terminates them."""
+#: ``prctl`` option: the signal the kernel sends this process when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
+
+
+def _init_worker(parent: int) -> None:
+    """A worker process leaves Ctrl-C to the coordinating process ``parent``, which terminates
+    it, and ends when ``parent`` dies, even by SIGKILL (no time to terminate it): on Linux the
+    kernel kills it (``PR_SET_PDEATHSIG``, chosen over a thread polling ``os.getppid()`` because it
+    needs no interpreter, so a worker busy in a solve goes at once), and one whose parent died
+    before that exits here. (The kernel reacts to the end of the thread that started the worker:
+    the one iterating :func:`run_tasks`.) Elsewhere workers outlive a killed parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _run_with_threads(run: Callable[[Task], Result], threads: int, task: Task) -> Result:
@@ -142,7 +157,8 @@ def _process_pool(tasks, run, failed, backend: Backend) -> Iterator[tuple]:
     deaths: dict[int, int] = {}  # id(task) -> deaths of its worker while it ran alone
     context = multiprocessing.get_context("spawn")
     while normal or suspects:
-        pool = ProcessPoolExecutor(backend.workers, mp_context=context, initializer=_ignore_interrupts)
+        pool = ProcessPoolExecutor(backend.workers, mp_context=context, initializer=_init_worker,
+                                   initargs=(os.getpid(),))
         running: dict[Future, object] = {}
         isolated = False  # the one task in flight is a suspect running alone
         try:

@@ -87,7 +87,7 @@ def evaluate(
         ValueError: duplicate scenario names.
         EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name, or
             a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
-        RuntimeError: another evaluation holds ``out``.
+        mmpc.files.OutputFolderError (a RuntimeError): another evaluation holds ``out``.
     """
     names = [s.name for s in scenarios]
     if not names or len(set(names)) != len(names):
