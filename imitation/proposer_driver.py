@@ -61,7 +61,8 @@ def subset_problem(problem: ProblemBatch, slots: torch.Tensor) -> ProblemBatch:
 def problem_rows(problem: ProblemBatch, rows: torch.Tensor) -> ProblemBatch:
     """The problems of ``rows`` (long indices)."""
     mask = None if problem.obstacle_mask is None else problem.obstacle_mask[rows]
-    return ProblemBatch(problem.ego[rows], problem.goals[rows], problem.obstacles[rows], mask)
+    axes = None if problem.obstacle_axes is None else problem.obstacle_axes[rows]
+    return ProblemBatch(problem.ego[rows], problem.goals[rows], problem.obstacles[rows], mask, axes)
 
 
 class ProposerDriver(Driver):

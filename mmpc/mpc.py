@@ -16,7 +16,7 @@ from typing import Callable, NamedTuple, Optional
 import torch
 
 from mmpc.config import require, require_int, require_non_negative, require_positive
-from mmpc.footprint import HIGHWAY_VEHICLE
+from mmpc.footprint import HIGHWAY_VEHICLE, covering_semi_axes
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
@@ -44,6 +44,9 @@ UNDRIVABLE = Status.NONHOLONOMIC | Status.HEADING | Status.SPEED | Status.NUMERI
 #: 2 m cars lie at 0.91 of the high-speed scenario's 8 m x 3 m ellipse.
 ESCAPE_DEPTH = 0.05
 
+#: Obstacle shapes by :attr:`MPCConfig.obstacle_shape` name.
+OBSTACLE_SHAPES = ("fixed", "heading")
+
 #: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
 #: road) -> (E, M, N, 2)`` centres.
 PREDICTIONS = {
@@ -70,6 +73,16 @@ class MPCConfig:
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
             the horizon and leaves no feasible candidate.
+        obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
+            ``ellipse_b`` for every car) or ``"heading"`` (widened across the road to cover the
+            car at its direction of motion, :func:`mmpc.footprint.covering_semi_axes`): a car
+            changing lanes, turned 10-30 deg, reaches 0.6-1 m beyond the fixed ellipse.
+        passing_margin: defensive passing: the ellipse of a car the ego is faster than grows
+            across the road by this much per m/s of the difference in speed along the road
+            [m per m/s = s], at most ``max_passing_margin``: the ego passes a slower car near
+            its own lane centre, not astride the lane line beside it, where a car that starts to
+            change lanes leaves no room to react. 0: off.
+        max_passing_margin: the largest such growth [m].
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
@@ -102,6 +115,9 @@ class MPCConfig:
     ignore_behind: float = 20.0
     obstacle_lookahead: float = 3.0
     prediction: str = "lanes"
+    obstacle_shape: str = "fixed"
+    passing_margin: float = 0.0
+    max_passing_margin: float = 1.0
     command_window: float = 0.3
     tie_tolerance: float = 0.01
     tie_margin: float = 1.0
@@ -115,10 +131,13 @@ class MPCConfig:
     def __post_init__(self) -> None:
         require(self.prediction in PREDICTIONS,
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
+        require(self.obstacle_shape in OBSTACLE_SHAPES,
+                f"`obstacle_shape` must be one of {list(OBSTACLE_SHAPES)}; got {self.obstacle_shape!r}")
         require_int("", low=0, num_obstacles=self.num_obstacles)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
+                             passing_margin=self.passing_margin, max_passing_margin=self.max_passing_margin,
                              tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
         require(self.stop_lanes is None or (isinstance(self.stop_lanes, int) and not isinstance(self.stop_lanes, bool)
                                             and self.stop_lanes >= 0),
@@ -274,6 +293,8 @@ class MPC:
             turns at ``v tan(delta) / L`` with L its vehicle length (a scenario's
             ``ScenarioConfig.vehicle`` length, :func:`mmpc.scenario.build_mpc`). Also the
             vehicle length the fallback keeps to the vehicle ahead.
+        vehicle_width: every vehicle's width [m]; with ``wheelbase`` as the length, the footprint
+            that :attr:`MPCConfig.obstacle_shape` ``"heading"`` covers.
 
     Example:
         >>> import torch, mmpc
@@ -294,9 +315,11 @@ class MPC:
         config: Optional[MPCConfig] = None,
         *,
         wheelbase: float = HIGHWAY_VEHICLE[0],
+        vehicle_width: float = HIGHWAY_VEHICLE[1],
     ) -> None:
-        require_positive("MPC", wheelbase=wheelbase)
+        require_positive("MPC", wheelbase=wheelbase, vehicle_width=vehicle_width)
         self.wheelbase = wheelbase
+        self.vehicle = (wheelbase, vehicle_width)
         self.optimizer = optimizer
         self.goal_sampler = goal_sampler
         self.meta_cost = meta_cost
@@ -312,7 +335,8 @@ class MPC:
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
     ) -> ProblemBatch:
         """Road-frame state -> problem batch: the goal sampler's goals and then the stop goals
-        (:attr:`MPCConfig.stop_lanes`), the nearest obstacles predicted over the horizon.
+        (:attr:`MPCConfig.stop_lanes`), the nearest obstacles predicted over the horizon, and
+        their ellipses (:meth:`obstacle_axes`).
 
         Raises:
             ValueError: a wrong shape, a non-finite value in ``ego`` or in a real vehicle, or a
@@ -331,7 +355,27 @@ class MPC:
             stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon, ellipse=self.ellipse,
                                lanes=self.config.stop_lanes, gap=self.config.stop_gap)
             goals = torch.cat([goals, stops], dim=1)
-        return ProblemBatch(ego, goals, obstacles, mask)
+        return ProblemBatch(ego, goals, obstacles, mask, self.obstacle_axes(ego, states))
+
+    def obstacle_axes(self, ego: torch.Tensor, states: torch.Tensor) -> Optional[torch.Tensor]:
+        """(E, M, 2) ellipse semi-axes [m] of the (E, M, 4) obstacle states around the (E, 6)
+        egos: :attr:`MPCConfig.obstacle_shape`, widened by the passing margin
+        (:attr:`MPCConfig.passing_margin`); ``None`` when both are off (the optimizer's ellipse)."""
+        cfg = self.config
+        if cfg.obstacle_shape == "fixed" and cfg.passing_margin == 0:
+            return None
+        if cfg.obstacle_shape == "heading":
+            # Below 1 m/s the direction of motion says little about where the car points.
+            moving = torch.hypot(states[..., 2], states[..., 3]) >= 1.0
+            heading = torch.where(moving, torch.atan2(states[..., 3], states[..., 2]), torch.zeros_like(states[..., 2]))
+            axes = covering_semi_axes(heading, self.ellipse, self.optimizer.config.max_heading_deg, self.vehicle)
+        else:
+            axes = states.new_tensor(self.ellipse).expand(*states.shape[:2], 2)
+        if cfg.passing_margin > 0:
+            faster = (ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]).clamp_min(0.0)  # (E, M)
+            margin = (cfg.passing_margin * faster).clamp_max(cfg.max_passing_margin)
+            axes = torch.stack([axes[..., 0], axes[..., 1] + margin], dim=-1)
+        return axes
 
     @property
     def ellipse(self) -> tuple[float, float]:
@@ -528,7 +572,8 @@ class MPC:
         if not bool(inside.any()):
             return result
         obstacles = problem.obstacles.to(result.trajectories.x.dtype)
-        distance = squared_obstacle_distance(result.trajectories, obstacles, self.ellipse).sqrt()  # (E, G, M, N)
+        axes = self.ellipse if problem.obstacle_axes is None else problem.obstacle_axes.to(obstacles.dtype)
+        distance = squared_obstacle_distance(result.trajectories, obstacles, axes).sqrt()  # (E, G, M, N)
         start = distance[..., :1]
         floor = start.clamp_max(1.0) - self.optimizer.config.obstacle_tolerance
         mask = problem.obstacle_mask

@@ -81,6 +81,7 @@ class _Prepared(NamedTuple):
     b_position: torch.Tensor  # (n_eq, 2 E G') boundary values of x and y
     b_heading: torch.Tensor  # (4, E G') boundary values of psi
     obstacles: torch.Tensor  # (M, N, 2, E, 1) obstacle centres / semi-axes, absent slots parked
+    axes: Optional[torch.Tensor]  # (M, 1, 2, E, 1) per-obstacle semi-axes [m]; None: the config's (a, b)
     mask: torch.Tensor  # (E, M) bool
     counts: torch.Tensor  # (E,) int64 number of present obstacles
     uniform_count: Optional[int]  # the count when it is the same for every problem
@@ -193,7 +194,7 @@ class BatchOptimizer(nn.Module):
         self._fallback_logged = False
         self._limit_logged = False
         self.last_compile_ms = 0.0
-        self._compiled_layouts: set[tuple[int, int, int, bool]] = set()
+        self._compiled_layouts: set[tuple[int, int, int, bool, bool]] = set()
         if tile_size is None and compile and on_cpu:
             tile_size = _CPU_TILE_SIZE
         self.tile_size = tile_size
@@ -244,7 +245,7 @@ class BatchOptimizer(nn.Module):
                 NaN/inf in the ego state, the goals or a present obstacle, a negative speed.
         """
         self.last_compile_ms = 0.0
-        ego, goals, obstacles, mask = _validate(problem, self.config, self.dtype, self.device)
+        ego, goals, obstacles, mask, axes = _validate(problem, self.config, self.dtype, self.device)
         compiled = self.compiled
         if compiled and torch.is_grad_enabled() and any(t.requires_grad for t in (ego, goals, obstacles)):
             compiled = False  # the compiled graphs have no backward: autograd runs the eager functions
@@ -252,44 +253,46 @@ class BatchOptimizer(nn.Module):
                 logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
                 self._fallback_logged = True
         if not compiled:
-            return self._solve_batch(ego, goals, obstacles, mask, history, compiled)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, history, compiled)
         # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
         # functions, shared by every optimizer of the process: one driver mixing goal counts (a
         # proposer and its escalations) or several scenarios in one worker pass torch's default
         # limit of 8, where a fullgraph compile fails hard.
         try:
             with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT):
-                return self._solve_batch(ego, goals, obstacles, mask, history, compiled)
+                return self._solve_batch(ego, goals, obstacles, mask, axes, history, compiled)
         except torch._dynamo.exc.FailOnRecompileLimitHit:
             if not self._limit_logged:
                 logger.warning("BatchOptimizer: %d compiled call layouts in this process (the limit); new layouts "
                                "solve eagerly", _RECOMPILE_LIMIT)
                 self._limit_logged = True
             self.last_compile_ms = 0.0
-            return self._solve_batch(ego, goals, obstacles, mask, history, False)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, history, False)
 
     def _solve_batch(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                     history: bool, compiled: bool) -> SolveResult:
+                     axes: Optional[torch.Tensor], history: bool, compiled: bool) -> SolveResult:
         """:meth:`forward` on validated inputs: one call, or tiles of :attr:`tile_size` elements."""
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:
             bucket = _problem_bucket(num_problems, num_goals, self.tile_size) if compiled else num_problems
             if bucket == num_problems:
-                return self._solve(ego, goals, obstacles, mask, history, compiled)
-            ego, goals, obstacles, mask = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask))
-            return self._solve(ego, goals, obstacles, mask, history, compiled).head(num_problems, num_goals)
+                return self._solve(ego, goals, obstacles, mask, axes, history, compiled)
+            ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask, axes))
+            return self._solve(ego, goals, obstacles, mask, axes, history, compiled).head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
         padded_problems = _ceil_div(num_problems, tile_problems) * tile_problems
-        ego, goals, obstacles, mask = (_repeat_last(t, 0, padded_problems) for t in (ego, goals, obstacles, mask))
+        ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, padded_problems) for t in (ego, goals, obstacles, mask, axes))
         goals = _repeat_last(goals, 1, _ceil_div(num_goals, tile_goals) * tile_goals)
         bands = []
         for first in range(0, padded_problems, tile_problems):
             problems = slice(first, first + tile_problems)
+            tile_axes = None if axes is None else axes[problems]
             tiles = [
                 self._solve(
-                    ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], history, compiled
+                    ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], tile_axes,
+                    history, compiled,
                 )
                 for g in range(0, goals.shape[1], tile_goals)
             ]
@@ -302,15 +305,16 @@ class BatchOptimizer(nn.Module):
         goals: torch.Tensor,
         obstacles: torch.Tensor,
         mask: torch.Tensor,
+        axes: Optional[torch.Tensor],
         history: bool,
         compiled: bool,
     ) -> SolveResult:
         """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`);
         compiled, a new call layout is run once untimed first (see :attr:`last_compile_ms`)."""
         start = time.perf_counter()
-        prepared = self._prepare(ego, goals, obstacles, mask, compiled)  # compiles the input layout too
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled)  # compiles the input layout too
         if compiled:
-            layout = (mask.shape[0], prepared.num_goals, mask.shape[1], prepared.uniform_count is None)
+            layout = (mask.shape[0], prepared.num_goals, mask.shape[1], prepared.uniform_count is None, axes is None)
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)
                 self.last_compile_ms += (time.perf_counter() - start) * 1e3
@@ -322,7 +326,8 @@ class BatchOptimizer(nn.Module):
         start, iterate, summarise, limits = self._start, self._iterate, self._summarise, self._limits
         if not prepared.compiled:
             start, iterate, summarise, limits = _start, _iterate, _summarise, self._eager_limits
-        state = start(prepared.b_position, prepared.obstacles, self.position_init, self.samples, self.gather[0], limits)
+        state = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples, self.gather[0],
+                      limits)
         records: list[torch.Tensor] = []
         for first in range(0, self.config.iterations, self.chunk):
             last = min(first + self.chunk, self.config.iterations)
@@ -331,14 +336,14 @@ class BatchOptimizer(nn.Module):
             else:
                 position = self.position[first:last].index_select(1, prepared.counts)  # (U, E, 2, K, D)
             state, step = iterate(
-                state, prepared.b_position, prepared.b_heading, prepared.obstacles, position,
+                state, prepared.b_position, prepared.b_heading, prepared.obstacles, prepared.axes, position,
                 self.gather[first:last], self.heading[first:last], self.heading_gather[first:last],
                 self.samples, self.heading_basis, limits, history,
             )
             records.extend(step.records)
         num_goals = prepared.num_goals - prepared.padding
         fields, coefficients, norms, scalars, status = summarise(
-            state.c, step, prepared.obstacles, prepared.mask, prepared.origin, prepared.goal_ahead, num_goals,
+            state.c, step, prepared.obstacles, prepared.axes, prepared.mask, prepared.origin, prepared.goal_ahead, num_goals,
             self.heading_basis, self.heading_rate_basis, self.config, limits,
         )
         history_norms = None
@@ -362,7 +367,8 @@ class BatchOptimizer(nn.Module):
     # ----------------------------------------------------------------------------- inputs
 
     def _prepare(
-        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor, compiled: bool
+        self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+        axes: Optional[torch.Tensor], compiled: bool,
     ) -> _Prepared:
         cfg = self.config
         padding = 0
@@ -370,8 +376,8 @@ class BatchOptimizer(nn.Module):
             padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
             goals = _repeat_last(goals, 1, goals.shape[1] + padding)
         layout = self._layout if compiled else _layout
-        origin, b_position, b_heading, obstacles, goal_ahead, counts = layout(
-            ego, goals, obstacles, mask, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b), cfg.a_max
+        origin, b_position, b_heading, obstacles, axes, goal_ahead, counts = layout(
+            ego, goals, obstacles, mask, axes, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b), cfg.a_max
         )
         count_values = counts.unique()
         uniform = int(count_values[0]) if count_values.numel() == 1 else None
@@ -380,6 +386,7 @@ class BatchOptimizer(nn.Module):
             b_position=b_position,
             b_heading=b_heading,
             obstacles=obstacles,
+            axes=axes,
             mask=mask,
             counts=counts,
             uniform_count=uniform,
@@ -395,10 +402,11 @@ def _layout(
     goals: torch.Tensor,
     obstacles: torch.Tensor,
     mask: torch.Tensor,
+    axes: Optional[torch.Tensor],
     start_acceleration: bool,
     semi_axes: tuple[float, float],
     a_max: float,
-) -> tuple[torch.Tensor, ...]:
+) -> tuple[Optional[torch.Tensor], ...]:
     """Inputs in the ego-relative frame and the solver layout (see :class:`_Prepared`).
 
     The start acceleration ``(a, v psidot)`` is held to the disc of radius ``a_max``: an ego
@@ -407,8 +415,9 @@ def _layout(
 
     Returns:
         origin (E, 2) [m]; b_position (n_eq, 2 E G); b_heading (4, E G); obstacles
-        (M, N, 2, E, 1) in semi-axis units, absent slots parked; goal_ahead (E, G) bool;
-        counts (E,) int64 present obstacles per problem.
+        (M, N, 2, E, 1) in semi-axis units, absent slots parked; axes: ``None`` when every obstacle
+        has ``semi_axes``, else the per-obstacle ``axes`` (E, M, 2) as (M, 1, 2, E, 1) [m] (absent
+        slots given ``semi_axes``); goal_ahead (E, G) bool; counts (E,) int64 present obstacles per problem.
     """
     num_goals = goals.shape[1]
     origin = ego[:, EGO_X : EGO_Y + 1]  # (E, 2)
@@ -434,8 +443,13 @@ def _layout(
 
     relative = obstacles - origin[:, None, None, :]  # (E, M, N, 2)
     relative = torch.where(mask[:, :, None, None], relative, _PARKED_DISTANCE)
-    scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / relative.new_tensor(semi_axes).view(2, 1, 1)  # (M, N, 2, E, 1)
-    return origin, b_position, b_heading, scaled.contiguous(), relative_goals[..., 0] > 0, mask.sum(dim=1)
+    if axes is None:
+        scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / relative.new_tensor(semi_axes).view(2, 1, 1)  # (M, N, 2, E, 1)
+    else:
+        axes = torch.where(mask[..., None], axes, axes.new_tensor(semi_axes))
+        axes = axes.permute(1, 2, 0)[:, None, :, :, None].contiguous()  # (M, 1, 2, E, 1)
+        scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / axes
+    return origin, b_position, b_heading, scaled.contiguous(), axes, relative_goals[..., 0] > 0, mask.sum(dim=1)
 
 
 def _auto_compile(fast_path: bool) -> bool:
@@ -488,8 +502,10 @@ def _ceil_div(numerator: int, denominator: int) -> int:
     return -(-numerator // denominator)
 
 
-def _repeat_last(tensor: torch.Tensor, dim: int, size: int) -> torch.Tensor:
-    """``tensor`` grown along ``dim`` to ``size`` entries with copies of its last one."""
+def _repeat_last(tensor: Optional[torch.Tensor], dim: int, size: int) -> Optional[torch.Tensor]:
+    """``tensor`` grown along ``dim`` to ``size`` entries with copies of its last one (``None`` stays ``None``)."""
+    if tensor is None:
+        return None
     index = torch.arange(size, device=tensor.device).clamp_max(tensor.shape[dim] - 1)
     return tensor.index_select(dim, index)
 
@@ -555,6 +571,7 @@ def _iterate(
     b_position: torch.Tensor,
     b_heading: torch.Tensor,
     obstacles: torch.Tensor,
+    axes: Optional[torch.Tensor],
     position: torch.Tensor,
     gather: torch.Tensor,
     heading: torch.Tensor,
@@ -568,7 +585,8 @@ def _iterate(
 
     Shapes: ``position`` (U, 2, K, D) when every problem has the same obstacle count, else
     (U, E, 2, K, D); ``gather`` (U, K, 3N); ``heading`` (U, K, N + K + 4); ``heading_gather``
-    (U, K, N); see :class:`mmpc.operators.Operators`. Pure tensor code without host
+    (U, K, N); see :class:`mmpc.operators.Operators`; ``obstacles`` and ``axes`` as
+    :class:`_Prepared`. Pure tensor code without host
     synchronisation, so that it can be compiled.
     """
     c, scaled_residual, multipliers, multipliers_psi = state
@@ -587,11 +605,11 @@ def _iterate(
         psi = heading_basis @ c_psi
         # The targets read back from the right-hand side: a compiler would otherwise recompute atan2.
         multipliers_psi = torch.addmm(multipliers_psi, heading_gather[u], heading_rhs[:n] - psi)
-        residuals = _closed_form_steps(samples, psi.view(n, num_problems, num_goals), obstacles, limits)
+        residuals = _closed_form_steps(samples, psi.view(n, num_problems, num_goals), obstacles, axes, limits)
         scaled_residual = gather[u] @ residuals.stacked.view(3 * n, -1)
         multipliers = multipliers - scaled_residual
         if history:
-            records.append(_residual_norms(residuals, _obstacle_offsets(samples[:n], obstacles, limits), limits))
+            records.append(_residual_norms(residuals, _obstacle_offsets(samples[:n], obstacles, axes, limits), axes, limits))
     return _State(c, scaled_residual, multipliers, multipliers_psi), _Step(c_psi, samples, residuals, records)
 
 
@@ -608,7 +626,7 @@ def _position_qp(operator: torch.Tensor, stacked: torch.Tensor, num_problems: in
 
 
 def _closed_form_steps(
-    samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor, limits: _Limits
+    samples: torch.Tensor, psi: torch.Tensor, obstacles: torch.Tensor, axes: Optional[torch.Tensor], limits: _Limits
 ) -> _Residuals:
     """Closed-form speed, obstacle and acceleration steps and the residual F c - g.
 
@@ -616,6 +634,7 @@ def _closed_form_steps(
         samples: (3N, 2, E, G) [position; acceleration; velocity] relative to the start.
         psi: (N, E, G) heading [rad].
         obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
+        axes: (M, 1, 2, E, 1) per-obstacle semi-axes [m]; ``None``: ``limits``'.
         limits: speed and acceleration bounds, ellipse semi-axes.
     """
     n = psi.shape[0]
@@ -630,13 +649,18 @@ def _closed_form_steps(
     excess = torch.rsub(inverse_norm, 1.0, alpha=limits.a_max).clamp_min(0.0)
     acceleration_residual = acceleration * excess
 
-    offset_x, offset_y, outward = _obstacle_offsets(position, obstacles, limits)
-    push = torch.stack([(offset_x * outward).sum(dim=0) * limits.ellipse_a, (offset_y * outward).sum(dim=0) * limits.ellipse_b], dim=1)
+    offset_x, offset_y, outward = _obstacle_offsets(position, obstacles, axes, limits)
+    if axes is None:
+        push = torch.stack([(offset_x * outward).sum(dim=0) * limits.ellipse_a,
+                            (offset_y * outward).sum(dim=0) * limits.ellipse_b], dim=1)
+    else:
+        push = torch.stack([(offset_x * outward * axes[:, :, 0]).sum(dim=0),
+                            (offset_y * outward * axes[:, :, 1]).sum(dim=0)], dim=1)
     return _Residuals(stacked=torch.cat([push, acceleration_residual, velocity_residual]), speed=speed)
 
 
 def _obstacle_offsets(
-    position: torch.Tensor, obstacles: torch.Tensor, limits: _Limits
+    position: torch.Tensor, obstacles: torch.Tensor, axes: Optional[torch.Tensor], limits: _Limits
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every point relative to every ellipse, in semi-axis units: ``(dx, dy, (R/r - 1)_+)``.
 
@@ -648,6 +672,7 @@ def _obstacle_offsets(
     Args:
         position: (N, 2, E, G) sample positions relative to the start [m].
         obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
+        axes: (M, 1, 2, E, 1) per-obstacle semi-axes [m]; ``None``: every obstacle has ``limits``'.
         limits: holds the ellipse semi-axes (a, b) [m] and R.
 
     Returns:
@@ -656,8 +681,12 @@ def _obstacle_offsets(
     """
     # x and y as separate contiguous planes: far fewer memory passes than an axis dimension.
     # Products with the reciprocals: a vector division costs several multiplications.
-    offset_x = position[:, 0] * (1.0 / limits.ellipse_a) - obstacles[:, :, 0]
-    offset_y = position[:, 1] * (1.0 / limits.ellipse_b) - obstacles[:, :, 1]
+    if axes is None:
+        offset_x = position[:, 0] * (1.0 / limits.ellipse_a) - obstacles[:, :, 0]
+        offset_y = position[:, 1] * (1.0 / limits.ellipse_b) - obstacles[:, :, 1]
+    else:  # (N, E, G) / (M, 1, E, 1): one division per obstacle and sample, as a constant's product
+        offset_x = position[:, 0] / axes[:, :, 0] - obstacles[:, :, 0]
+        offset_y = position[:, 1] / axes[:, :, 1] - obstacles[:, :, 1]
     distance_squared = offset_x * offset_x + offset_y * offset_y
     inverse_distance = distance_squared.clamp_min(_EPS_SQUARED).rsqrt()
     if limits.obstacle_radius != 1.0:  # a Python constant: no branch in the compiled kernels
@@ -667,7 +696,8 @@ def _obstacle_offsets(
 
 
 def _residual_norms(
-    residuals: _Residuals, offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor], limits: _Limits
+    residuals: _Residuals, offsets: tuple[torch.Tensor, torch.Tensor, torch.Tensor], axes: Optional[torch.Tensor],
+    limits: _Limits,
 ) -> torch.Tensor:
     """(E, G, 3) L2 norms of the obstacle [m], acceleration [m/s^2] and non-holonomic [m/s] residuals:
     distances to the sets the iterations project onto (backed off where the config says so).
@@ -677,8 +707,12 @@ def _residual_norms(
     """
     n = residuals.speed.shape[0]
     offset_x, offset_y, outward = offsets
-    gap_x = offset_x * outward * limits.ellipse_a
-    gap_y = offset_y * outward * limits.ellipse_b
+    if axes is None:
+        gap_x = offset_x * outward * limits.ellipse_a
+        gap_y = offset_y * outward * limits.ellipse_b
+    else:
+        gap_x = offset_x * outward * axes[:, :, 0]
+        gap_y = offset_y * outward * axes[:, :, 1]
     stacked = residuals.stacked
     norms = torch.stack(
         [
@@ -694,6 +728,7 @@ def _residual_norms(
 def _start(
     b_position: torch.Tensor,
     obstacles: torch.Tensor,
+    axes: Optional[torch.Tensor],
     position_init: torch.Tensor,
     samples_operator: torch.Tensor,
     gather: torch.Tensor,
@@ -709,7 +744,7 @@ def _start(
     c = _position_qp(position_init, b_position, num_problems)  # (K, 2B)
     samples = (samples_operator @ c).view(3 * n, 2, num_problems, -1)
     psi = _atan2(samples[2 * n :, 1], samples[2 * n :, 0], limits)
-    residuals = _closed_form_steps(samples, psi, obstacles, limits)
+    residuals = _closed_form_steps(samples, psi, obstacles, axes, limits)
     return _State(
         c=c,
         scaled_residual=gather @ residuals.stacked.view(3 * n, -1),
@@ -722,6 +757,7 @@ def _summarise(
     c: torch.Tensor,
     step: _Step,
     obstacles: torch.Tensor,
+    axes: Optional[torch.Tensor],
     mask: torch.Tensor,
     origin: torch.Tensor,
     goal_ahead: torch.Tensor,
@@ -736,7 +772,7 @@ def _summarise(
     Args:
         c: (K, 2 E G') final x, y coefficients, G' >= G goals (padding goals come last).
         step: the last iterate (heading coefficients, samples, residuals) with G' goals.
-        obstacles: (M, N, 2, E, 1) in semi-axis units; mask: (E, M); origin: (E, 2) [m];
+        obstacles: (M, N, 2, E, 1) in semi-axis units; axes: as :class:`_Prepared`; mask: (E, M); origin: (E, 2) [m];
         goal_ahead: (E, G').
         num_goals: G, the goals kept (the first G).
 
@@ -759,8 +795,8 @@ def _summarise(
     psi = (heading_basis @ step.c_psi).view(n, num_problems, padded_goals)
     psidot = (heading_rate_basis @ step.c_psi).view(n, num_problems, padded_goals)
 
-    offsets = _obstacle_offsets(position, obstacles, limits)  # each (M, N, E, G)
-    norms = _residual_norms(residuals, offsets, limits)
+    offsets = _obstacle_offsets(position, obstacles, axes, limits)  # each (M, N, E, G)
+    norms = _residual_norms(residuals, offsets, axes, limits)
     distance_squared = offsets[0] ** 2 + offsets[1] ** 2
     present = mask.T[:, None, :, None]
     inf = torch.full((), float("inf"), dtype=c.dtype, device=c.device)
@@ -853,8 +889,8 @@ def _check_tensor(name: str, value: object, ndim: int, shape_doc: str) -> torch.
 
 def _validate(
     problem: ProblemBatch, config: OptimizerConfig, dtype: torch.dtype, device: torch.device
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Check shapes, dtypes, devices and values; return (ego, goals, obstacles, mask) cast to ``dtype``."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Optional[torch.Tensor]]:
+    """Check shapes, dtypes, devices and values; return (ego, goals, obstacles, mask, axes) cast to ``dtype``."""
     if not isinstance(problem, ProblemBatch):
         raise TypeError(f"`problem` must be a mmpc.ProblemBatch; got {type(problem).__name__}")
     n = config.num_steps
@@ -890,12 +926,24 @@ def _validate(
         raise TypeError(f"`obstacle_mask` must be a bool tensor; got dtype {mask.dtype}")
     if tuple(mask.shape) != (num_problems, num_slots):
         raise ValueError(f"`obstacle_mask` must have shape ({num_problems}, {num_slots}); got {tuple(mask.shape)}")
-    for name, tensor in (("ego", ego), ("goals", goals), ("obstacles", obstacles)):
+    axes = problem.obstacle_axes
+    if axes is not None:
+        axes = _check_tensor("obstacle_axes", axes, 3, f"({num_problems}, {num_slots}, 2)")
+        if tuple(axes.shape) != (num_problems, num_slots, 2):
+            raise ValueError(f"`obstacle_axes` must have shape ({num_problems}, {num_slots}, 2); got {tuple(axes.shape)}")
+    floats = (("ego", ego), ("goals", goals), ("obstacles", obstacles)) + ((("obstacle_axes", axes),) if axes is not None else ())
+    for name, tensor in floats:
         if not tensor.dtype.is_floating_point:
             raise TypeError(f"`{name}` must be a floating tensor; got dtype {tensor.dtype}")
-    for name, tensor in (("ego", ego), ("goals", goals), ("obstacles", obstacles), ("obstacle_mask", mask)):
+    for name, tensor in floats + (("obstacle_mask", mask),):
         if tensor.device != device:
             raise ValueError(f"`{name}` is on {tensor.device} but the optimizer is on {device}; move it with .to()")
+    if axes is not None:
+        axes = axes.to(dtype)
+        bad_axes = mask & ~((axes > 0) & axes.isfinite()).all(dim=2)
+        if bool(bad_axes.any()):
+            raise ValueError(f"`obstacle_axes` must be finite and > 0 m for present obstacles; got "
+                             f"{axes[bad_axes][:4].tolist()} at (problem, slot) {bad_axes.nonzero()[:4].tolist()}")
 
     ego, goals, obstacles = (t.to(dtype) for t in (ego, goals, obstacles))
     ego_finite = ego.isfinite().all(dim=1)
@@ -921,4 +969,4 @@ def _validate(
         rows = negative_speed.nonzero().flatten().tolist()
         speeds = ego[negative_speed, EGO_V].tolist()
         raise ValueError(f"ego speed `v` must be >= 0 m/s; got {speeds} in problem(s) {rows}")
-    return ego, goals, obstacles, mask
+    return ego, goals, obstacles, mask, axes

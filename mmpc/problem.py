@@ -30,12 +30,17 @@ class ProblemBatch(NamedTuple):
         obstacles: (E, M, N, 2) predicted obstacle centres (x, y) at the N horizon samples [m].
         obstacle_mask: (E, M) bool, True where the slot holds a real obstacle; absent slots may
             hold any value, NaN included. ``None`` means every slot is present.
+        obstacle_axes: (E, M, 2) each obstacle's ellipse semi-axes (a along x, b along y) [m],
+            e.g. widened for a car that turns (:func:`mmpc.footprint.covering_semi_axes`);
+            absent slots may hold any value. ``None``: every obstacle has the optimizer's
+            ``ellipse_a``, ``ellipse_b``.
     """
 
     ego: torch.Tensor
     goals: torch.Tensor
     obstacles: torch.Tensor
     obstacle_mask: Optional[torch.Tensor] = None
+    obstacle_axes: Optional[torch.Tensor] = None
 
     @property
     def num_problems(self) -> int:
@@ -67,6 +72,41 @@ def ego_state(
     fields = torch.broadcast_tensors(*fields)
     stacked = torch.stack(fields, dim=-1)
     return stacked.reshape(-1, len(EGO_FIELDS))
+
+
+def usable_device(device: torch.device | str, name: str = "device") -> torch.device:
+    """``device`` as a :class:`torch.device` this process can hold data on, with its index.
+
+    Refuses, naming ``name``: what is not a device, ``meta`` (shapes without data: every check
+    of a value would fail deep inside torch) and a device this machine lacks (``cuda`` without
+    a GPU, a GPU index past the last).
+
+    Example:
+        >>> usable_device("cpu")
+        device(type='cpu')
+    """
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise ValueError(f"`{name}` must name a torch device such as 'cpu' or 'cuda:0'; got {device!r}") from error
+    if parsed.type == "meta":
+        raise ValueError(f"`{name}` must be a device that holds data, such as 'cpu' or 'cuda:0'; got meta")
+    try:
+        return torch.empty(0, device=parsed).device  # with its index: cuda -> cuda:0
+    except (RuntimeError, AssertionError) as error:  # torch without CUDA asserts
+        raise ValueError(f"`{name}` is {parsed}, which this machine cannot use: {error}") from error
+
+
+def require_on_device(device: torch.device, owner: str, **tensors: object) -> None:
+    """Refuse a tensor of ``tensors`` that is not on ``device``, ``owner``'s device; values that
+    are not tensors (``None``) pass, for the type checks to judge.
+
+    Raises:
+        ValueError: ``"`ego` is on meta but the optimizer is on cpu; move it with .to()"``.
+    """
+    for name, value in tensors.items():
+        if isinstance(value, torch.Tensor) and value.device != device:
+            raise ValueError(f"`{name}` is on {value.device} but {owner} is on {device}; move it with .to()")
 
 
 def predict_constant_velocity(states: torch.Tensor, times: torch.Tensor) -> torch.Tensor:

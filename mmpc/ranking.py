@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Union
 
 import torch
 
 from mmpc.config import OptimizerConfig, require_non_negative
+from mmpc.footprint import ellipse_distance_squared
 from mmpc.problem import EGO_Y
 from mmpc.result import SolveResult, Trajectories
 
@@ -43,18 +44,22 @@ def constraint_violation(result: SolveResult, config: OptimizerConfig) -> torch.
     return 10.0 * penetration + acceleration + nonholonomic / max(config.v_max, 1.0) + heading
 
 
-def squared_obstacle_distance(trajectories: Trajectories, obstacles: torch.Tensor, ellipse: tuple[float, float]) -> torch.Tensor:
+def squared_obstacle_distance(
+    trajectories: Trajectories, obstacles: torch.Tensor, ellipse: Union[tuple[float, float], torch.Tensor]
+) -> torch.Tensor:
     """(E, C, M, N) squared ellipse-normalised distance ``(dx / a)^2 + (dy / b)^2`` of every
-    candidate's samples to every obstacle slot (< 1: inside its ellipse).
+    candidate's samples to every obstacle slot (< 1: inside its ellipse;
+    :func:`mmpc.footprint.ellipse_distance_squared`).
 
     Args:
         trajectories: the candidates, fields (E, C, N).
         obstacles: (E, M, N, 2) predicted centres at the same instants [m].
-        ellipse: (a, b) semi-axes [m].
+        ellipse: (a, b) semi-axes [m], or (E, M, 2) per obstacle (:attr:`mmpc.ProblemBatch.obstacle_axes`).
     """
-    dx = (trajectories.x[:, :, None, :] - obstacles[:, None, :, :, 0]) / ellipse[0]
-    dy = (trajectories.y[:, :, None, :] - obstacles[:, None, :, :, 1]) / ellipse[1]
-    return dx**2 + dy**2
+    points = torch.stack([trajectories.x, trajectories.y], dim=-1)[:, :, None]  # (E, C, 1, N, 2)
+    if isinstance(ellipse, torch.Tensor):
+        ellipse = ellipse[:, None, :, None, :]  # (E, 1, M, 1, 2)
+    return ellipse_distance_squared(points, obstacles[:, None], ellipse)
 
 
 def lateral_move(trajectories: Trajectories, ego: torch.Tensor) -> torch.Tensor:

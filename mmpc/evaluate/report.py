@@ -21,6 +21,7 @@ from typing import Optional, Sequence
 
 from mmpc.config import require_int
 from mmpc.files import file_slug
+from mmpc.metrics import OFF_CENTRE
 
 #: Metrics averaged over episodes, with a confidence interval (``<key>_ci``).
 MEAN_METRICS = (
@@ -198,6 +199,48 @@ def format_table(summary: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+#: A collider moving more than this far off the road's direction was changing lanes [deg].
+TURNED_DEG = 5.0
+
+
+def format_crashes(rows: Sequence[dict]) -> str:
+    """Markdown: one line per collision with its scene (:data:`mmpc.collisions.CRASH_COLUMNS`),
+    per driver x scenario, and a tally of the typical causes; empty without collisions."""
+    crashed = [row for row in rows if row.get("status", "ok") == "ok" and row.get("collisions")]
+    if not crashed:
+        return ""
+
+    def number(value: object, digits: int) -> str:
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    lines = ["### Collisions", "",
+             "The collider's position in the ego's frame (ahead, left), its heading to the road, the ego's closing "
+             "speed on it and offset from its lane centre, and the steps of the last second a fallback drove. "
+             "The ego's fault: it struck the collider with its front or a side.", ""]
+    for driver, scenario in dict.fromkeys((row.get("driver"), row["scenario"]) for row in crashed):
+        mine = [row for row in crashed if row.get("driver") == driver and row["scenario"] == scenario]
+        turned = sum(1 for row in mine if row.get("crash_other_heading_deg") is not None
+                     and abs(row["crash_other_heading_deg"]) > TURNED_DEG)
+        astride = sum(1 for row in mine if row.get("crash_ego_offset") is not None and abs(row["crash_ego_offset"]) > OFF_CENTRE)
+        fallback = sum(1 for row in mine if row.get("crash_fallback_steps"))
+        parts = {part: sum(1 for row in mine if row.get("collision_part") == part) for part in ("front", "side", "rear")}
+        lines += [f"`{driver}` / {scenario}: {len(mine)} collisions; struck " + ", ".join(f"{n} {part}" for part, n in parts.items())
+                  + f"; collider turned > {TURNED_DEG:g} deg in {turned}, ego > {OFF_CENTRE:g} m off its lane centre in "
+                  f"{astride}, a fallback drove in the last second in {fallback}", "",
+                  "| seed | t [s] | part | ahead [m] | left [m] | heading [deg] | speed [m/s] | closing [m/s] | ego offset [m] "
+                  "| ego speed [m/s] | fallback steps |", "|" + "---|" * 11]
+        for row in mine:
+            lines.append(" | ".join([
+                f"| {row['seed']}", number(row.get("crash_time"), 1), row.get("collision_part") or "unknown",
+                number(row.get("crash_along"), 1), number(row.get("crash_across"), 1),
+                number(row.get("crash_other_heading_deg"), 1), number(row.get("crash_other_speed"), 1),
+                number(row.get("crash_closing_speed"), 1), number(row.get("crash_ego_offset"), 2),
+                number(row.get("crash_ego_speed"), 1), "-" if row.get("crash_fallback_steps") is None
+                else str(row["crash_fallback_steps"])]) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _cell(entry: dict, key: str) -> str:
     value, interval = entry.get(key), entry.get(f"{key}_ci")
     if value is None:
@@ -298,10 +341,12 @@ def write_tensorboard(rows: Sequence[dict], summary: Sequence[dict], logdir: str
 
 
 def write_report(rows: Sequence[dict], summary: Sequence[dict], out: str | Path) -> list[Path]:
-    """``summary.md``, ``compare.png`` and ``tensorboard/`` in ``out``; returns the paths."""
+    """``summary.md`` (the tables and :func:`format_crashes`), ``compare.png`` and ``tensorboard/``
+    in ``out``; returns the paths."""
     out = Path(out)
     markdown = out / "summary.md"
-    markdown.write_text(format_markdown(summary))
+    crashes = format_crashes(rows)
+    markdown.write_text(format_markdown(summary) + ("\n" + crashes if crashes else ""))
     paths = [markdown]
     if any(entry["episodes"] for entry in summary):
         paths.append(plot_comparison(summary, out / "compare.png"))

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+from mmpc.collisions import CRASH_COLUMNS
 from mmpc.config import to_dict
 from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
@@ -32,16 +33,17 @@ KEY_COLUMNS = ("driver", "scenario", "seed")
 RUN_COLUMNS = ("status", "error", "group", "group_size", "worker", "wall_s")
 #: The episode metrics (:func:`mmpc.metrics.episode_metrics`; empty where a scenario has none),
 #: what a collision struck and whose fault it was (:class:`mmpc.highway.runner.EpisodeResult`),
-#: plus ``solve_ms_per_episode_mean``: each decision's time divided by the episodes it served.
+#: ``solve_ms_per_episode_mean``: each decision's time divided by the episodes it served, and the
+#: crash's scene (:data:`mmpc.collisions.CRASH_COLUMNS`; empty without a collision).
 METRIC_COLUMNS = (
     "steps", "duration", "collisions", "collision_part", "ego_fault_collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
     "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "lane_changes", "fallback_steps", "min_clearance",
-    "off_centre_share", "lane_change_s_mean",
+    "off_centre_share", "lane_change_s_mean", *CRASH_COLUMNS,
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
-                          "lane_changes", "fallback_steps"})
+                          "lane_changes", "fallback_steps", "crash_fallback_steps"})
 _TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker", "collision_part"})
 _NULLABLE_TEXT_COLUMNS = frozenset({"collision_part"})  # an empty cell reads back as None
 

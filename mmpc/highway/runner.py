@@ -19,7 +19,7 @@ from typing import NamedTuple, Optional, Sequence
 
 import torch
 
-from mmpc.collisions import is_ego_fault, struck_part
+from mmpc.collisions import CRASH_COLUMNS, Crash, crash_scene, is_ego_fault
 from mmpc.drivers import Decision, Driver, Observation, make_driver
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.highway.worlds import World, make_world
@@ -40,8 +40,9 @@ class EpisodeResult(NamedTuple):
         records: one :class:`mmpc.metrics.StepRecord` per control step.
         metrics: :func:`mmpc.metrics.episode_metrics` plus ``scenario``, ``seed``,
             ``collision_part`` (what the collision struck of the ego, :mod:`mmpc.collisions`;
-            ``None`` without one) and ``ego_fault_collisions`` (1: it struck the front or a side,
-            or no other car was found to tell).
+            ``None`` without one), ``ego_fault_collisions`` (1: it struck the front or a side,
+            or no other car was found to tell) and the crash's scene (:data:`mmpc.collisions.CRASH_COLUMNS`,
+            ``None`` without a collision).
     """
 
     scenario: ScenarioConfig
@@ -97,21 +98,38 @@ def _record(step: int, episode: HighwayEpisode, observation: Observation, decisi
     )
 
 
-def _struck_part(after: Observation, vehicle: tuple[float, float]) -> Optional[str]:
-    """The part of the ego a collision struck (:func:`mmpc.collisions.struck_part`), from the state right after it (E = 1)."""
+def _crash_scene(after: Observation, scenario: ScenarioConfig) -> Optional[Crash]:
+    """The scene of a collision (:func:`mmpc.collisions.crash_scene`), from the state right after it (E = 1)."""
     ego = after.ego[0]
     vehicles = after.vehicles[0] if after.vehicle_mask is None else after.vehicles[0][after.vehicle_mask[0]]
-    return struck_part((float(ego[EGO_X]), float(ego[EGO_Y]), float(ego[EGO_PSI])), vehicles[:, :2].tolist(), vehicle)
+    return crash_scene((float(ego[EGO_X]), float(ego[EGO_Y]), float(ego[EGO_PSI]), float(ego[EGO_V])),
+                       vehicles.tolist(), scenario.vehicle, scenario.road.lane_width)
 
 
-def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], part: Optional[str]) -> EpisodeResult:
-    """The episode's result; ``part``: what its collision struck (``None``: no collision, or no car found)."""
+def _crash_metrics(crash: Optional[Crash], records: list[StepRecord], frequency: float) -> dict:
+    """:data:`CRASH_COLUMNS` of an episode that ended in ``crash`` (all ``None`` without one)."""
+    if crash is None:
+        return dict.fromkeys(CRASH_COLUMNS)
+    last_second = records[-max(1, round(frequency)):]
+    return {
+        "crash_time": records[-1].time, "crash_along": crash.along, "crash_across": crash.across,
+        "crash_other_heading_deg": crash.other_heading_deg, "crash_other_speed": crash.other_speed,
+        "crash_closing_speed": crash.closing_speed, "crash_ego_offset": crash.ego_offset, "crash_ego_speed": crash.ego_speed,
+        "crash_fallback_steps": sum(record.fallback for record in last_second),
+    }
+
+
+def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], crash: Optional[Crash]) -> EpisodeResult:
+    """The episode's result; ``crash``: its collision's scene (``None``: no collision, or no car found)."""
     v_cruise = scenario.objective.v_cruise if isinstance(scenario.objective, CruiseObjective) else None
     metrics = episode_metrics(records, dt=1.0 / scenario.frequency, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
                               lane_width=scenario.road.lane_width)
-    metrics["collision_part"] = part if metrics["collisions"] else None
-    metrics["ego_fault_collisions"] = int(bool(metrics["collisions"]) and (part is None or is_ego_fault(part)))  # unknown: the ego's
-    if metrics["collisions"]:
+    crashed = bool(metrics["collisions"])
+    part = crash.part if crashed and crash is not None else None
+    metrics["collision_part"] = part
+    metrics["ego_fault_collisions"] = int(crashed and (part is None or is_ego_fault(part)))  # unknown: the ego's
+    metrics.update(_crash_metrics(crash if crashed else None, records, scenario.frequency))
+    if crashed:
         logger.warning("scenario %s seed %d: collision at t = %.1f s (%s struck)", scenario.name, seed, records[-1].time,
                        part or "no car found")
     return EpisodeResult(scenario, seed, records, {"scenario": scenario.name, "seed": seed, **metrics})
@@ -247,7 +265,7 @@ def run_lockstep(
     observers = list(observers)
     world: Optional[World] = None
     records: list[list[StepRecord]] = [[] for _ in seeds]
-    struck: dict[int, Optional[str]] = {}  # environment -> the part of the ego its collision struck
+    crashes: dict[int, Optional[Crash]] = {}  # environment -> its collision's scene
     try:
         if video is not None:
             observers.insert(0, _VideoObserver(video, scenario.frequency))
@@ -275,7 +293,7 @@ def run_lockstep(
                     observer.applied(step)
                 if ended[i]:
                     if episodes[i].ego.crashed:
-                        struck[i] = _struck_part(world.observe([i])[1][0], scenario.vehicle)
+                        crashes[i] = _crash_scene(world.observe([i])[1][0], scenario)
                     for observer in observers:
                         observer.finished(i, episodes[i])
             active = [i for i in active if not ended[i]]
@@ -284,7 +302,7 @@ def run_lockstep(
             observer.close()
         if world is not None:
             world.close()
-    return [_result(scenario, seed, rows, struck.get(i)) for i, (seed, rows) in enumerate(zip(seeds, records))]
+    return [_result(scenario, seed, rows, crashes.get(i)) for i, (seed, rows) in enumerate(zip(seeds, records))]
 
 
 def write_outputs(result: EpisodeResult, out: Path) -> list[Path]:

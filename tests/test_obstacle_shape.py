@@ -1,0 +1,141 @@
+"""Per-obstacle ellipses: covering a turned car, defensive passing, and the optimizer's per-obstacle path."""
+
+import math
+
+import pytest
+import torch
+
+import mmpc
+from mmpc.footprint import covering_semi_axes, ellipse_coverage, ellipse_distance_squared
+from mmpc.mpc import MPC, MPCConfig
+from mmpc.ranking import squared_obstacle_distance
+from mmpc.scenes import synthetic_scenes
+from tests.conftest import small_config
+
+
+@pytest.mark.parametrize("band", [8.0, 13.0])
+def test_covering_axes_keep_the_configured_margin_at_every_heading(band):
+    semi_axes = (8.0, 3.3)
+    degrees = torch.tensor([0.0, 3.0, 10.0, 17.0, 27.0, -27.0], dtype=torch.float64)
+    axes = covering_semi_axes(torch.deg2rad(degrees), semi_axes, band)
+    assert axes[0].tolist() == list(semi_axes)  # along the road: the configured ellipse exactly
+    assert (axes[:, 0] == 8.0).all() and (axes[1:4, 1] > 3.3).all()
+    assert axes[4, 1] == axes[5, 1]  # symmetric in the heading
+    for degree, (a, b) in zip(degrees.tolist(), axes.tolist()):
+        covered = max(ellipse_coverage((a, b), e, degree) for e in (-band, 0.0, band))
+        assert covered < 0.95, degree  # covers the turned car, with the configured ellipse's room to spare
+    uncovered = max(ellipse_coverage(semi_axes, e, 17.0) for e in (-band, band))
+    assert uncovered > 1.0  # what the fixed ellipse misses
+
+
+def test_ellipse_distance_takes_one_or_many_ellipses():
+    points = torch.tensor([[4.0, 3.0], [0.0, 6.0]])
+    assert ellipse_distance_squared(points, torch.zeros(2), (8.0, 3.0)).tolist() == [1.25, 4.0]
+    axes = torch.tensor([[8.0, 3.0], [8.0, 6.0]])
+    assert ellipse_distance_squared(points, torch.zeros(2), axes).tolist() == [1.25, 1.0]
+
+
+def _scene():
+    scene = synthetic_scenes(3, seed=5)[2]
+    assert scene.problem.obstacles.shape[1] >= 2
+    return scene.problem
+
+
+def test_configured_axes_per_obstacle_solve_as_the_shared_ones():
+    optimizer = mmpc.BatchOptimizer(small_config(), dtype=torch.float64)
+    problem = _scene()
+    problem = problem._replace(obstacles=problem.obstacles[:, :, : optimizer.config.num_steps].double(),
+                               ego=problem.ego.double(), goals=problem.goals.double())
+    shared = optimizer(problem)
+    axes = problem.obstacles.new_tensor(optimizer.config.ellipse).expand(*problem.obstacles.shape[:2], 2)
+    each = optimizer(problem._replace(obstacle_axes=axes))
+    torch.testing.assert_close(each.trajectories.x, shared.trajectories.x, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(each.min_obstacle_distance, shared.min_obstacle_distance, atol=1e-9, rtol=1e-9)
+    assert torch.equal(each.status, shared.status)
+
+
+def test_a_wider_obstacle_is_kept_out_of_and_checked_with_its_own_axes():
+    optimizer = mmpc.BatchOptimizer(dtype=torch.float64)
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0, dtype=torch.float64)
+    goals = torch.tensor([[[120.0, 4.0], [120.0, 12.0]]], dtype=torch.float64)
+    cars = torch.tensor([[[25.0, 8.0, 10.0, 0.0], [60.0, 0.0, 10.0, 0.0]]], dtype=torch.float64)
+    obstacles = mmpc.predict_constant_velocity(cars, optimizer.times)
+    axes = torch.tensor([[[5.6, 4.5], [5.6, 3.0]]], dtype=torch.float64)
+    result = optimizer(mmpc.ProblemBatch(ego, goals, obstacles, None, axes))
+    distance = squared_obstacle_distance(result.trajectories, obstacles, axes).sqrt().amin(dim=(-1, -2))  # (E, G)
+    torch.testing.assert_close(result.min_obstacle_distance, distance)
+    assert bool(result.feasible.all())  # both swerves clear the 4.5 m ellipse
+    shared = optimizer(mmpc.ProblemBatch(ego, goals, obstacles))
+    lateral_gap = lambda r: (r.trajectories.y - 8.0).abs()[..., 20:30].amax(dim=-1)  # passing the first car
+    assert bool((lateral_gap(result) > lateral_gap(shared)).all())
+
+
+def test_obstacle_axes_are_checked():
+    optimizer = mmpc.BatchOptimizer(small_config())
+    problem = _scene()
+    problem = problem._replace(obstacles=problem.obstacles[:, :, : optimizer.config.num_steps])
+    num_slots = problem.obstacles.shape[1]
+    with pytest.raises(ValueError, match=r"`obstacle_axes` must have shape \(1, \d+, 2\)"):
+        optimizer(problem._replace(obstacle_axes=torch.ones(1, num_slots, 3)))
+    bad = torch.ones(1, num_slots, 2)
+    bad[0, 0, 1] = -1.0
+    with pytest.raises(ValueError, match="finite and > 0"):
+        optimizer(problem._replace(obstacle_axes=bad))
+    with pytest.raises(TypeError, match="floating"):
+        optimizer(problem._replace(obstacle_axes=torch.ones(1, num_slots, 2, dtype=torch.int64)))
+    # an absent slot may hold anything
+    mask = torch.ones(1, num_slots, dtype=torch.bool)
+    mask[0, 0] = False
+    nan = torch.ones(1, num_slots, 2)
+    nan[0, 0] = float("nan")
+    assert optimizer(problem._replace(obstacle_mask=mask, obstacle_axes=nan)).status.shape[0] == 1
+
+
+def test_compiled_per_obstacle_axes_match_eager():
+    config = small_config(num_steps=100, order=10, iterations=3, max_obstacles=10, obstacle_backoff=0.05)  # one small graph
+    eager, compiled = mmpc.BatchOptimizer(config), mmpc.BatchOptimizer(config, compile=True)
+    problem = synthetic_scenes(8, seed=3)[7].problem
+    axes = torch.tensor([3.0, 3.5, 4.0, 3.2, 3.8, 3.1, 3.6])[None, :, None] * torch.tensor([8.0 / 3.0, 1.0])
+    problem = problem._replace(obstacle_axes=axes)
+    expected, result = eager(problem), compiled(problem)
+    torch.testing.assert_close(result.trajectories.y, expected.trajectories.y, atol=1e-3, rtol=1e-5)
+    torch.testing.assert_close(result.min_obstacle_distance, expected.min_obstacle_distance, atol=1e-4, rtol=1e-4)
+    assert torch.equal(result.status, expected.status)
+
+
+def _mpc(**config) -> MPC:
+    return MPC(mmpc.BatchOptimizer(small_config()), mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road(),
+               MPCConfig(num_obstacles=4, **config))
+
+
+def test_mpc_obstacle_axes_by_shape_and_passing_margin():
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)
+    turned = math.radians(15.0)
+    states = torch.tensor([[[10.0, 4.0, 10.0 * math.cos(turned), 10.0 * math.sin(turned)],  # slower, turning
+                            [30.0, 8.0, 25.0, 0.0],  # faster, straight
+                            [20.0, 12.0, 0.5, 0.4]]])  # nearly stopped: its velocity says little of its heading
+    assert _mpc().obstacle_axes(ego, states) is None  # the optimizer's own ellipse
+    a, b = _mpc().ellipse
+    heading = _mpc(obstacle_shape="heading").obstacle_axes(ego, states)[0]
+    assert heading[0, 1] > b
+    torch.testing.assert_close(heading[1:], torch.tensor([[a, b], [a, b]]))
+    passing = _mpc(passing_margin=0.05, max_passing_margin=0.8).obstacle_axes(ego, states)[0]
+    torch.testing.assert_close(passing[:, 1], torch.tensor([b + 0.05 * (20.0 - 10.0 * math.cos(turned)), b, b + 0.8]))
+    both = _mpc(obstacle_shape="heading", passing_margin=0.05).obstacle_axes(ego, states)[0]
+    torch.testing.assert_close(both[0, 1], heading[0, 1] + passing[0, 1] - b)
+    with pytest.raises(ValueError, match="obstacle_shape"):
+        MPCConfig(obstacle_shape="turned")
+    with pytest.raises(ValueError, match="passing_margin"):
+        MPCConfig(passing_margin=-0.1)
+
+
+def test_mpc_plans_around_the_wider_ellipse_it_builds():
+    mpc = _mpc(obstacle_shape="heading", passing_margin=0.05)
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
+    vehicles = torch.tensor([[[30.0, 8.0, 8.0, 0.0], [20.0, 4.0, 8.0, 1.5]]])
+    plan = mpc.plan(ego, vehicles)
+    assert plan.problem.obstacle_axes is not None
+    distance = squared_obstacle_distance(plan.result.trajectories, plan.problem.obstacles, plan.problem.obstacle_axes)
+    chosen = distance[0, int(plan.selection.index[0])]
+    if bool(plan.selection.feasible[0]):
+        assert float(chosen.sqrt().min()) >= 1.0 - mpc.optimizer.config.obstacle_tolerance
