@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from mmpc.collisions import is_ego_fault, struck_part
+from mmpc.collisions import CRASH_COLUMNS, crash_scene, is_ego_fault, struck_part
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway import run_episode, run_lockstep
 from mmpc.scenario import EgoConfig, ScriptedTraffic, ScriptedVehicle, load_scenario
@@ -42,6 +42,20 @@ def test_fault_follows_the_part_and_bad_input_is_refused():
         struck_part((0.0, 0.0, 0.0), [(1.0, 0.0)], (0.0, 2.0))
 
 
+def test_the_crash_scene_names_the_collider_and_how_both_moved():
+    turned = math.radians(12.0)
+    others = [(60.0, 8.0, 20.0, 0.0), (3.0, 6.2, 8.0 * math.cos(turned), 8.0 * math.sin(turned))]
+    crash = crash_scene((100.0 - 100.0, 4.9, 0.0, 19.0), others, CAR, 4.0)
+    assert crash.part == "side"
+    assert crash.along == pytest.approx(3.0) and crash.across == pytest.approx(1.3)
+    assert crash.other_heading_deg == pytest.approx(12.0) and crash.other_speed == pytest.approx(8.0)
+    assert crash.closing_speed == pytest.approx(19.0 - 8.0 * math.cos(turned))
+    assert crash.ego_offset == pytest.approx(0.9)  # lane 1's centre is y = 4
+    assert crash_scene((0.0, 0.0, 0.0, 10.0), [], CAR, 4.0) is None
+    with pytest.raises(ValueError, match="lane_width"):
+        crash_scene((0.0, 0.0, 0.0, 10.0), others, CAR, 0.0)
+
+
 class HoldSpeed(Driver):
     """Holds its speed and heading whatever is around (the worst user of a lane)."""
 
@@ -66,6 +80,12 @@ def test_highway_env_running_into_a_slow_car_is_the_egos_fault():
                          driver=HoldSpeed())
     assert result.metrics["collisions"] == 1
     assert result.metrics["collision_part"] == "front" and result.metrics["ego_fault_collisions"] == 1
+    metrics = result.metrics  # the scene: 20 m/s straight into a 5 m/s car ahead in the ego's lane centre
+    assert metrics["crash_time"] == result.records[-1].time
+    assert 4.0 < metrics["crash_along"] < 6.0 and abs(metrics["crash_across"]) < 0.5
+    assert abs(metrics["crash_other_heading_deg"]) < 1.0 and metrics["crash_closing_speed"] == pytest.approx(15.0, abs=0.5)
+    assert abs(metrics["crash_ego_offset"]) < 0.1 and metrics["crash_ego_speed"] == pytest.approx(20.0, abs=0.5)
+    assert metrics["crash_fallback_steps"] == 0  # the hold-speed driver has no fallback
 
 
 def test_highway_env_being_run_into_from_behind_is_not_the_egos_fault():
@@ -80,6 +100,7 @@ def test_no_collision_no_part():
                          driver=HoldSpeed())
     assert result.metrics["collisions"] == 0
     assert result.metrics["collision_part"] is None and result.metrics["ego_fault_collisions"] == 0
+    assert all(result.metrics[column] is None for column in CRASH_COLUMNS)
 
 
 class FullThrottle(HoldSpeed):

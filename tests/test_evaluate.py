@@ -312,3 +312,26 @@ def test_summary_of_rows_with_errors():
     assert entry["episodes"] == 3 and entry["errors"] == 1 and entry["error_seeds"] == [3]
     assert entry["collisions"] == 1 and entry["collision_rate"] == pytest.approx(1 / 3)
     assert entry["mean_speed"] == pytest.approx(11.0) and entry["speed_residual_mean"] is None
+
+
+def test_crash_scenes_are_written_read_back_and_tabled(tmp_path):
+    from mmpc.collisions import CRASH_COLUMNS
+    from mmpc.evaluate.report import format_crashes
+    from mmpc.evaluate.store import EpisodeFile, new_row
+
+    scene = dict(zip(CRASH_COLUMNS, (12.3, 3.5, -1.4, -14.0, 8.1, 11.6, 1.35, 19.7, 4)))
+    crashed = new_row(driver="mpc", scenario="high_speed", seed=7, status="ok", collisions=1, collision_part="side",
+                      ego_fault_collisions=1, **scene)
+    calm = new_row(driver="mpc", scenario="high_speed", seed=8, status="ok", collisions=0, ego_fault_collisions=0)
+    episodes = EpisodeFile(tmp_path / "episodes.csv", [crashed])
+    episodes.append([calm])
+    episodes.close()
+    rows = read_episodes(tmp_path / "episodes.csv")
+    assert [rows[0][column] for column in CRASH_COLUMNS] == list(scene.values())
+    assert isinstance(rows[0]["crash_fallback_steps"], int)
+    assert all(rows[1][column] is None for column in CRASH_COLUMNS)
+    table = format_crashes(rows)
+    assert ("`mpc` / high_speed: 1 collisions; struck 0 front, 1 side, 0 rear; collider turned > 5 deg in 1, "
+            "ego > 1 m off its lane centre in 1, a fallback drove in the last second in 1") in table
+    assert "| 7 | 12.3 | side | 3.5 | -1.4 | -14.0 | 8.1 | 11.6 | 1.35 | 19.7 | 4 |" in table
+    assert format_crashes(rows[1:]) == ""
