@@ -110,15 +110,16 @@ def _group_failed(task: DemoTask, error: BaseException | str) -> list[int]:
 
 
 @contextlib.contextmanager
-def locked_directory(root: Path, manifest: Manifest) -> Iterator[DemonstrationsDir]:
+def locked_directory(root: Path, manifest: Manifest,
+                     holder: str = "another `mmpc imitate demos` run") -> Iterator[DemonstrationsDir]:
     """``root`` (created when missing) opened as a :class:`DemonstrationsDir` while this process
-    holds its :data:`LOCK`; another run holding it raises :class:`DemonstrationsError`. (Also the
-    staging of the proposer's ranking labels, :mod:`mmpc.imitation.labels`.)"""
+    holds its :data:`LOCK`; another run holding it raises :class:`DemonstrationsError` naming
+    ``holder``. (Also the staging of the proposer's ranking labels, :mod:`mmpc.imitation.labels`.)"""
     ours = (root / MANIFEST).exists() or (root / LOCK).exists()
     if root.exists() and (not root.is_dir() or not ours and any(root.iterdir())):
         DemonstrationsDir(root, manifest)  # not a demonstrations directory: refused before a lock file goes in
     root.mkdir(parents=True, exist_ok=True)
-    with exclusive(root, LOCK, "another `mmpc imitate demos` run", DemonstrationsError):
+    with exclusive(root, LOCK, holder, DemonstrationsError):
         entries = list(root.iterdir())
         if not (root / MANIFEST).exists() and all(p.name == LOCK or p.name.startswith(TEMPORARY_PREFIX) for p in entries):
             # new but for the lock, which DemonstrationsDir would take for foreign content: give it the manifest

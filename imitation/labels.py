@@ -171,7 +171,8 @@ def label_episodes(
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     mpc = build_mpc(scenario)
     fields = ranking_fields(goal_count(mpc))
-    with locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions())) as directory, \
+    with locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions()),
+                          "another `mmpc imitate proposer` labelling run") as directory, \
             sigterm_as_interrupt():
         staged = directory.finished_seeds()
         generated: list[int] = []

@@ -83,6 +83,10 @@ class MPCConfig:
             its own lane centre, not astride the lane line beside it, where a car that starts to
             change lanes leaves no room to react. 0: off.
         max_passing_margin: the largest such growth [m].
+        evasive_horizon: with no candidate feasible, the fallback ranks the candidates first by
+            how deep they enter an obstacle's ellipse within this many seconds [s] (the plan is
+            re-made every step: the next seconds decide a collision, the rest of the horizon
+            can still change); 0: by the whole horizon's violation alone.
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
@@ -118,6 +122,7 @@ class MPCConfig:
     obstacle_shape: str = "fixed"
     passing_margin: float = 0.0
     max_passing_margin: float = 1.0
+    evasive_horizon: float = 0.0
     command_window: float = 0.3
     tie_tolerance: float = 0.01
     tie_margin: float = 1.0
@@ -138,6 +143,7 @@ class MPCConfig:
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
                              passing_margin=self.passing_margin, max_passing_margin=self.max_passing_margin,
+                             evasive_horizon=self.evasive_horizon,
                              tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
         require(self.stop_lanes is None or (isinstance(self.stop_lanes, int) and not isinstance(self.stop_lanes, bool)
                                             and self.stop_lanes >= 0),
@@ -463,7 +469,7 @@ class MPC:
         result, road_excess = self._keep_on_road(result, problem.ego)
         result = self._allow_escape(result, problem)
         cost = self.meta_cost(result.trajectories, self.road)
-        return Scored(result, cost, self._violation(result, road_excess), solve_ms, compile_ms)
+        return Scored(result, cost, self._violation(result, road_excess, problem), solve_ms, compile_ms)
 
     def select(self, problem: ProblemBatch, scored: Scored) -> Selection:
         """The MPC's own choice among the candidates of ``problem`` from its :meth:`score`: the
@@ -586,13 +592,32 @@ class MPC:
         status = torch.where(escaping, result.status & ~obstacle_bits, result.status)
         return result._replace(status=status, feasible=status == 0)
 
-    def _violation(self, result: SolveResult, road_excess: torch.Tensor) -> torch.Tensor:
-        """(E, G) ranking of infeasible candidates: drivable ones first, then the optimizer's
-        :func:`constraint_violation` plus the road excess (a lane width beyond the edge weighs
-        like a full overlap with an obstacle)."""
+    def _violation(self, result: SolveResult, road_excess: torch.Tensor, problem: ProblemBatch) -> torch.Tensor:
+        """(E, G) ranking of infeasible candidates: drivable ones first, then (with an
+        :attr:`MPCConfig.evasive_horizon`) the deepest entry into an obstacle's ellipse within
+        it, then the optimizer's :func:`constraint_violation` plus the road excess (a lane width
+        beyond the edge weighs like a full overlap with an obstacle)."""
         undrivable = (result.status & int(UNDRIVABLE)) != 0
         violation = constraint_violation(result, self.optimizer.config) + 10.0 * road_excess / self.road.lane_width
-        return violation + 1e3 * undrivable.to(violation.dtype)
+        violation = violation + 1e3 * undrivable.to(violation.dtype)
+        if self.config.evasive_horizon > 0 and not bool(result.feasible.any(dim=1).all()):
+            violation = violation + 1e2 * self._early_penetration(result, problem)
+        return violation
+
+    def _early_penetration(self, result: SolveResult, problem: ProblemBatch) -> torch.Tensor:
+        """(E, G) how deep each candidate enters a present obstacle's ellipse (1 - normalised
+        distance, 0 when clear) within :attr:`MPCConfig.evasive_horizon`."""
+        trajectories = result.trajectories
+        if problem.obstacles.shape[1] == 0:
+            return torch.zeros_like(trajectories.x[..., 0])
+        early = trajectories.times <= self.config.evasive_horizon + 1e-9
+        obstacles = problem.obstacles.to(trajectories.x.dtype)[:, :, early]
+        near = trajectories._replace(**{name: getattr(trajectories, name)[..., early] for name in ("x", "y")})
+        axes = self.ellipse if problem.obstacle_axes is None else problem.obstacle_axes.to(obstacles.dtype)
+        distance = squared_obstacle_distance(near, obstacles, axes).amin(dim=-1)  # (E, G, M)
+        if problem.obstacle_mask is not None:
+            distance = torch.where(problem.obstacle_mask[:, None, :], distance, torch.full_like(distance, float("inf")))
+        return (1.0 - distance.amin(dim=-1).sqrt()).clamp_min(0.0)
 
     def _command(self, trajectory: Trajectories) -> tuple[torch.Tensor, torch.Tensor]:
         """Tangential acceleration and heading rate averaged over the command window."""
