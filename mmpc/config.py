@@ -7,14 +7,18 @@ Three functions serve them all, reading the field types:
   sections, ``tuple[...]`` fields from lists, ``Optional`` fields from ``null``, a union of
   configs (a scenario's ``objective``, ``traffic``) by its ``type`` key. A key that is not a
   field is an error that names the section and lists the allowed keys, so that a misspelled
-  YAML key is refused instead of silently ignored. A section may start from another file:
-  ``{from: NAME_OR_PATH, ...}`` (or just ``NAME_OR_PATH``) loads that config and changes the
-  keys given (sections merge key by key).
+  YAML key is refused instead of silently ignored; so is a value not of its field's type
+  (:func:`fits_type`: ``v_max: true``, ``horizon: abc``), by its dotted key. A section may
+  start from another file: ``{from: NAME_OR_PATH, ...}`` (or just ``NAME_OR_PATH``) loads that
+  config and changes the keys given (sections merge key by key).
 - :func:`to_dict` writes the YAML-ready inverse (tuples as lists, ``type`` for variants), so
   ``from_dict(type(c), to_dict(c)) == c``.
 - :func:`load_config` reads a shipped config by name (``mmpc.configs``, the class's
   ``config_folder``) or a YAML file by path, and applies dotted overrides
   (``{"mpc.stop_gap": 3.0}``, what ``--set`` passes).
+
+A config built directly (not from a mapping) checks its field types with
+:func:`require_field_types` in its ``__post_init__``.
 
 A config class may define ``upgrade(values, where) -> values``, a classmethod that rewrites a
 mapping written by an earlier mmpc (retired keys) before it is read; it warns or refuses.
@@ -22,7 +26,9 @@ mapping written by an earlier mmpc (retired keys) before it is read; it warns or
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
+import functools
 import math
 import types
 import typing
@@ -64,10 +70,11 @@ def from_dict(cls: type[T], values: Any, *, where: str = "") -> T:
 
     Raises:
         ValueError: a key that is not a field (the message names ``where`` and lists the
-            allowed keys), a section that is not a mapping, a variant without a known ``type``,
-            or a value its ``__post_init__`` refuses.
+            allowed keys), a value not of its field's type (:func:`fits_type`; the message
+            names its dotted key, e.g. ``optimizer.horizon``), a section that is not a mapping,
+            a variant without a known ``type``, or a value its ``__post_init__`` refuses.
     """
-    return _build(cls, values, where or cls.__name__, ())
+    return _build(cls, values, where or cls.__name__, (), "")
 
 
 def to_dict(config: Any, *, complete: bool = False) -> dict:
@@ -179,8 +186,9 @@ def read_config_yaml(cls: type, name_or_path: str | Path) -> tuple[Path, dict]:
     return path, values
 
 
-def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...]) -> T:
-    """:func:`from_dict` with the chain of ``from`` files being read (to refuse a cycle)."""
+def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...], key: str) -> T:
+    """:func:`from_dict` with the chain of ``from`` files being read (to refuse a cycle) and the
+    dotted key of the section (``""`` at the top, ``"optimizer"``, ``"traffic.vehicles[1]"``)."""
     if values is None:
         values = {}
     if isinstance(values, (str, Path)):
@@ -196,7 +204,7 @@ def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...]) -> T:
         if str(base) in chain:
             raise ConfigError(f"{where}: `{BASE_KEY}: {base}` reads itself (through {list(chain)})")
         path, loaded = read_config_yaml(cls, base)
-        resolved = to_dict(_build(cls, loaded, f"{cls.__name__} {path}", chain + (str(base),)), complete=True)
+        resolved = to_dict(_build(cls, loaded, f"{cls.__name__} {path}", chain + (str(base),), key), complete=True)
         values = _merge(resolved, values)
     kind = getattr(cls, "kind", None)
     if isinstance(kind, str) and TYPE_KEY in values:
@@ -210,12 +218,18 @@ def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...]) -> T:
     unknown = sorted(set(values) - set(fields), key=str)
     if unknown:
         raise ConfigError(f"unknown key(s) {unknown} in {where}; allowed keys: {sorted(fields)}")
-    hints = typing.get_type_hints(cls)
-    return cls(**{name: _convert(hints[name], value, f"{where}: {name}", chain) for name, value in values.items()})
+    hints = _field_hints(cls)
+    built = {}
+    for name, value in values.items():
+        dotted = f"{key}.{name}" if key else name
+        built[name] = _convert(hints[name], value, f"{where}: {name}", chain, dotted)
+        require(fits_type(hints[name], built[name]), _type_message(hints[name], value, dotted, where))
+    return cls(**built)
 
 
-def _convert(hint: Any, value: Any, where: str, chain: tuple[str, ...]) -> Any:
-    """``value`` as the field type ``hint`` wants it (values of other types pass: ``__post_init__`` judges)."""
+def _convert(hint: Any, value: Any, where: str, chain: tuple[str, ...], key: str) -> Any:
+    """``value`` as the field type ``hint`` wants it (lists as tuples, sections as configs);
+    a value of another type passes unchanged, for :func:`_build` to refuse."""
     origin = typing.get_origin(hint)
     if origin in (Union, types.UnionType):
         members = [member for member in typing.get_args(hint) if member is not type(None)]
@@ -223,47 +237,40 @@ def _convert(hint: Any, value: Any, where: str, chain: tuple[str, ...]) -> Any:
             return None
         configs = [member for member in members if dataclasses.is_dataclass(member)]
         if configs and (isinstance(value, Mapping) or len(members) == len(configs)):
-            return _variant(configs, value, where, chain)
+            return _variant(configs, value, where, chain, key)
         for member in members:
-            if member not in configs and _fits(member, value):
-                return _convert(member, value, where, chain)
+            if member not in configs:
+                converted = _convert(member, value, where, chain, key)
+                if fits_type(member, converted):
+                    return converted
         return value
     if dataclasses.is_dataclass(hint):
-        return _build(hint, value, where, chain)
+        return _build(hint, value, where, chain, key)
     if origin is tuple and isinstance(value, (list, tuple)):
         args = typing.get_args(hint)
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], item, f"{where}[{i}]", chain) for i, item in enumerate(value))
+            return tuple(_convert(args[0], item, f"{where}[{i}]", chain, f"{key}[{i}]") for i, item in enumerate(value))
         if len(args) == len(value):
-            return tuple(_convert(arg, item, f"{where}[{i}]", chain) for i, (arg, item) in enumerate(zip(args, value)))
+            return tuple(_convert(arg, item, f"{where}[{i}]", chain, f"{key}[{i}]")
+                         for i, (arg, item) in enumerate(zip(args, value)))
         return tuple(value)
     if origin in (dict, Mapping, typing.get_origin(Mapping[str, Any])) and isinstance(value, Mapping):
         value_hint = typing.get_args(hint)[1] if typing.get_args(hint) else Any
-        return {key: _convert(value_hint, item, f"{where}.{key}", chain) for key, item in value.items()}
+        return {name: _convert(value_hint, item, f"{where}.{name}", chain, f"{key}.{name}") for name, item in value.items()}
     return value
 
 
-def _fits(member: Any, value: Any) -> bool:
-    """Whether ``value`` is of the (non-config) union member ``member``."""
-    origin = typing.get_origin(member) or member
-    if origin is tuple:
-        return isinstance(value, (list, tuple))
-    if origin is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    return isinstance(value, origin) if isinstance(origin, type) else False
-
-
-def _variant(configs: list[type], value: Any, where: str, chain: tuple[str, ...]) -> Any:
+def _variant(configs: list[type], value: Any, where: str, chain: tuple[str, ...], key: str) -> Any:
     """Build the member of a union of configs: the only one, or the one whose ``kind`` is ``value['type']``."""
     if len(configs) == 1 and not isinstance(getattr(configs[0], "kind", None), str):
-        return _build(configs[0], value, where, chain)
+        return _build(configs[0], value, where, chain, key)
     registry = {cls.kind: cls for cls in configs}  # type: ignore[attr-defined]
     if not isinstance(value, Mapping) or TYPE_KEY not in value:
         raise ConfigError(f"{where} must be a mapping with a `{TYPE_KEY}` key, one of {sorted(registry)}; got {value!r}")
     kind = value[TYPE_KEY]
     if kind not in registry:
         raise ConfigError(f"{where}: unknown type {kind!r}; expected one of {sorted(registry)}")
-    return _build(registry[kind], value, f"{where} {kind}", chain)
+    return _build(registry[kind], value, f"{where} {kind}", chain, key)
 
 
 def _plain(value: Any, complete: bool) -> Any:
@@ -302,7 +309,7 @@ def _override(cls: Any, values: dict, dotted: str, value: Any, where: str) -> No
         field = _field(cls, section)
         current = target.get(section)
         merging = merging or (isinstance(current, Mapping) and BASE_KEY in current)
-        if isinstance(current, (str, Path)) and field is not None and dataclasses.is_dataclass(typing.get_type_hints(cls)[section]):
+        if isinstance(current, (str, Path)) and field is not None and dataclasses.is_dataclass(_field_hints(cls)[section]):
             current = {BASE_KEY: current}
             merging = True
         elif current is None and not merging and field is not None and _has_default(field):
@@ -342,6 +349,77 @@ def _section_class(field: Optional[dataclasses.Field], section: Mapping) -> Any:
     if dataclasses.is_dataclass(default) and section.get(TYPE_KEY, getattr(default, "kind", None)) == getattr(default, "kind", None):
         return type(default)
     return None
+
+
+@functools.cache
+def _field_hints(cls: type) -> dict[str, Any]:
+    """The field types of the dataclass ``cls``, string annotations resolved."""
+    return typing.get_type_hints(cls)
+
+
+def fits_type(hint: Any, value: Any) -> bool:
+    """Whether ``value`` is of the config field type ``hint``, as a config reads types.
+
+    A bool is no number (``v_max: true`` is refused), an int is a float (YAML's ``v_max: 24``),
+    a string is no number; ``tuple[...]`` holds a tuple of such items (:func:`from_dict` turns
+    YAML lists into tuples first), ``Mapping[K, V]`` a mapping of such keys and values,
+    ``Optional`` / a union any member's; ``Any`` and what it cannot check (a ``Callable``) pass.
+    """
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return True
+    if hint is type(None):
+        return value is None
+    if origin in (Union, types.UnionType):
+        return any(fits_type(member, value) for member in args)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            return False
+        items = (args[0],) * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        return len(items) == len(value) and all(map(fits_type, items, value))
+    if origin in (dict, collections.abc.Mapping) and args:
+        return isinstance(value, collections.abc.Mapping) and all(
+            fits_type(args[0], name) and fits_type(args[1], item) for name, item in value.items())
+    expected = origin or hint
+    return isinstance(value, expected) if isinstance(expected, type) else True
+
+
+def describe_type(hint: Any) -> str:
+    """``hint`` in words, for messages: ``"a number"``, ``"an int or null"``, ``"a list (tuple) [a number, a number]"``."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return " or ".join(describe_type(member) for member in args)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list (tuple), each item {describe_type(args[0])}"
+        return f"a list (tuple) [{', '.join(describe_type(arg) for arg in args)}]"
+    if origin in (dict, collections.abc.Mapping):
+        return "a mapping" + (f", each value {describe_type(args[1])}" if args and args[1] is not Any else "")
+    words = {type(None): "null", bool: "true or false", int: "an int", float: "a number", str: "a string", Any: "anything"}
+    if hint in words:
+        return words[hint]
+    name = getattr(hint, "__name__", str(hint))
+    return f"{'an' if name[:1].lower() in 'aeiou' else 'a'} {name}"
+
+
+def _type_message(hint: Any, value: Any, key: str, where: str) -> str:
+    """``"{where}: `key` must be a number; got 'abc'"``: a value not of its field type."""
+    return f"{where}: `{key}` must be {describe_type(hint)}; got {value!r}"
+
+
+def require_field_types(config: Any) -> None:
+    """Check every field of the config dataclass ``config`` against its type (:func:`fits_type`),
+    for a config built directly, not by :func:`from_dict` (which checks as it builds); the
+    message names the class and the field: ``"OptimizerConfig: `a_max` must be a number; got '4'"``."""
+    hints = _field_hints(type(config))
+    for field in dataclasses.fields(config):
+        if field.init:
+            value = getattr(config, field.name)
+            require(fits_type(hints[field.name], value), _type_message(hints[field.name], value, field.name, type(config).__name__))
 
 
 def require(condition: bool, message: str) -> None:
@@ -462,8 +540,7 @@ class OptimizerConfig:
     speed_tolerance: float = 0.1
 
     def __post_init__(self) -> None:
-        require_int("", num_steps=self.num_steps, order=self.order, iterations=self.iterations,
-                    max_obstacles=self.max_obstacles)
+        require_field_types(self)
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
             if isinstance(value, float):
@@ -503,9 +580,7 @@ class OptimizerConfig:
         )
         if self.heading_target_deg is not None:
             require(
-                isinstance(self.heading_target_deg, (int, float))
-                and not isinstance(self.heading_target_deg, bool)
-                and 0 < self.heading_target_deg <= self.max_heading_deg,
+                0 < self.heading_target_deg <= self.max_heading_deg,
                 f"`heading_target_deg` must be null or in (0, max_heading_deg={self.max_heading_deg}]; "
                 f"got {self.heading_target_deg!r}",
             )

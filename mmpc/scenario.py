@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
 
-from mmpc.config import OptimizerConfig, load_config, require, require_int, require_non_negative, require_positive
+from mmpc.config import (OptimizerConfig, load_config, require, require_field_types, require_int, require_non_negative,
+                         require_positive)
 from mmpc.configs import shipped_config_dir
 from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
@@ -53,7 +54,6 @@ SCENARIO_DIR = shipped_config_dir("scenarios")
 
 
 def _speeds(where: str, name: str, values: tuple[float, ...]) -> None:
-    require(isinstance(values, tuple), f"{where}: `{name}` must be a list of speeds [m/s]; got {values!r}")
     for value in values:
         require_positive(where, **{name: value})
 
@@ -63,7 +63,7 @@ def _speeds(where: str, name: str, values: tuple[float, ...]) -> None:
 
 def _near_lane_goals(where: str, speeds: tuple[float, ...], lanes: Optional[int]) -> None:
     _speeds(where, "near_lane_speeds", speeds)
-    require(lanes is None or (isinstance(lanes, int) and lanes >= 0),
+    require(lanes is None or lanes >= 0,
              f"{where}: `near_lanes` must be null (every lane) or an int >= 0; got {lanes!r}")
 
 
@@ -92,6 +92,7 @@ class CruiseObjective:
     lane_change_cost: float = 0.0
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         require_positive("objective cruise", v_cruise=self.v_cruise)
         _near_lane_goals("objective cruise", self.near_lane_speeds, self.near_lanes)
         require_non_negative("objective cruise", lane_change_cost=self.lane_change_cost)
@@ -156,6 +157,7 @@ class HighSpeedObjective:
     lane_change_cost: float = 0.0
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         require_positive("objective high_speed", v_max=self.v_max, w_speed=self.w_speed, w_lane=self.w_lane)
         _near_lane_goals("objective high_speed", self.near_lane_speeds, self.near_lanes)
         require_non_negative("objective high_speed", lane_change_cost=self.lane_change_cost)
@@ -194,7 +196,6 @@ def _with_lane_changes(cost: MetaCost, per_lane: float) -> MetaCost:
 
 
 Objective = Union[CruiseObjective, HighSpeedObjective]
-OBJECTIVES: dict[str, type] = {cls.kind: cls for cls in (CruiseObjective, HighSpeedObjective)}
 
 
 # ----------------------------------------------------------------------------------- traffic
@@ -227,19 +228,18 @@ class IDMTraffic:
     lane_changes: bool = True
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         where = "traffic idm"
         require_int(where, low=0, vehicles_count=self.vehicles_count)
         require_positive(where, vehicles_density=self.vehicles_density, initial_clearance=self.initial_clearance)
-        require(isinstance(self.lane_changes, bool), f"{where}: `lane_changes` must be true or false; got {self.lane_changes!r}")
         if self.target_speeds is not None:
-            require(len(self.target_speeds) == 2 and 0 < self.target_speeds[0] <= self.target_speeds[1],
+            require(0 < self.target_speeds[0] <= self.target_speeds[1],
                      f"{where}: `target_speeds` must be [low, high] with 0 < low <= high m/s; got {self.target_speeds!r}")
         _check_window(where, self.window)
 
 
 def _check_window(where: str, window: Optional[tuple[float, float]]) -> None:
     if window is not None:
-        require(isinstance(window, tuple) and len(window) == 2, f"{where}: `window` must be [behind, ahead] in m; got {window!r}")
         require_positive(where, window_behind=window[0], window_ahead=window[1])
 
 
@@ -272,10 +272,11 @@ class ScriptedVehicle:
     brake_deceleration: float = 6.0
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         require_int("scripted vehicle", low=0, lane=self.lane)
-        require(isinstance(self.x, (int, float)) and math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
-        require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
-        require(self.cut_in_lane is None or (isinstance(self.cut_in_lane, int) and self.cut_in_lane >= 0),
+        require(math.isfinite(self.x), f"scripted vehicle: `x` must be finite; got {self.x!r}")
+        require(self.speed >= 0, f"scripted vehicle: `speed` must be >= 0; got {self.speed!r}")
+        require(self.cut_in_lane is None or self.cut_in_lane >= 0,
                 f"scripted vehicle: `cut_in_lane` must be null or an int >= 0; got {self.cut_in_lane!r}")
         require(self.cut_in_at >= 0 and (self.brake_at is None or self.brake_at >= 0),
                 f"scripted vehicle: `cut_in_at` and `brake_at` must be >= 0 s; got {self.cut_in_at!r}, {self.brake_at!r}")
@@ -307,6 +308,7 @@ class ScriptedTraffic:
     window: Optional[tuple[float, float]] = None
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         _check_window("traffic scripted", self.window)
 
 
@@ -336,14 +338,14 @@ class NGSIMTraffic:
     initial_clearance: float = 15.0
 
     def __post_init__(self) -> None:
-        require(isinstance(self.path, str) and self.path != "", "traffic ngsim: `path` must name the NGSIM CSV file")
+        require_field_types(self)
+        require(self.path != "", "traffic ngsim: `path` must name the NGSIM CSV file")
         require(self.start_time >= 0, f"traffic ngsim: `start_time` must be >= 0 s; got {self.start_time!r}")
         require_positive("traffic ngsim", lane_width_ft=self.lane_width_ft, initial_clearance=self.initial_clearance)
         require(math.isfinite(self.ego_position), f"traffic ngsim: `ego_position` must be finite; got {self.ego_position!r}")
 
 
 Traffic = Union[IDMTraffic, ScriptedTraffic, NGSIMTraffic]
-TRAFFIC: dict[str, type] = {cls.kind: cls for cls in (IDMTraffic, ScriptedTraffic, NGSIMTraffic)}
 
 
 # ----------------------------------------------------------------------------------- scenario
@@ -362,8 +364,9 @@ class EgoConfig:
     lane: Optional[int] = None
 
     def __post_init__(self) -> None:
-        require(isinstance(self.speed, (int, float)) and self.speed >= 0, f"ego: `speed` must be >= 0 m/s; got {self.speed!r}")
-        require(self.lane is None or (isinstance(self.lane, int) and self.lane >= 0),
+        require_field_types(self)
+        require(self.speed >= 0, f"ego: `speed` must be >= 0 m/s; got {self.speed!r}")
+        require(self.lane is None or self.lane >= 0,
                  f"ego: `lane` must be null or an int >= 0; got {self.lane!r}")
 
 
@@ -444,12 +447,11 @@ class ScenarioConfig:
     mpc: MPCConfig = field(default_factory=MPCConfig)
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         where = f"scenario {self.name!r}"
-        require(isinstance(self.objective, tuple(OBJECTIVES.values())), f"{where}: `objective` must be one of {sorted(OBJECTIVES)}")
-        require(isinstance(self.traffic, tuple(TRAFFIC.values())), f"{where}: `traffic` must be one of {sorted(TRAFFIC)}")
         require_int(where, low=1, lanes=self.lanes)
         require_positive(where, duration=self.duration, frequency=self.frequency)
-        require(isinstance(self.seeds, tuple) and len(self.seeds) > 0 and all(isinstance(s, int) and s >= 0 for s in self.seeds),
+        require(len(self.seeds) > 0 and all(s >= 0 for s in self.seeds),
                  f"{where}: `seeds` must be a non-empty list of ints >= 0; got {self.seeds!r}")
         require(self.sim in SIMULATORS, f"{where}: `sim` must be one of {list(SIMULATORS)}; got {self.sim!r}")
         if self.sim == "batched":
@@ -462,8 +464,6 @@ class ScenarioConfig:
                 for lane in (vehicle.lane, vehicle.cut_in_lane):
                     require(lane is None or lane < self.lanes, f"{where}: scripted vehicle lane {lane} must be < lanes={self.lanes}")
         if self.vehicle_size is not None:
-            require(isinstance(self.vehicle_size, tuple) and len(self.vehicle_size) == 2,
-                     f"{where}: `vehicle_size` must be [length, width] in m; got {self.vehicle_size!r}")
             require_positive(where, vehicle_length=self.vehicle_size[0], vehicle_width=self.vehicle_size[1])
             require(not isinstance(self.traffic, NGSIMTraffic),
                      f"{where}: `vehicle_size` does not apply to NGSIM traffic (recorded vehicles keep their size)")
@@ -557,7 +557,8 @@ def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto") -> MPC:
     road = scenario.road
     goals = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
     optimizer = BatchOptimizer(scenario.optimizer, compile=compile)
-    return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0])
+    return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0],
+               vehicle_width=scenario.vehicle[1])
 
 
 def load_scenario(name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None) -> ScenarioConfig:

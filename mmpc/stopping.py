@@ -41,7 +41,9 @@ def first_conflict_x(
     in_corridor = (y - corridor_y[:, :, None, :]).abs() < half_width  # (E, C, M, N)
     hit = in_corridor & ahead[:, None, :, None]
     inf = torch.full((), float("inf"), dtype=x.dtype, device=x.device)
-    return torch.where(hit, x, inf).amin(dim=(2, 3))
+    conflicts = torch.where(hit, x, inf).flatten(2)  # (E, C, M N)
+    none = inf.expand(*conflicts.shape[:2], 1)  # M = 0 (no obstacle slots): no conflict
+    return torch.cat([conflicts, none], dim=2).amin(dim=2)
 
 
 def stop_goals(

@@ -28,18 +28,28 @@ def int_list(text: str) -> tuple[int, ...]:
     return values
 
 
+#: The most seeds :func:`seed_list` reads (repeats counted): a million episodes is more than any
+#: evaluation runs, and ``0-999999999`` would otherwise build a 36 GB list while parsing.
+MAX_SEEDS = 1_000_000
+
+
 def seed_list(text: str) -> tuple[int, ...]:
-    """``"0-19"``, ``"0,3,7"`` or a mix (``"0-4,9"``) -> seeds."""
-    seeds: list[int] = []
+    """``"0-19"``, ``"0,3,7"`` or a mix (``"0-4,9"``) -> seeds, repeats dropped; at most
+    :data:`MAX_SEEDS`, counted from the ranges before any is built."""
+    ranges: list[range] = []
     try:
         for part in (p for p in text.split(",") if p):
             low, _, high = part.partition("-")
-            seeds.extend(range(int(low), int(high) + 1) if high else [int(low)])
+            ranges.append(range(int(low), int(high or low) + 1))
     except ValueError as error:
         raise argparse.ArgumentTypeError(f"expected seeds like 0-19 or 0,3,7; got {text!r}") from error
-    if not seeds or min(seeds) < 0:
-        raise argparse.ArgumentTypeError(f"expected non-negative seeds like 0-19 or 0,3,7; got {text!r}")
-    return tuple(dict.fromkeys(seeds))
+    if not ranges or any(len(r) == 0 or r.start < 0 for r in ranges):
+        raise argparse.ArgumentTypeError(f"expected non-negative seeds like 0-19 or 0,3,7 (ranges low-high with low <= high); "
+                                         f"got {text!r}")
+    count = sum(len(r) for r in ranges)
+    if count > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"{text!r} names {count:,} seeds; at most {MAX_SEEDS:,} are allowed")
+    return tuple(dict.fromkeys(seed for r in ranges for seed in r))
 
 
 def override(text: str) -> tuple[str, object]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from mmpc.config import require, require_int, require_non_negative, require_positive
+from mmpc.config import require, require_field_types, require_int, require_non_negative, require_positive
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,7 @@ class SimConfig:
     lane_change_delay: float = 1.0
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         require_positive(
             "SimConfig", simulation_frequency=self.simulation_frequency, policy_frequency=self.policy_frequency,
             lane_width=self.lane_width, speed_limit=self.speed_limit, max_speed=self.max_speed, acc_max=self.acc_max,

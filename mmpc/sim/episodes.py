@@ -10,10 +10,13 @@ reached the scenario's duration.
 
 from __future__ import annotations
 
+import operator
+from collections.abc import Iterable
 from typing import Optional, Sequence, Union
 
 import torch
 
+from mmpc.problem import require_on_device, usable_device
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim.ego import ego_action
 from mmpc.sim.simulator import HighwaySimulator
@@ -22,6 +25,9 @@ from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim
 
 Seeds = Union[Sequence[int], torch.Tensor]
 
+#: The largest seed: seeds are held as int64.
+MAX_SEED = 2**63 - 1
+
 
 class SimEpisodes:
     """E episodes of ``scenario`` stepped together, each from its own seed.
@@ -29,9 +35,11 @@ class SimEpisodes:
     Args:
         scenario: an IDM-traffic scenario on highway-env's straight highway
             (:func:`mmpc.sim.traffic.check_supported` says why another is refused).
-        seeds: E episode seeds (ints).
+        seeds: E episode seeds, ints in [0, :data:`MAX_SEED`]: a sequence (numpy integers
+            included) or a 1-D integer tensor (on ``device``).
         dtype: float32 or float64 state.
-        device: where the state lives.
+        device: where the state lives (default: ``seeds``' device if a tensor, else torch's
+            default device); a device this machine can hold data on (not ``meta``).
 
     Example:
         >>> from mmpc.scenario import ScenarioConfig
@@ -46,7 +54,9 @@ class SimEpisodes:
         self.scenario = scenario
         self.config = sim_config(scenario)
         self.simulator = HighwaySimulator(self.config)
-        self.seeds = _seed_tensor(seeds, device)
+        if device is None:
+            device = seeds.device if isinstance(seeds, torch.Tensor) else torch.get_default_device()
+        self.seeds = _int_tensor("seeds", seeds, usable_device(device), MAX_SEED)
         if self.seeds.numel() == 0:
             raise ValueError("`seeds` must hold at least one seed (E >= 1)")
         self.state: VehicleState = initial_state(scenario, self.seeds, dtype=dtype)
@@ -84,9 +94,16 @@ class SimEpisodes:
         Args:
             command: (E, 2) the egos' acceleration [m/s^2] and steering [rad]; checked as
                 :meth:`mmpc.sim.HighwaySimulator.step` checks it.
-            running: (E,) bool, the environments that move; the others keep their state
-                (finished episodes in a lockstep batch). Default: all.
+            running: (E,) bool tensor on the episodes' device, the environments that move; the
+                others keep their state (finished episodes in a lockstep batch). Default: all.
         """
+        if running is not None:
+            if not isinstance(running, torch.Tensor) or running.dtype != torch.bool:
+                what = f"a {running.dtype} tensor" if isinstance(running, torch.Tensor) else type(running).__name__
+                raise TypeError(f"`running` must be a bool tensor of shape ({self.num_envs},); got {what}")
+            if running.shape != (self.num_envs,):
+                raise ValueError(f"`running` must have shape ({self.num_envs},); got {tuple(running.shape)}")
+            require_on_device(self.seeds.device, "the episodes' state", running=running)
         before = self.state
         after = self.simulator.step(before, command)
         window = self.scenario.traffic.window
@@ -97,22 +114,32 @@ class SimEpisodes:
         if running is None:
             self.state, self.applied, self.steps = after, applied, self.steps + 1
             return
-        running = running.to(device=self.seeds.device, dtype=torch.bool)
-        if running.shape != (self.num_envs,):
-            raise ValueError(f"`running` must have shape ({self.num_envs},); got {tuple(running.shape)}")
         self.state = VehicleState(*(torch.where(running.view(-1, *([1] * (new.dim() - 1))), new, old)
                                     for new, old in zip(after, before)))
         self.applied = torch.where(running[:, None], applied, self.applied)
         self.steps = self.steps + running.to(self.steps.dtype)
 
-    def reset(self, envs: torch.Tensor, seeds: Seeds) -> None:
-        """Start new episodes in environments ``envs`` ((R,) long) from ``seeds`` (R); the others keep running."""
-        envs = torch.as_tensor(envs, dtype=torch.int64, device=self.seeds.device)
-        seeds = _seed_tensor(seeds, self.seeds.device)
-        if envs.shape != seeds.shape or envs.dim() != 1:
-            raise ValueError(f"`envs` and `seeds` must be two (R,) sequences; got {tuple(envs.shape)} and {tuple(seeds.shape)}")
-        if envs.numel() and (int(envs.min()) < 0 or int(envs.max()) >= self.num_envs):
-            raise ValueError(f"`envs` must lie in [0, {self.num_envs - 1}]; got {envs.tolist()}")
+    def reset(self, envs: Union[Sequence[int], torch.Tensor], seeds: Seeds) -> None:
+        """Start new episodes in some environments; the others keep running.
+
+        Args:
+            envs: the R environments: distinct indices in [0, E - 1] (ints, or a 1-D integer
+                tensor), or an (E,) bool tensor that marks them (e.g. :attr:`done`); tensors on
+                the episodes' device.
+            seeds: R seeds, one per environment in the order of ``envs`` (as the constructor's).
+        """
+        device = self.seeds.device
+        if isinstance(envs, torch.Tensor) and envs.dtype == torch.bool:
+            if envs.shape != (self.num_envs,):
+                raise ValueError(f"`envs` as a bool mask must have shape ({self.num_envs},); got {tuple(envs.shape)}")
+            require_on_device(device, "the episodes' state", envs=envs)
+            envs = envs.nonzero()[:, 0]
+        envs = _int_tensor("envs", envs, device, self.num_envs - 1)
+        if len(set(envs.tolist())) != envs.numel():
+            raise ValueError(f"`envs` must not repeat an environment; got {envs.tolist()}")
+        seeds = _int_tensor("seeds", seeds, device, MAX_SEED)
+        if seeds.shape != envs.shape:
+            raise ValueError(f"`seeds` must hold one seed per environment reset ({envs.numel()}); got {seeds.numel()}")
         fresh = initial_state(self.scenario, seeds, dtype=self.state.x.dtype)
         self.state = VehicleState(*(field.index_copy(0, envs, new) for field, new in zip(self.state, fresh)))
         self.seeds = self.seeds.index_copy(0, envs, seeds)
@@ -140,13 +167,28 @@ class SimEpisodes:
         return ego, vehicles, state.alive[:, 1:]
 
 
-def _seed_tensor(seeds: Seeds, device) -> torch.Tensor:
-    values = torch.as_tensor(seeds, device=device)
-    if values.numel() == 0:  # an empty list reads as float
-        values = values.to(torch.int64)
-    if values.dim() != 1 or values.is_floating_point() or values.dtype == torch.bool:
-        raise ValueError(f"`seeds` must be a sequence of ints; got {values.dtype} of shape {tuple(values.shape)}")
-    if values.numel() and int(values.min()) < 0:
-        raise ValueError(f"`seeds` must be >= 0; got {values.min().item()}")
-    return values.to(torch.int64)
+def _int_tensor(name: str, values: Union[Sequence[int], torch.Tensor], device: torch.device, high: int) -> torch.Tensor:
+    """(R,) int64 on ``device`` from R ints in [0, high]: a sequence (numpy integers included) or
+    a 1-D integer tensor on ``device``; bools, floats and strings are refused, naming ``name``."""
+    if isinstance(values, torch.Tensor):
+        require_on_device(device, "the episodes' state", **{name: values})
+        if values.dim() != 1 or values.dtype == torch.bool or values.is_floating_point() or values.is_complex():
+            raise ValueError(f"`{name}` must be a sequence of ints; got a {values.dtype} tensor of shape {tuple(values.shape)}")
+        values = values.tolist()
+    if isinstance(values, (str, bytes)) or not isinstance(values, Iterable):
+        raise ValueError(f"`{name}` must be a sequence of ints; got {values!r}")
+    ints = []
+    for item in values:
+        try:
+            number = operator.index(item)  # an int or a numpy integer; not a float, str or numpy bool
+        except TypeError:
+            number = None
+        if number is None or isinstance(item, bool):
+            raise ValueError(f"`{name}` must be a sequence of ints; got {item!r} ({type(item).__name__}) in it")
+        if number < 0:
+            raise ValueError(f"`{name}` must be >= 0; got {number}")
+        if number > high:
+            raise ValueError(f"`{name}` must lie in [0, {high}]; got {number}")
+        ints.append(number)
+    return torch.tensor(ints, dtype=torch.int64, device=device)
 
