@@ -58,10 +58,10 @@ class Crash(NamedTuple):
 
     Fields:
         part: what the collider struck of the ego (``"front"``, ``"side"``, ``"rear"``).
-        along, across: the collider's centre in the ego's frame: ahead, and to the ego's left
-            (+y) [m].
+        along, across: the collider's centre in the ego's frame: ahead, and toward +y (in
+            highway-env's frame, where lane k's centre is at y = 4 k, to the right) [m].
         other_heading_deg: the collider's direction of motion relative to the road [deg]
-            (+ toward +y); a car changing lanes is turned by 5-30 deg.
+            (+: toward +y); a car changing lanes is turned by 5-30 deg.
         other_speed: the collider's speed [m/s].
         closing_speed: how fast the ego was gaining on the collider along the road
             (ego vx - collider vx) [m/s].

@@ -15,13 +15,14 @@ from typing import Callable, NamedTuple, Optional
 
 import torch
 
-from mmpc.config import require, require_int, require_non_negative, require_positive
+from mmpc.config import require, require_field_types, require_int, require_non_negative, require_positive
 from mmpc.footprint import HIGHWAY_VEHICLE, covering_semi_axes
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
     EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
+    require_on_device,
 )
 from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
 from mmpc.result import SolveResult, Status, Trajectories
@@ -134,6 +135,7 @@ class MPCConfig:
     road_margin: float = 1.0
 
     def __post_init__(self) -> None:
+        require_field_types(self)
         require(self.prediction in PREDICTIONS,
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
         require(self.obstacle_shape in OBSTACLE_SHAPES,
@@ -145,8 +147,7 @@ class MPCConfig:
                              passing_margin=self.passing_margin, max_passing_margin=self.max_passing_margin,
                              evasive_horizon=self.evasive_horizon,
                              tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
-        require(self.stop_lanes is None or (isinstance(self.stop_lanes, int) and not isinstance(self.stop_lanes, bool)
-                                            and self.stop_lanes >= 0),
+        require(self.stop_lanes is None or self.stop_lanes >= 0,
                 f"`stop_lanes` must be null (no stop goals) or an int >= 0; got {self.stop_lanes!r}")
         require(self.max_deceleration >= self.brake_deceleration,
                 f"`max_deceleration` ({self.max_deceleration}) must be >= `brake_deceleration` ({self.brake_deceleration})")
@@ -349,6 +350,7 @@ class MPC:
                 ``vehicle_mask`` that is not (E, V) bool.
         """
         opt = self.optimizer
+        require_on_device(opt.device, "the MPC's optimizer", ego=ego, vehicles=vehicles, vehicle_mask=vehicle_mask)
         check_state(ego, vehicles, vehicle_mask)
         ego = ego.to(dtype=opt.dtype)
         vehicles = vehicles.to(dtype=opt.dtype)

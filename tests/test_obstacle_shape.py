@@ -139,3 +139,15 @@ def test_mpc_plans_around_the_wider_ellipse_it_builds():
     chosen = distance[0, int(plan.selection.index[0])]
     if bool(plan.selection.feasible[0]):
         assert float(chosen.sqrt().min()) >= 1.0 - mpc.optimizer.config.obstacle_tolerance
+
+
+def test_plan_refuses_tensors_on_another_device():
+    from mmpc.scenario import build_mpc, load_scenario
+
+    mpc = build_mpc(load_scenario("cruise", {"optimizer.iterations": 2}), compile=False)
+    with pytest.raises(ValueError, match="`ego` is on meta but the MPC's optimizer is on cpu"):
+        mpc.plan(torch.zeros(1, 6, device="meta"), torch.zeros(1, 0, 4))
+    with pytest.raises(ValueError, match="`vehicles` is on meta"):
+        mpc.plan(torch.zeros(1, 6), torch.zeros(1, 1, 4, device="meta"))
+    with pytest.raises(ValueError, match="`stop_lanes` must be an int or null"):
+        MPCConfig(stop_lanes=1.5)

@@ -214,7 +214,8 @@ def format_crashes(rows: Sequence[dict]) -> str:
         return "-" if value is None else f"{value:.{digits}f}"
 
     lines = ["### Collisions", "",
-             "The collider's position in the ego's frame (ahead, left), its heading to the road, the ego's closing "
+             "The collider's position in the ego's frame (ahead, and toward +y: the right in highway-env), its "
+             "heading to the road (+: toward +y), the ego's closing "
              "speed on it and offset from its lane centre, and the steps of the last second a fallback drove. "
              "The ego's fault: it struck the collider with its front or a side.", ""]
     for driver, scenario in dict.fromkeys((row.get("driver"), row["scenario"]) for row in crashed):
@@ -227,7 +228,7 @@ def format_crashes(rows: Sequence[dict]) -> str:
         lines += [f"`{driver}` / {scenario}: {len(mine)} collisions; struck " + ", ".join(f"{n} {part}" for part, n in parts.items())
                   + f"; collider turned > {TURNED_DEG:g} deg in {turned}, ego > {OFF_CENTRE:g} m off its lane centre in "
                   f"{astride}, a fallback drove in the last second in {fallback}", "",
-                  "| seed | t [s] | part | ahead [m] | left [m] | heading [deg] | speed [m/s] | closing [m/s] | ego offset [m] "
+                  "| seed | t [s] | part | ahead [m] | +y [m] | heading [deg] | speed [m/s] | closing [m/s] | ego offset [m] "
                   "| ego speed [m/s] | fallback steps |", "|" + "---|" * 11]
         for row in mine:
             lines.append(" | ".join([
