@@ -84,6 +84,11 @@ class MPCConfig:
             its own lane centre, not astride the lane line beside it, where a car that starts to
             change lanes leaves no room to react. 0: off.
         max_passing_margin: the largest such growth [m].
+        closing_margin: the ellipse of a car the ego is faster than grows along the road by
+            this much per m/s of the difference [m per m/s = s], at most ``max_closing_margin``:
+            the ego swerves around a slower car ahead earlier and farther back, instead of
+            reaching its rear corner at full closing speed. 0: off.
+        max_closing_margin: the largest such growth [m].
         evasive_horizon: with no candidate feasible, the fallback ranks the candidates first by
             how deep they enter an obstacle's ellipse within this many seconds [s] (the plan is
             re-made every step: the next seconds decide a collision, the rest of the horizon
@@ -123,6 +128,8 @@ class MPCConfig:
     obstacle_shape: str = "fixed"
     passing_margin: float = 0.0
     max_passing_margin: float = 1.0
+    closing_margin: float = 0.0
+    max_closing_margin: float = 4.0
     evasive_horizon: float = 0.0
     command_window: float = 0.3
     tie_tolerance: float = 0.01
@@ -145,6 +152,7 @@ class MPCConfig:
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
                              passing_margin=self.passing_margin, max_passing_margin=self.max_passing_margin,
+                             closing_margin=self.closing_margin, max_closing_margin=self.max_closing_margin,
                              evasive_horizon=self.evasive_horizon,
                              tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
         require(self.stop_lanes is None or self.stop_lanes >= 0,
@@ -358,19 +366,25 @@ class MPC:
             vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))
         states, mask = self.nearest_obstacles(ego, vehicles, vehicle_mask)
         obstacles = self.predict(states, opt.times)
+        axes = self.obstacle_axes(ego, states)
         goals = self.goal_sampler(ego, self.road)
         if self.config.stop_lanes is not None:
-            stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon, ellipse=self.ellipse,
+            ellipse = self.ellipse
+            if axes is not None:  # rest behind the longest ellipse of the problem's obstacles
+                longest = torch.where(mask, axes[..., 0], torch.full_like(axes[..., 0], ellipse[0]))
+                ellipse = (longest.amax(dim=1, keepdim=True).clamp_min(ellipse[0]), ellipse[1])
+            stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon, ellipse=ellipse,
                                lanes=self.config.stop_lanes, gap=self.config.stop_gap)
             goals = torch.cat([goals, stops], dim=1)
-        return ProblemBatch(ego, goals, obstacles, mask, self.obstacle_axes(ego, states))
+        return ProblemBatch(ego, goals, obstacles, mask, axes)
 
     def obstacle_axes(self, ego: torch.Tensor, states: torch.Tensor) -> Optional[torch.Tensor]:
         """(E, M, 2) ellipse semi-axes [m] of the (E, M, 4) obstacle states around the (E, 6)
-        egos: :attr:`MPCConfig.obstacle_shape`, widened by the passing margin
-        (:attr:`MPCConfig.passing_margin`); ``None`` when both are off (the optimizer's ellipse)."""
+        egos: :attr:`MPCConfig.obstacle_shape`, grown by the passing and closing margins
+        (:attr:`MPCConfig.passing_margin`, ``closing_margin``); ``None`` when all are off (the
+        optimizer's ellipse)."""
         cfg = self.config
-        if cfg.obstacle_shape == "fixed" and cfg.passing_margin == 0:
+        if cfg.obstacle_shape == "fixed" and cfg.passing_margin == 0 and cfg.closing_margin == 0:
             return None
         if cfg.obstacle_shape == "heading":
             # Below 1 m/s the direction of motion says little about where the car points.
@@ -379,11 +393,10 @@ class MPC:
             axes = covering_semi_axes(heading, self.ellipse, self.optimizer.config.max_heading_deg, self.vehicle)
         else:
             axes = states.new_tensor(self.ellipse).expand(*states.shape[:2], 2)
-        if cfg.passing_margin > 0:
-            faster = (ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]).clamp_min(0.0)  # (E, M)
-            margin = (cfg.passing_margin * faster).clamp_max(cfg.max_passing_margin)
-            axes = torch.stack([axes[..., 0], axes[..., 1] + margin], dim=-1)
-        return axes
+        faster = (ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]).clamp_min(0.0)  # (E, M)
+        along = axes[..., 0] + (cfg.closing_margin * faster).clamp_max(cfg.max_closing_margin)
+        across = axes[..., 1] + (cfg.passing_margin * faster).clamp_max(cfg.max_passing_margin)
+        return torch.stack([along, across], dim=-1)
 
     @property
     def ellipse(self) -> tuple[float, float]:

@@ -72,7 +72,7 @@ def stop_goals(
         mask: (E, M) bool, present obstacles.
         road: the road.
         horizon: planning horizon t_f [s].
-        ellipse: (a, b) obstacle ellipse semi-axes [m].
+        ellipse: (a, b) obstacle ellipse semi-axes [m]; a may be an (E, 1) tensor, one per problem.
         lanes: lanes either side of the ego's lane that get a stop goal.
         gap: distance kept to the ellipse of the obstacle ahead [m].
 

@@ -151,3 +151,15 @@ def test_plan_refuses_tensors_on_another_device():
         mpc.plan(torch.zeros(1, 6), torch.zeros(1, 1, 4, device="meta"))
     with pytest.raises(ValueError, match="`stop_lanes` must be an int or null"):
         MPCConfig(stop_lanes=1.5)
+
+
+def test_closing_margin_lengthens_slower_cars_and_the_stop_goals_rest_behind_it():
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)
+    states = torch.tensor([[[40.0, 8.0, 10.0, 0.0], [30.0, 4.0, 25.0, 0.0]]])
+    plain, closing = _mpc(stop_lanes=0), _mpc(stop_lanes=0, closing_margin=0.3, max_closing_margin=2.5)
+    a, b = plain.ellipse
+    axes = closing.obstacle_axes(ego, states)[0]
+    torch.testing.assert_close(axes, torch.tensor([[a + 2.5, b], [a, b]]))  # 0.3 s x 10 m/s, capped; the faster car as is
+    vehicles = torch.tensor([[[40.0, 8.0, 0.0, 0.0]]])  # stopped ahead in the ego's lane
+    stop = lambda mpc: float(mpc.build_problem(ego, vehicles).goals[0, -1, 0])
+    assert stop(closing) == pytest.approx(stop(plain) - min(0.3 * 20.0, 2.5))
