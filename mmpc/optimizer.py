@@ -81,7 +81,7 @@ class _Prepared(NamedTuple):
     b_position: torch.Tensor  # (n_eq, 2 E G') boundary values of x and y
     b_heading: torch.Tensor  # (4, E G') boundary values of psi
     obstacles: torch.Tensor  # (M, N, 2, E, 1) obstacle centres / semi-axes, absent slots parked
-    axes: Optional[torch.Tensor]  # (M, 1, 2, E, 1) per-obstacle semi-axes [m]; None: the config's (a, b)
+    axes: Optional[torch.Tensor]  # (M, 1, 4, E, 1) per-obstacle semi-axes a, b [m] and 1/a, 1/b; None: the config's
     mask: torch.Tensor  # (E, M) bool
     counts: torch.Tensor  # (E,) int64 number of present obstacles
     uniform_count: Optional[int]  # the count when it is the same for every problem
@@ -416,8 +416,8 @@ def _layout(
     Returns:
         origin (E, 2) [m]; b_position (n_eq, 2 E G); b_heading (4, E G); obstacles
         (M, N, 2, E, 1) in semi-axis units, absent slots parked; axes: ``None`` when every obstacle
-        has ``semi_axes``, else the per-obstacle ``axes`` (E, M, 2) as (M, 1, 2, E, 1) [m] (absent
-        slots given ``semi_axes``); goal_ahead (E, G) bool; counts (E,) int64 present obstacles per problem.
+        has ``semi_axes``, else the per-obstacle ``axes`` (E, M, 2) and their reciprocals as
+        (M, 1, 4, E, 1) (a, b [m], 1/a, 1/b; absent slots given ``semi_axes``); goal_ahead (E, G) bool; counts (E,) int64 present obstacles per problem.
     """
     num_goals = goals.shape[1]
     origin = ego[:, EGO_X : EGO_Y + 1]  # (E, 2)
@@ -447,8 +447,9 @@ def _layout(
         scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / relative.new_tensor(semi_axes).view(2, 1, 1)  # (M, N, 2, E, 1)
     else:
         axes = torch.where(mask[..., None], axes, axes.new_tensor(semi_axes))
-        axes = axes.permute(1, 2, 0)[:, None, :, :, None].contiguous()  # (M, 1, 2, E, 1)
+        axes = axes.permute(1, 2, 0)[:, None, :, :, None]  # (M, 1, 2, E, 1)
         scaled = relative.permute(1, 2, 3, 0).unsqueeze(-1) / axes
+        axes = torch.cat([axes, 1.0 / axes], dim=2).contiguous()  # reciprocals: products in the iterations
     return origin, b_position, b_heading, scaled.contiguous(), axes, relative_goals[..., 0] > 0, mask.sum(dim=1)
 
 
@@ -634,7 +635,7 @@ def _closed_form_steps(
         samples: (3N, 2, E, G) [position; acceleration; velocity] relative to the start.
         psi: (N, E, G) heading [rad].
         obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
-        axes: (M, 1, 2, E, 1) per-obstacle semi-axes [m]; ``None``: ``limits``'.
+        axes: (M, 1, 4, E, 1) per-obstacle semi-axes and reciprocals (:class:`_Prepared`); ``None``: ``limits``'.
         limits: speed and acceleration bounds, ellipse semi-axes.
     """
     n = psi.shape[0]
@@ -672,7 +673,8 @@ def _obstacle_offsets(
     Args:
         position: (N, 2, E, G) sample positions relative to the start [m].
         obstacles: (M, N, 2, E, 1) obstacle centres in semi-axis units.
-        axes: (M, 1, 2, E, 1) per-obstacle semi-axes [m]; ``None``: every obstacle has ``limits``'.
+        axes: (M, 1, 4, E, 1) per-obstacle semi-axes and reciprocals (:class:`_Prepared`); ``None``: every
+            obstacle has ``limits``'.
         limits: holds the ellipse semi-axes (a, b) [m] and R.
 
     Returns:
@@ -684,9 +686,9 @@ def _obstacle_offsets(
     if axes is None:
         offset_x = position[:, 0] * (1.0 / limits.ellipse_a) - obstacles[:, :, 0]
         offset_y = position[:, 1] * (1.0 / limits.ellipse_b) - obstacles[:, :, 1]
-    else:  # (N, E, G) / (M, 1, E, 1): one division per obstacle and sample, as a constant's product
-        offset_x = position[:, 0] / axes[:, :, 0] - obstacles[:, :, 0]
-        offset_y = position[:, 1] / axes[:, :, 1] - obstacles[:, :, 1]
+    else:  # (N, E, G) x (M, 1, E, 1)
+        offset_x = position[:, 0] * axes[:, :, 2] - obstacles[:, :, 0]
+        offset_y = position[:, 1] * axes[:, :, 3] - obstacles[:, :, 1]
     distance_squared = offset_x * offset_x + offset_y * offset_y
     inverse_distance = distance_squared.clamp_min(_EPS_SQUARED).rsqrt()
     if limits.obstacle_radius != 1.0:  # a Python constant: no branch in the compiled kernels

@@ -24,6 +24,7 @@ import torch
 
 from mmpc.cli.arguments import int_list
 from mmpc.config import OptimizerConfig
+from mmpc.footprint import covering_semi_axes
 from mmpc.optimizer import BatchOptimizer
 from mmpc.plotting import plot_scaling
 from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
@@ -37,7 +38,10 @@ class SolverBenchmark:
         batches: batch sizes B (goals of one problem).
         obstacles: obstacle counts M.
         devices: "cpu" and/or "cuda" (cuda rows are skipped without a GPU).
-        variants: "eager" (reference) and/or "compiled" (``BatchOptimizer(compile=True)``).
+        variants: "eager" (reference) and/or "compiled" (``BatchOptimizer(compile=True)``); with
+            the suffix "-turned" the problem gives every obstacle its own ellipse
+            (:attr:`mmpc.ProblemBatch.obstacle_axes` of :func:`turned_axes`), as the expert's
+            ``obstacle_shape: heading`` does.
         threads: CPU threads for the CPU rows.
         repeats: timed solves per row.
         warmup: untimed solves per row.
@@ -70,6 +74,12 @@ def benchmark_problem(batch: int, obstacles: int, times: torch.Tensor) -> Proble
     v = 7.0 + 5.0 * torch.rand(obstacles, generator=gen, dtype=times.dtype)
     states = torch.stack([x, y, v, torch.zeros_like(v)], dim=-1)[None]
     return ProblemBatch(ego, goals, predict_constant_velocity(states, times))
+
+
+def turned_axes(obstacles: int, config: OptimizerConfig) -> torch.Tensor:
+    """(1, M, 2) per-obstacle semi-axes of cars turned by 0-20 deg (:func:`mmpc.footprint.covering_semi_axes`)."""
+    headings = torch.deg2rad(torch.linspace(0.0, 20.0, obstacles))[None]
+    return covering_semi_axes(headings, config.ellipse, config.max_heading_deg)
 
 
 def bytes_per_solve(batch: int, obstacles: int, config: OptimizerConfig, element_size: int = 4) -> float:
@@ -141,7 +151,7 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
     Each row: device, variant, batch, obstacles, ms_median, ms_p90, cpu_ms_median (CPU rows),
     solves, load_1min, and ``roofline_fraction`` = (least bytes per solve / median time) /
     measured copy bandwidth; compiled rows also ``speedup_vs_eager`` (wall) and
-    ``cpu_speedup_vs_eager``, from the same interleaved rounds.
+    ``cpu_speedup_vs_eager``, "-turned" rows ``time_vs_shared_axes``, from the same interleaved rounds.
     """
     rows = []
     bandwidths = {}
@@ -156,7 +166,7 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
             bandwidths[device_name] = memory_bandwidth(device)
             log(f"{device_name}: copy bandwidth {bandwidths[device_name] / 1e9:.1f} GB/s")
             optimizers = {
-                variant: BatchOptimizer(spec.config, device=device, compile=variant == "compiled")
+                variant: BatchOptimizer(spec.config, device=device, compile=variant.startswith("compiled"))
                 for variant in spec.variants
             }
             for obstacles in spec.obstacles:
@@ -200,8 +210,10 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
     first = next(iter(optimizers.values()))
     problem = benchmark_problem(batch, obstacles, first.times.cpu())
     problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
+    turned = problem._replace(obstacle_axes=turned_axes(obstacles, first.config).to(device))
     with torch.inference_mode():
-        solves = {variant: (lambda optimizer=optimizer: optimizer(problem)) for variant, optimizer in optimizers.items()}
+        solves = {variant: (lambda optimizer=optimizer, p=turned if variant.endswith("-turned") else problem: optimizer(p))
+                  for variant, optimizer in optimizers.items()}
         times = time_interleaved(solves, device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
     load = os.getloadavg()[0]
     rows = []
@@ -237,6 +249,14 @@ def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
                 row["cpu_speedup_vs_eager"] = eager[key]["cpu_ms_median"] / row["cpu_ms_median"]
                 text += f" (cpu time {row['cpu_speedup_vs_eager']:.2f}x)"
             log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is {text} faster than eager")
+    # per-obstacle ellipses against the shared ones, same optimizer kind, same rounds
+    plain = {(r["device"], r["batch"], r["obstacles"], r["variant"]): r for r in rows}
+    for row in rows:
+        shared = plain.get((row["device"], row["batch"], row["obstacles"], row["variant"].removesuffix("-turned")))
+        if row["variant"].endswith("-turned") and shared is not None:
+            row["time_vs_shared_axes"] = row["ms_median"] / shared["ms_median"]
+            log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} {row['variant']} takes "
+                f"{row['time_vs_shared_axes']:.2f}x the time of {shared['variant']}")
 
 
 def _vectorized_comparison(spec: SolverBenchmark, log: Callable[[str], None]) -> dict:
