@@ -49,6 +49,10 @@ HIGHWAY_HEADING_TARGET_DEG = 11.7
 #: (docs/experiments/2026-11-24-expert-quality.md).
 HIGHWAY_OBSTACLE_BACKOFF = 0.05
 HIGHWAY_ACCELERATION_BACKOFF = 0.16
+#: Obstacle ellipses widened to cover each car at its heading (:attr:`mmpc.MPCConfig.obstacle_shape`):
+#: side impacts with cars changing lanes were most of the expert's crashes
+#: (docs/experiments/2026-11-26-no-crash.md).
+HIGHWAY_OBSTACLE_SHAPE = "heading"
 #: Folder of the scenarios that ship with mmpc (:attr:`ScenarioConfig.config_folder`).
 SCENARIO_DIR = shipped_config_dir("scenarios")
 
@@ -416,7 +420,8 @@ class ScenarioConfig:
             ellipse must cover two of the scenario's vehicles with the ego anywhere in the
             heading band and the other along the road (:func:`mmpc.footprint.ellipse_coverage`
             <= 1), else the scenario is refused: the ego could touch a car it plans to clear.
-        mpc: receding-horizon settings.
+        mpc: receding-horizon settings (default: :class:`mmpc.MPCConfig`'s with
+            :data:`HIGHWAY_OBSTACLE_SHAPE`).
 
     Scenarios written before mmpc derived the wheelbase and made compiling a run option may
     hold ``mpc.wheelbase`` and ``mpc.compile``; :meth:`upgrade` reads them.
@@ -444,7 +449,7 @@ class ScenarioConfig:
             acceleration_backoff=HIGHWAY_ACCELERATION_BACKOFF,
         )
     )
-    mpc: MPCConfig = field(default_factory=MPCConfig)
+    mpc: MPCConfig = field(default_factory=lambda: MPCConfig(obstacle_shape=HIGHWAY_OBSTACLE_SHAPE))
 
     def __post_init__(self) -> None:
         require_field_types(self)

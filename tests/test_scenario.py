@@ -197,7 +197,8 @@ def test_an_old_scenario_with_compile_and_wheelbase_loads_with_warnings(caplog, 
     assert scenario.mpc == MPCConfig() and scenario.vehicle == (4.0, 1.4)
     assert scenario == from_dict(ScenarioConfig, {**OLD_CRUISE_PAPER, "mpc": {}})
     assert build_mpc(scenario).wheelbase == 4.0 and build_mpc(load_scenario("cruise")).wheelbase == 5.0
-    old_cruise = {**to_dict(load_scenario("cruise")), "mpc": {"wheelbase": 5.0, "compile": False}}
+    cruise = to_dict(load_scenario("cruise"))
+    old_cruise = {**cruise, "mpc": {**cruise["mpc"], "wheelbase": 5.0, "compile": False}}
     assert from_dict(ScenarioConfig, old_cruise) == load_scenario("cruise")
 
 
