@@ -11,11 +11,12 @@ where they have come too close or the vehicle has drifted too far (:func:`needs_
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Union
 
 import torch
 
 from mmpc.config import require_positive
+from mmpc.footprint import ellipse_distance_squared
 from mmpc.problem import EGO_PSI, EGO_V, EGO_X, EGO_Y
 from mmpc.result import Trajectories
 
@@ -72,7 +73,7 @@ def plan_clearance(
     states: torch.Tensor,
     mask: torch.Tensor,
     predict: Predictor,
-    ellipse: tuple[float, float],
+    ellipse: Union[tuple[float, float], torch.Tensor],
 ) -> torch.Tensor:
     """The smallest normalised ellipse distance between the rest of each plan and the obstacles
     as predicted now.
@@ -83,7 +84,7 @@ def plan_clearance(
         states: (E, M, 4) obstacles now (x, y, vx, vy) [m, m/s], e.g. :meth:`mmpc.MPC.nearest_obstacles`.
         mask: (E, M) bool, present obstacles.
         predict: obstacle prediction over times from now.
-        ellipse: (a, b) semi-axes [m].
+        ellipse: (a, b) semi-axes [m], or (E, M, 2) per obstacle (:meth:`mmpc.MPC.obstacle_axes`).
 
     Returns:
         (E,) ``min sqrt((dx / a)^2 + (dy / b)^2)`` over present obstacles and the plan's remaining
@@ -95,9 +96,9 @@ def plan_clearance(
     ahead = elapsed[:, None] + times[None, :]  # (E, N) plan times of the prediction instants
     rest = sample(trajectory, ahead)
     centres = predict(states, times)  # (E, M, N, 2)
-    dx = (rest.x[:, None] - centres[..., 0]) / ellipse[0]
-    dy = (rest.y[:, None] - centres[..., 1]) / ellipse[1]
-    distance = torch.hypot(dx, dy)
+    points = torch.stack([rest.x, rest.y], dim=-1)[:, None]  # (E, 1, N, 2)
+    axes = ellipse[:, :, None, :] if isinstance(ellipse, torch.Tensor) else ellipse  # (E, M, 1, 2)
+    distance = ellipse_distance_squared(points, centres, axes).sqrt()
     counted = mask[..., None] & (ahead <= times[-1] + 1e-9)[:, None, :]
     distance = torch.where(counted, distance, torch.full_like(distance, float("inf")))
     return distance.flatten(1).amin(dim=1)

@@ -21,6 +21,7 @@ import torch
 
 from mmpc.collisions import CRASH_COLUMNS, Crash, crash_scene, is_ego_fault
 from mmpc.drivers import Decision, Driver, Observation, make_driver
+from mmpc.footprint import ellipse_distance_squared
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.highway.worlds import World, make_world
 from mmpc.metrics import StepRecord, episode_metrics
@@ -57,9 +58,7 @@ def _clearance(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.T
         vehicles = vehicles[mask]
     if vehicles.shape[0] == 0:
         return float("inf")
-    dx = (vehicles[:, 0] - ego[EGO_X]) / ellipse[0]
-    dy = (vehicles[:, 1] - ego[EGO_Y]) / ellipse[1]
-    return float(torch.hypot(dx, dy).min())
+    return float(ellipse_distance_squared(vehicles[:, :2], ego[EGO_X:EGO_Y + 1], ellipse).min().sqrt())
 
 
 def _record(step: int, episode: HighwayEpisode, observation: Observation, decision: Decision, row: int) -> StepRecord:
