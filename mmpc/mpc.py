@@ -8,6 +8,7 @@ per :meth:`MPC.plan`.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -92,7 +93,10 @@ class MPCConfig:
         evasive_horizon: with no candidate feasible, the fallback ranks the candidates first by
             how deep they enter an obstacle's ellipse within this many seconds [s] (the plan is
             re-made every step: the next seconds decide a collision, the rest of the horizon
-            can still change); 0: by the whole horizon's violation alone.
+            can still change), and following a candidate's path it also brakes for the cars
+            ahead that come within a vehicle width and a half of that path within that time
+            (the lane-keeping check alone missed cars 2-3 m to the side that the path clipped);
+            0: by the whole horizon's violation alone, braking for the ego's lane only.
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
@@ -547,7 +551,7 @@ class MPC:
         acceleration, heading_rate = self._command(trajectory)
         drivable = torch.zeros_like(feasible) if drivable is None else drivable
         acceleration, heading_rate = self._fallback(
-            ego, trajectory.times, feasible, drivable, acceleration, heading_rate, obstacles, mask
+            ego, trajectory, feasible, drivable, acceleration, heading_rate, obstacles, mask
         )
         return acceleration, self.steering(ego, heading_rate), heading_rate
 
@@ -646,7 +650,7 @@ class MPC:
     def _fallback(
         self,
         ego: torch.Tensor,
-        times: torch.Tensor,
+        trajectory: Trajectories,
         feasible: torch.Tensor,
         drivable: torch.Tensor,
         acceleration: torch.Tensor,
@@ -661,10 +665,15 @@ class MPC:
         fallback_acceleration = torch.where(drivable, acceleration.clamp_max(0.0), -self.config.brake_deceleration)
         if obstacles is not None and obstacles.shape[1] > 0:
             mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask
-            needed = conflict_deceleration(
-                ego, obstacles, mask, times, half_width=0.5 * self.road.lane_width,
-                standoff=self.wheelbase + self.config.stop_gap, max_deceleration=self.config.max_deceleration,
-            )
+            times = trajectory.times
+            brake = functools.partial(conflict_deceleration, ego, obstacles, mask, times,
+                                      standoff=self.wheelbase + self.config.stop_gap,
+                                      max_deceleration=self.config.max_deceleration)
+            needed = brake(half_width=0.5 * self.road.lane_width)
+            if self.config.evasive_horizon > 0:  # the cars the followed path passes within 1.5 widths of
+                on_path = brake(half_width=1.5 * self.vehicle[1], corridor_y=trajectory.y,
+                                within=self.config.evasive_horizon)
+                needed = torch.minimum(needed, torch.where(drivable, on_path, torch.zeros_like(on_path)))
             fallback_acceleration = torch.minimum(fallback_acceleration, needed)
         # Near rest, brake only as much as stops within the command window (never into reverse).
         fallback_acceleration = torch.maximum(fallback_acceleration, -ego[:, EGO_V] / self.config.command_window)
