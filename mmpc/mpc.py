@@ -22,8 +22,8 @@ from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
-    EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
-    require_on_device,
+    EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_lane_change,
+    predict_within_lanes, require_on_device,
 )
 from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
 from mmpc.result import SolveResult, Status, Trajectories
@@ -75,6 +75,15 @@ class MPCConfig:
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
             the horizon and leaves no feasible candidate.
+        contingencies: K extra obstacle slots, each a contingency: one of the obstacles two or
+            more lanes from the ego's, ahead and slower, which the ego reaches within
+            ``contingency_window``, starting a lane change toward the ego now
+            (:func:`mmpc.predict_lane_change`; the ones reached first). A plan must clear both the
+            car's prediction and its contingency. Traffic that changes lanes by MOBIL does not
+            cut in directly ahead of a car behind it in the target lane, but it does move into
+            a lane the ego is about to enter: most of the expert's high-speed crashes. 0: none.
+        contingency_window: how soon the ego must reach a car for it to get a contingency [s].
+        contingency_lateral_speed: a contingency's speed across the road [m/s].
         obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
             ``ellipse_b`` for every car) or ``"heading"`` (widened across the road to cover the
             car at its direction of motion, :func:`mmpc.footprint.covering_semi_axes`): a car
@@ -129,6 +138,9 @@ class MPCConfig:
     ignore_behind: float = 20.0
     obstacle_lookahead: float = 3.0
     prediction: str = "lanes"
+    contingencies: int = 0
+    contingency_window: float = 4.0
+    contingency_lateral_speed: float = 2.5
     obstacle_shape: str = "fixed"
     passing_margin: float = 0.0
     max_passing_margin: float = 1.0
@@ -151,7 +163,9 @@ class MPCConfig:
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
         require(self.obstacle_shape in OBSTACLE_SHAPES,
                 f"`obstacle_shape` must be one of {list(OBSTACLE_SHAPES)}; got {self.obstacle_shape!r}")
-        require_int("", low=0, num_obstacles=self.num_obstacles)
+        require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies)
+        require_positive("", contingency_window=self.contingency_window,
+                         contingency_lateral_speed=self.contingency_lateral_speed)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
@@ -344,10 +358,11 @@ class MPC:
         self.meta_cost = meta_cost
         self.road = road
         self.config = config if config is not None else MPCConfig()
-        if self.config.num_obstacles > optimizer.config.max_obstacles:
+        slots = self.config.num_obstacles + self.config.contingencies
+        if slots > optimizer.config.max_obstacles:
             raise ValueError(
-                f"MPCConfig.num_obstacles={self.config.num_obstacles} exceeds the optimizer's "
-                f"max_obstacles={optimizer.config.max_obstacles}"
+                f"MPCConfig.num_obstacles={self.config.num_obstacles} + contingencies={self.config.contingencies} "
+                f"exceeds the optimizer's max_obstacles={optimizer.config.max_obstacles}"
             )
 
     def build_problem(
@@ -370,6 +385,10 @@ class MPC:
             vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))
         states, mask = self.nearest_obstacles(ego, vehicles, vehicle_mask)
         obstacles = self.predict(states, opt.times)
+        if self.config.contingencies:
+            moving, hypothetical, chosen = self.contingencies(ego, states, mask)
+            obstacles = torch.cat([obstacles, hypothetical], dim=1)
+            states, mask = torch.cat([states, moving], dim=1), torch.cat([mask, chosen], dim=1)
         axes = self.obstacle_axes(ego, states)
         goals = self.goal_sampler(ego, self.road)
         if self.config.stop_lanes is not None:
@@ -381,6 +400,37 @@ class MPC:
                                lanes=self.config.stop_lanes, gap=self.config.stop_gap)
             goals = torch.cat([goals, stops], dim=1)
         return ProblemBatch(ego, goals, obstacles, mask, axes)
+
+    def contingencies(
+        self, ego: torch.Tensor, states: torch.Tensor, mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The :attr:`MPCConfig.contingencies` of the (E, M, 4) obstacles ``states`` around the (E, 6) egos.
+
+        Returns:
+            the K contingencies' states as they would move (E, K, 4) (``vy`` the lateral speed,
+            for their ellipses), their predicted centres (E, K, N, 2) and mask (E, K) (False:
+            no obstacle qualified for the slot).
+        """
+        cfg, road = self.config, self.road
+        ego_lane = road.lane_index(ego[:, EGO_Y]).to(states.dtype)  # (E,)
+        lanes_away = (torch.round(states[..., 1] / road.lane_width) - ego_lane[:, None]).abs()
+        ahead = states[..., 0] - ego[:, None, EGO_X]
+        closing = ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]
+        reached = ahead.clamp_min(0.0) / closing.clamp_min(1e-3)  # s until the ego draws level
+        qualifies = mask & (lanes_away >= 2) & (ahead > -self.wheelbase) & (closing > 0) & (reached <= cfg.contingency_window)
+        order = torch.where(qualifies, reached, torch.full_like(reached, float("inf"))).argsort(dim=1)
+        order = order[:, : cfg.contingencies]
+        if order.shape[1] < cfg.contingencies:  # fewer obstacles than slots
+            order = torch.cat([order, order.new_zeros(order.shape[0], cfg.contingencies - order.shape[1])], dim=1)
+        chosen_mask = torch.gather(qualifies, 1, order) if states.shape[1] else torch.zeros_like(order, dtype=torch.bool)
+        chosen = torch.gather(states, 1, order[..., None].expand(-1, -1, 4)) if states.shape[1] else \
+            states.new_zeros(*order.shape, 4)
+        toward = ego[:, EGO_Y, None]
+        centres = predict_lane_change(chosen, self.optimizer.times.to(states.dtype), road, toward,
+                                      cfg.contingency_lateral_speed)
+        direction = torch.sign(toward - chosen[..., 1])
+        moving = torch.cat([chosen[..., :3], (direction * cfg.contingency_lateral_speed)[..., None]], dim=-1)
+        return moving, centres, chosen_mask
 
     def obstacle_axes(self, ego: torch.Tensor, states: torch.Tensor) -> Optional[torch.Tensor]:
         """(E, M, 2) ellipse semi-axes [m] of the (E, M, 4) obstacle states around the (E, 6)

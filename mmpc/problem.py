@@ -135,6 +135,44 @@ def predict_constant_velocity(states: torch.Tensor, times: torch.Tensor) -> torc
 LANE_CHANGE_ONSET = 0.1
 
 
+def predict_lane_change(states: torch.Tensor, times: torch.Tensor, road: Road, toward_y: torch.Tensor,
+                        lateral_speed: float) -> torch.Tensor:
+    """A contingency: each vehicle starts a lane change now, one lane toward ``toward_y``.
+
+    Along the road the centre moves at ``vx``; across it, it moves at ``lateral_speed`` from its
+    lateral position to the centre of the next lane toward ``toward_y`` and stays there.
+
+    Args:
+        states: (E, M, 4) vehicle states (x [m], y [m], vx [m/s], vy [m/s]) in the road frame.
+        times: (N,) prediction instants [s] measured from now.
+        road: the lanes (centres at ``y = k * lane_width``).
+        toward_y: (E, 1) or (E, M) lateral position the change heads for (e.g. the ego's) [m].
+        lateral_speed: speed of the change across the road [m/s], > 0.
+
+    Returns:
+        (E, M, N, 2) predicted centres [m].
+
+    Example:
+        >>> import torch
+        >>> from mmpc.road import Road
+        >>> states = torch.tensor([[[20.0, 16.0, 10.0, 0.0]]])
+        >>> path = predict_lane_change(states, torch.tensor([0.0, 1.0, 2.0]), Road(), torch.tensor([[8.0]]), 2.5)
+        >>> path[0, 0].tolist()
+        [[20.0, 16.0], [30.0, 13.5], [40.0, 12.0]]
+    """
+    if not lateral_speed > 0:
+        raise ValueError(f"`lateral_speed` must be > 0 m/s; got {lateral_speed}")
+    centres = predict_constant_velocity(states, times)
+    y0 = states[..., 1]  # (E, M)
+    direction = torch.sign(toward_y - y0)
+    lane = torch.round(y0 / road.lane_width) + direction
+    target = lane.clamp(0, road.num_lanes - 1) * road.lane_width  # (E, M)
+    moved = y0[..., None] + direction[..., None] * lateral_speed * times.to(states.dtype)  # (E, M, N)
+    low, high = torch.minimum(y0, target)[..., None], torch.maximum(y0, target)[..., None]
+    lateral = torch.minimum(torch.maximum(moved, low), high)
+    return torch.stack([centres[..., 0], lateral], dim=-1)
+
+
 def predict_within_lanes(states: torch.Tensor, times: torch.Tensor, road: Road) -> torch.Tensor:
     """Constant-velocity prediction whose lateral motion ends on a lane centre.
 
