@@ -103,9 +103,9 @@ def test_compiled_per_obstacle_axes_match_eager():
     assert torch.equal(result.status, expected.status)
 
 
-def _mpc(**config) -> MPC:
-    return MPC(mmpc.BatchOptimizer(small_config()), mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road(),
-               MPCConfig(num_obstacles=4, **config))
+def _mpc(max_obstacles: int = 4, **config) -> MPC:
+    optimizer = mmpc.BatchOptimizer(small_config(max_obstacles=max_obstacles))
+    return MPC(optimizer, mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road(), MPCConfig(**{"num_obstacles": 4, **config}))
 
 
 def test_mpc_obstacle_axes_by_shape_and_passing_margin():
@@ -163,3 +163,33 @@ def test_closing_margin_lengthens_slower_cars_and_the_stop_goals_rest_behind_it(
     vehicles = torch.tensor([[[40.0, 8.0, 0.0, 0.0]]])  # stopped ahead in the ego's lane
     stop = lambda mpc: float(mpc.build_problem(ego, vehicles).goals[0, -1, 0])
     assert stop(closing) == pytest.approx(stop(plain) - min(0.3 * 20.0, 2.5))
+
+
+def test_a_lane_change_contingency_moves_one_lane_toward_the_ego_and_stays():
+    times = torch.tensor([0.0, 1.0, 2.0, 4.0])
+    states = torch.tensor([[[20.0, 16.0, 10.0, 0.0], [0.0, 0.0, 5.0, 0.0], [5.0, 8.0, 5.0, 0.0]]])
+    path = mmpc.predict_lane_change(states, times, mmpc.Road(), torch.tensor([[9.0]]), 2.0)
+    assert path[0, 0, :, 1].tolist() == [16.0, 14.0, 12.0, 12.0]  # lane 4 -> 3, then stays
+    assert path[0, 1, :, 1].tolist() == [0.0, 2.0, 4.0, 4.0]  # lane 0 -> 1
+    assert path[0, 2, :, 1].tolist() == [8.0, 10.0, 12.0, 12.0]  # toward y = 9: lane 2 -> 3
+    assert path[0, 0, :, 0].tolist() == [20.0, 30.0, 40.0, 60.0]
+    with pytest.raises(ValueError, match="lateral_speed"):
+        mmpc.predict_lane_change(states, times, mmpc.Road(), torch.tensor([[9.0]]), 0.0)
+
+
+def test_contingencies_go_to_slower_cars_two_lanes_over_that_the_ego_reaches_soon():
+    mpc = _mpc(max_obstacles=6, contingencies=2, contingency_window=3.0, contingency_lateral_speed=2.0,
+               obstacle_shape="heading")
+    ego = mmpc.ego_state(0.0, 9.0, 0.0, 20.0)  # lane 2, toward lane 3
+    vehicles = torch.tensor([[[20.0, 16.0, 10.0, 0.0],   # lane 4, reached in 2 s: a contingency
+                              [25.0, 12.0, 10.0, 0.0],   # lane 3, next to the ego: MOBIL keeps it out of lane 2
+                              [60.0, 0.0, 10.0, 0.0],    # lane 0, reached in 6 s: too late to matter
+                              [10.0, 20.0, 25.0, 0.0]]])  # lane 5 but faster
+    problem = mpc.build_problem(ego, vehicles)
+    assert problem.obstacles.shape[1] == 6 and problem.obstacle_mask[0].tolist() == [True] * 4 + [True, False]
+    contingency = problem.obstacles[0, 4]
+    assert float(contingency[0, 1]) == 16.0 and float(contingency[-1, 1]) == 12.0  # lane 4 -> 3
+    assert float(problem.obstacle_axes[0, 4, 1]) > mpc.ellipse[1]  # the turning car's wider ellipse
+    assert _mpc().build_problem(ego, vehicles).obstacles.shape[1] == 4
+    with pytest.raises(ValueError, match="contingencies=1 exceeds the optimizer's max_obstacles=4"):
+        _mpc(contingencies=1)
