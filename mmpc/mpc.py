@@ -75,13 +75,15 @@ class MPCConfig:
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
             the horizon and leaves no feasible candidate.
-        contingencies: K extra obstacle slots, each a contingency: one of the obstacles two or
-            more lanes from the ego's, ahead and slower, which the ego reaches within
-            ``contingency_window``, starting a lane change toward the ego now
-            (:func:`mmpc.predict_lane_change`; the ones reached first). A plan must clear both the
-            car's prediction and its contingency. Traffic that changes lanes by MOBIL does not
-            cut in directly ahead of a car behind it in the target lane, but it does move into
-            a lane the ego is about to enter: most of the expert's high-speed crashes. 0: none.
+        contingencies: K contingency slots (:attr:`mmpc.ProblemBatch.contingencies`), each one of
+            the obstacles two or more lanes from the ego's, ahead and slower, which the ego
+            reaches within ``contingency_window``, starting a lane change toward the ego now
+            (:func:`mmpc.predict_lane_change`; the ones reached first). The optimizer leaves
+            them out; the selection prefers the feasible candidates that also clear them
+            (:meth:`MPC.select`). Traffic that changes lanes by MOBIL does not cut in directly
+            ahead of a car behind it in the target lane, but it does move into a lane the ego is
+            about to enter: most of the expert's high-speed crashes. (As constraints of every
+            plan, two such slots cost 78 % more meta cost on tuning seeds.) 0: none.
         contingency_window: how soon the ego must reach a car for it to get a contingency [s].
         contingency_lateral_speed: a contingency's speed across the road [m/s].
         obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
@@ -218,6 +220,8 @@ class Scored(NamedTuple):
         violation: (E, G) ranking of infeasible candidates, drivable ones first (lower is better).
         solve_ms: wall time of the optimizer call [ms], less ``compile_ms``.
         compile_ms: what the call spent compiling new layouts [ms].
+        exposed: (E, G) bool, the candidate enters the ellipse of one of the problem's
+            contingencies (:attr:`mmpc.ProblemBatch.contingencies`); ``None`` without any.
     """
 
     result: SolveResult
@@ -225,6 +229,7 @@ class Scored(NamedTuple):
     violation: torch.Tensor
     solve_ms: float
     compile_ms: float = 0.0
+    exposed: Optional[torch.Tensor] = None
 
 
 def nearest_obstacles(
@@ -358,11 +363,10 @@ class MPC:
         self.meta_cost = meta_cost
         self.road = road
         self.config = config if config is not None else MPCConfig()
-        slots = self.config.num_obstacles + self.config.contingencies
-        if slots > optimizer.config.max_obstacles:
+        if self.config.num_obstacles > optimizer.config.max_obstacles:
             raise ValueError(
-                f"MPCConfig.num_obstacles={self.config.num_obstacles} + contingencies={self.config.contingencies} "
-                f"exceeds the optimizer's max_obstacles={optimizer.config.max_obstacles}"
+                f"MPCConfig.num_obstacles={self.config.num_obstacles} exceeds the optimizer's "
+                f"max_obstacles={optimizer.config.max_obstacles}"
             )
 
     def build_problem(
@@ -385,6 +389,7 @@ class MPC:
             vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))
         states, mask = self.nearest_obstacles(ego, vehicles, vehicle_mask)
         obstacles = self.predict(states, opt.times)
+        solid = states.shape[1]
         if self.config.contingencies:
             moving, hypothetical, chosen = self.contingencies(ego, states, mask)
             obstacles = torch.cat([obstacles, hypothetical], dim=1)
@@ -396,10 +401,10 @@ class MPC:
             if axes is not None:  # rest behind the longest ellipse of the problem's obstacles
                 longest = torch.where(mask, axes[..., 0], torch.full_like(axes[..., 0], ellipse[0]))
                 ellipse = (longest.amax(dim=1, keepdim=True).clamp_min(ellipse[0]), ellipse[1])
-            stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon, ellipse=ellipse,
-                               lanes=self.config.stop_lanes, gap=self.config.stop_gap)
+            stops = stop_goals(ego, obstacles[:, :solid], mask[:, :solid], self.road, horizon=opt.config.horizon,
+                               ellipse=ellipse, lanes=self.config.stop_lanes, gap=self.config.stop_gap)
             goals = torch.cat([goals, stops], dim=1)
-        return ProblemBatch(ego, goals, obstacles, mask, axes)
+        return ProblemBatch(ego, goals, obstacles, mask, axes, self.config.contingencies)
 
     def contingencies(
         self, ego: torch.Tensor, states: torch.Tensor, mask: torch.Tensor
@@ -535,16 +540,32 @@ class MPC:
             torch.cuda.synchronize(result.status.device)
         compile_ms = self.optimizer.last_compile_ms
         solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
+        solid, contingencies = problem.split_contingencies()
         result, road_excess = self._keep_on_road(result, problem.ego)
-        result = self._allow_escape(result, problem)
+        result = self._allow_escape(result, solid)
         cost = self.meta_cost(result.trajectories, self.road)
-        return Scored(result, cost, self._violation(result, road_excess, problem), solve_ms, compile_ms)
+        exposed = None if contingencies is None else self._exposed(result, contingencies)
+        return Scored(result, cost, self._violation(result, road_excess, solid), solve_ms, compile_ms, exposed)
 
     def select(self, problem: ProblemBatch, scored: Scored) -> Selection:
         """The MPC's own choice among the candidates of ``problem`` from its :meth:`score`: the
-        feasible candidate of lowest meta cost (ties broken as :meth:`tie_break`), else the least violation."""
-        return select_best(scored.result, scored.cost, self.optimizer.config, violation=scored.violation,
-                           **self.tie_break(scored.result.trajectories, problem.ego))
+        feasible candidate of lowest meta cost (ties broken as :meth:`tie_break`), else the least
+        violation; where some feasible candidates clear every contingency, only those compete."""
+        result = scored.result
+        if scored.exposed is not None:
+            safe = result.feasible & ~scored.exposed
+            result = result._replace(feasible=torch.where(safe.any(dim=1, keepdim=True), safe, result.feasible))
+        return select_best(result, scored.cost, self.optimizer.config, violation=scored.violation,
+                           **self.tie_break(result.trajectories, problem.ego))
+
+    def _exposed(self, result: SolveResult, contingencies: ProblemBatch) -> torch.Tensor:
+        """(E, G) bool: the candidate comes inside a present contingency's ellipse (its own axes, or the optimizer's)."""
+        obstacles = contingencies.obstacles.to(result.trajectories.x.dtype)
+        axes = self.ellipse if contingencies.obstacle_axes is None else contingencies.obstacle_axes.to(obstacles.dtype)
+        inside = squared_obstacle_distance(result.trajectories, obstacles, axes).amin(dim=-1) < 1.0  # (E, G, K)
+        if contingencies.obstacle_mask is not None:
+            inside = inside & contingencies.obstacle_mask[:, None, :]
+        return inside.any(dim=-1)
 
     @torch.no_grad()
     def choose(self, problem: ProblemBatch, scored: Scored, selector: Optional[Selector] = None) -> Plan:
@@ -555,8 +576,9 @@ class MPC:
         trajectory = result.trajectories.select(selection.index)
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0
+        solid, _ = problem.split_contingencies()
         acceleration, steering, heading_rate = self.command(
-            problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=problem.obstacles, mask=problem.obstacle_mask
+            problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=solid.obstacles, mask=solid.obstacle_mask
         )
         return Plan(
             problem, result, scored.cost, selection, trajectory, acceleration, steering, heading_rate, scored.solve_ms,

@@ -34,6 +34,9 @@ class ProblemBatch(NamedTuple):
             e.g. widened for a car that turns (:func:`mmpc.footprint.covering_semi_axes`);
             absent slots may hold any value. ``None``: every obstacle has the optimizer's
             ``ellipse_a``, ``ellipse_b``.
+        contingencies: the last this-many obstacle slots are contingencies, predictions of what
+            a car may do (:meth:`mmpc.MPC.contingencies`): the optimizer leaves them out, and
+            :meth:`mmpc.MPC.select` prefers the candidates that clear them.
     """
 
     ego: torch.Tensor
@@ -41,6 +44,7 @@ class ProblemBatch(NamedTuple):
     obstacles: torch.Tensor
     obstacle_mask: Optional[torch.Tensor] = None
     obstacle_axes: Optional[torch.Tensor] = None
+    contingencies: int = 0
 
     @property
     def num_problems(self) -> int:
@@ -49,6 +53,19 @@ class ProblemBatch(NamedTuple):
     @property
     def num_goals(self) -> int:
         return int(self.goals.shape[1])
+
+    def split_contingencies(self) -> tuple["ProblemBatch", Optional["ProblemBatch"]]:
+        """(the problem without its contingency slots, the contingency slots alone or ``None``)."""
+        if not self.contingencies:
+            return self, None
+        solid = self.obstacles.shape[1] - self.contingencies
+
+        def slots(part: slice) -> "ProblemBatch":
+            pick = lambda t: None if t is None else t[:, part]
+            return self._replace(obstacles=self.obstacles[:, part], obstacle_mask=pick(self.obstacle_mask),
+                                 obstacle_axes=pick(self.obstacle_axes), contingencies=0)
+
+        return slots(slice(0, solid)), slots(slice(solid, None))
 
 
 def ego_state(

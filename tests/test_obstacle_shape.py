@@ -190,6 +190,24 @@ def test_contingencies_go_to_slower_cars_two_lanes_over_that_the_ego_reaches_soo
     contingency = problem.obstacles[0, 4]
     assert float(contingency[0, 1]) == 16.0 and float(contingency[-1, 1]) == 12.0  # lane 4 -> 3
     assert float(problem.obstacle_axes[0, 4, 1]) > mpc.ellipse[1]  # the turning car's wider ellipse
-    assert _mpc().build_problem(ego, vehicles).obstacles.shape[1] == 4
-    with pytest.raises(ValueError, match="contingencies=1 exceeds the optimizer's max_obstacles=4"):
-        _mpc(contingencies=1)
+    assert problem.contingencies == 2 and _mpc().build_problem(ego, vehicles).obstacles.shape[1] == 4
+    assert _mpc(contingencies=2).optimizer.config.max_obstacles == 4  # contingencies are not solved for
+
+
+def test_the_mpc_prefers_candidates_that_clear_the_contingencies():
+    ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)  # lane 2
+    vehicles = torch.tensor([[[30.0, 16.0, 9.6, 0.0], [45.0, 8.0, 10.0, 0.0]]])  # lane 4, slower; lane 2 ahead
+    plain = _mpc(max_obstacles=6, obstacle_shape="heading")
+    careful = _mpc(max_obstacles=6, obstacle_shape="heading", contingencies=1)
+    problem = careful.build_problem(ego, vehicles)
+    scored = careful.score(problem)
+    assert scored.exposed is not None and bool(scored.exposed.any()) and not bool(scored.exposed.all())
+    # the optimizer solved the problem without its contingency slot: the same candidates as without one
+    torch.testing.assert_close(scored.result.trajectories.y, plain.score(plain.build_problem(ego, vehicles)).result.trajectories.y)
+    choice = careful.select(problem, scored)
+    index = int(choice.index[0])
+    assert bool(choice.feasible[0]) and not bool(scored.exposed[0, index])
+    solid, contingency = problem.split_contingencies()
+    assert solid.obstacles.shape[1] == 4 and contingency.obstacles.shape[1] == 1 and solid.contingencies == 0
+    with pytest.raises(ValueError, match="`contingencies` must be an int in"):
+        careful.optimizer(problem._replace(contingencies=9))
