@@ -4,7 +4,6 @@ resume with another ``--lockstep`` (allowed), and the safe RL environments' acti
 
 from __future__ import annotations
 
-import fcntl
 import json
 import re
 from pathlib import Path
@@ -18,28 +17,12 @@ from mmpc.config import load_config, to_dict
 from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
+from tests.conftest import hold_lock, lock_is_free
 
 DEMOS_LOCK = ".demos.lock"
 
 
 # ----------------------------------------------------------------------------------- mmpc demos
-
-
-def _hold(path: Path):
-    """An open handle holding an exclusive flock on ``path`` (as a second process would)."""
-    handle = open(path, "w")
-    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    return handle
-
-
-def _lock_is_free(path: Path) -> bool:
-    with open(path, "a") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return False
-        fcntl.flock(handle, fcntl.LOCK_UN)
-    return True
 
 
 def _no_driving(*args, **kwargs):
@@ -57,7 +40,7 @@ def test_demos_refuses_a_folder_another_run_holds(tmp_path, monkeypatch, capsys,
     scenario = load_scenario("cruise").replace(duration=0.5)
     if existing:  # a demonstrations directory of this very configuration, being resumed by another run
         (out / MANIFEST).write_text(Manifest(to_dict(scenario), 4, package_versions()).to_json())
-    holder = _hold(out / DEMOS_LOCK)
+    holder = hold_lock(out / DEMOS_LOCK)
     try:
         code = main(["imitate", "demos", "--scenario", "cruise", "--duration", "0.5", "--episodes", "2", "--out", str(out)])
     finally:
@@ -75,7 +58,7 @@ def test_demos_holds_its_lock_while_driving_and_releases_it_after_a_run_and_afte
     held_while_driving = []
 
     def fake_group(task):
-        held_while_driving.append(not _lock_is_free(out / DEMOS_LOCK))
+        held_while_driving.append(not lock_is_free(out / DEMOS_LOCK))
         return list(task.missing)  # nothing staged: the dataset step is faked below
 
     monkeypatch.setattr(demos, "drive_group", fake_group)
@@ -83,7 +66,7 @@ def test_demos_holds_its_lock_while_driving_and_releases_it_after_a_run_and_afte
     report = demos.generate_demonstrations(scenario, [0, 1], out, lockstep=2)
     assert report.generated == [0, 1] and not report.rebuilt
     assert held_while_driving == [True]
-    assert (out / DEMOS_LOCK).exists() and _lock_is_free(out / DEMOS_LOCK)
+    assert (out / DEMOS_LOCK).exists() and lock_is_free(out / DEMOS_LOCK)
 
     def failing_group(task):
         raise RuntimeError("solver exploded")
@@ -91,7 +74,7 @@ def test_demos_holds_its_lock_while_driving_and_releases_it_after_a_run_and_afte
     monkeypatch.setattr(demos, "drive_group", failing_group)
     with pytest.raises(RuntimeError, match="solver exploded"):
         demos.generate_demonstrations(scenario, [0, 1], out, lockstep=2)
-    assert _lock_is_free(out / DEMOS_LOCK)
+    assert lock_is_free(out / DEMOS_LOCK)
     foreign = tmp_path / "foreign"  # a foreign folder is refused without a lock file left in it
     foreign.mkdir()
     (foreign / "notes.txt").write_text("mine")

@@ -5,7 +5,6 @@ evaluate``, and ``mmpc rl evaluate`` on another road than the agent's."""
 
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import subprocess
@@ -16,28 +15,12 @@ from pathlib import Path
 import pytest
 
 from mmpc.cli.main import main
+from tests.conftest import hold_lock, lock_is_free
 
 #: The lock files of a training run and of a proposer run (mmpc.rl.train.RUN_LOCK,
 #: mmpc.imitation.proposer_dagger.LOCK), spelled out so that these tests fail on code without them.
 RUN_LOCK = ".train.lock"
 PROPOSER_LOCK = ".proposer.lock"
-
-
-def _hold(path: Path):
-    """An open handle holding an exclusive flock on ``path`` (as a second process would)."""
-    handle = open(path, "w")
-    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    return handle
-
-
-def _lock_is_free(path: Path) -> bool:
-    with open(path, "a") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return False
-        fcntl.flock(handle, fcntl.LOCK_UN)
-    return True
 
 
 def _rl_train(out: Path, algo: str, seed: int = 0) -> list[str]:
@@ -61,7 +44,7 @@ def test_rl_train_refuses_a_folder_holding_a_finished_run(tmp_path, capsys, monk
     make_env = rl_train.make_training_env
 
     def spying_make_env(*args, **kwargs):  # the run holds its folder's lock while it trains
-        held.append(not _lock_is_free(out / RUN_LOCK))
+        held.append(not lock_is_free(out / RUN_LOCK))
         return make_env(*args, **kwargs)
 
     monkeypatch.setattr(rl_train, "make_training_env", spying_make_env)
@@ -77,7 +60,7 @@ def test_rl_train_refuses_a_folder_holding_a_finished_run(tmp_path, capsys, monk
         assert "config.yaml" in err and "model.zip" in err and "choose another --out" in err
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == files  # nothing replaced, nothing added
     assert load_run(checkpoint).algo == "dqn"
-    assert held == [True] and _lock_is_free(out / RUN_LOCK)  # held while training; the refused runs built nothing
+    assert held == [True] and lock_is_free(out / RUN_LOCK)  # held while training; the refused runs built nothing
 
 
 def test_rl_train_refuses_a_folder_another_run_is_writing(tmp_path, capsys, monkeypatch):
@@ -89,7 +72,7 @@ def test_rl_train_refuses_a_folder_another_run_is_writing(tmp_path, capsys, monk
     monkeypatch.setattr(rl_train, "make_training_env", no_training)
     out = tmp_path / "R"
     out.mkdir()
-    holder = _hold(out / RUN_LOCK)  # a PPO run started a moment ago and still writes there
+    holder = hold_lock(out / RUN_LOCK)  # a PPO run started a moment ago and still writes there
     try:
         assert main(_rl_train(out, "dqn")) == 2
     finally:
@@ -129,7 +112,7 @@ def test_proposer_refuses_a_folder_another_run_holds(tmp_path, capsys, monkeypat
     monkeypatch.setattr(proposer_dagger, "label_episodes", no_labelling)
     out = tmp_path / "proposer"
     out.mkdir()
-    holder = _hold(out / PROPOSER_LOCK)  # the first run, in its round 0
+    holder = hold_lock(out / PROPOSER_LOCK)  # the first run, in its round 0
     try:
         assert main(_proposer(out)) == 2
     finally:
@@ -147,13 +130,13 @@ def test_proposer_holds_its_folder_while_it_runs(tmp_path, monkeypatch):
     held = []
 
     def labelling(*args, **kwargs):
-        held.append(not _lock_is_free(out / PROPOSER_LOCK))
+        held.append(not lock_is_free(out / PROPOSER_LOCK))
         raise _Stop
 
     monkeypatch.setattr(proposer_dagger, "label_episodes", labelling)
     with pytest.raises(_Stop):
         main(_proposer(out))
-    assert held == [True] and _lock_is_free(out / PROPOSER_LOCK)
+    assert held == [True] and lock_is_free(out / PROPOSER_LOCK)
 
 
 # ----------------------------------------------------------------------------------- mmpc evaluate
@@ -177,7 +160,7 @@ def test_an_interrupted_evaluation_says_how_to_resume_and_exits_130(tmp_path, ca
 
 
 def test_a_second_evaluation_into_a_running_folder_is_an_error_not_a_traceback(tmp_path, capsys):
-    holder = _hold(tmp_path / ".evaluate.lock")  # the first evaluation, still running
+    holder = hold_lock(tmp_path / ".evaluate.lock")  # the first evaluation, still running
     try:
         assert main(["evaluate", "--scenarios", "cruise", "--seeds", "0-1", "--out", str(tmp_path)]) == 2
     finally:
