@@ -398,8 +398,8 @@ class MPC:
         goals = self.goal_sampler(ego, self.road)
         if self.config.stop_lanes is not None:
             ellipse = self.ellipse
-            if axes is not None:  # rest behind the longest ellipse of the problem's obstacles
-                longest = torch.where(mask, axes[..., 0], torch.full_like(axes[..., 0], ellipse[0]))
+            if axes is not None and solid > 0:  # rest behind the longest ellipse of the problem's obstacles
+                longest = torch.where(mask[:, :solid], axes[:, :solid, 0], torch.full_like(axes[:, :solid, 0], ellipse[0]))
                 ellipse = (longest.amax(dim=1, keepdim=True).clamp_min(ellipse[0]), ellipse[1])
             stops = stop_goals(ego, obstacles[:, :solid], mask[:, :solid], self.road, horizon=opt.config.horizon,
                                ellipse=ellipse, lanes=self.config.stop_lanes, gap=self.config.stop_gap)
