@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 from mmpc.cli.arguments import add_compile, add_set, add_sim, apply_compile, scenario_overrides, seed_list, unwritable
+from mmpc.collisions import CRASH_COLUMNS
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,8 +77,9 @@ def run(args: argparse.Namespace) -> int:
     with tqdm(total=steps, desc=f"{scenario.name} seed {seed}", unit="step") as bar:
         result = run_episode(scenario, seed, driver=driver, video=video, observers=[Progress()])
     paths = write_outputs(result, out)
-    width = max(map(len, result.metrics))
-    for key, value in result.metrics.items():
+    shown = {key: value for key, value in result.metrics.items() if not (key in CRASH_COLUMNS and value is None)}
+    width = max(map(len, shown))
+    for key, value in shown.items():  # the crash's scene only after a crash
         print(f"{key:<{width}}  {value:.3f}" if isinstance(value, float) else f"{key:<{width}}  {value}")
     print("wrote " + ", ".join(str(p) for p in paths + ([video] if video else [])))
     return 0
