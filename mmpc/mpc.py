@@ -284,6 +284,11 @@ def nearest_obstacles(
     return states, mask
 
 
+def _speed_advantage(ego: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
+    """(E, M) how much faster along the road each (E, 6) ego moves than its (E, M, 4) obstacles [m/s]."""
+    return ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]
+
+
 def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]) -> None:
     """Refuse what :meth:`MPC.build_problem` cannot plan from, naming what came.
 
@@ -420,7 +425,7 @@ class MPC:
         ego_lane = road.lane_index(ego[:, EGO_Y]).to(states.dtype)  # (E,)
         lanes_away = (torch.round(states[..., 1] / road.lane_width) - ego_lane[:, None]).abs()
         ahead = states[..., 0] - ego[:, None, EGO_X]
-        closing = ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]
+        closing = _speed_advantage(ego, states)
         reached = ahead.clamp_min(0.0) / closing.clamp_min(1e-3)  # s until the ego draws level
         qualifies = mask & (lanes_away >= 2) & (ahead > -self.wheelbase) & (closing > 0) & (reached <= cfg.contingency_window)
         order = torch.where(qualifies, reached, torch.full_like(reached, float("inf"))).argsort(dim=1)
@@ -452,7 +457,7 @@ class MPC:
             axes = covering_semi_axes(heading, self.ellipse, self.optimizer.config.max_heading_deg, self.vehicle)
         else:
             axes = states.new_tensor(self.ellipse).expand(*states.shape[:2], 2)
-        faster = (ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]).clamp_min(0.0)  # (E, M)
+        faster = _speed_advantage(ego, states).clamp_min(0.0)  # (E, M)
         along = axes[..., 0] + (cfg.closing_margin * faster).clamp_max(cfg.max_closing_margin)
         across = axes[..., 1] + (cfg.passing_margin * faster).clamp_max(cfg.max_passing_margin)
         return torch.stack([along, across], dim=-1)
@@ -558,10 +563,15 @@ class MPC:
         return select_best(result, scored.cost, self.optimizer.config, violation=scored.violation,
                            **self.tie_break(result.trajectories, problem.ego))
 
+    def _axes(self, problem: ProblemBatch, dtype: torch.dtype) -> tuple[float, float] | torch.Tensor:
+        """The ellipse semi-axes ``problem``'s obstacles were solved with: its (E, M, 2)
+        :attr:`mmpc.ProblemBatch.obstacle_axes` in ``dtype``, else the optimizer's (a, b)."""
+        return self.ellipse if problem.obstacle_axes is None else problem.obstacle_axes.to(dtype)
+
     def _exposed(self, result: SolveResult, contingencies: ProblemBatch) -> torch.Tensor:
         """(E, G) bool: the candidate comes inside a present contingency's ellipse (its own axes, or the optimizer's)."""
         obstacles = contingencies.obstacles.to(result.trajectories.x.dtype)
-        axes = self.ellipse if contingencies.obstacle_axes is None else contingencies.obstacle_axes.to(obstacles.dtype)
+        axes = self._axes(contingencies, obstacles.dtype)
         inside = squared_obstacle_distance(result.trajectories, obstacles, axes).amin(dim=-1) < 1.0  # (E, G, K)
         if contingencies.obstacle_mask is not None:
             inside = inside & contingencies.obstacle_mask[:, None, :]
@@ -669,7 +679,7 @@ class MPC:
         if not bool(inside.any()):
             return result
         obstacles = problem.obstacles.to(result.trajectories.x.dtype)
-        axes = self.ellipse if problem.obstacle_axes is None else problem.obstacle_axes.to(obstacles.dtype)
+        axes = self._axes(problem, obstacles.dtype)
         distance = squared_obstacle_distance(result.trajectories, obstacles, axes).sqrt()  # (E, G, M, N)
         start = distance[..., :1]
         floor = start.clamp_max(1.0) - self.optimizer.config.obstacle_tolerance
@@ -704,7 +714,7 @@ class MPC:
         early = trajectories.times <= self.config.evasive_horizon + 1e-9
         obstacles = problem.obstacles.to(trajectories.x.dtype)[:, :, early]
         near = trajectories._replace(**{name: getattr(trajectories, name)[..., early] for name in ("x", "y")})
-        axes = self.ellipse if problem.obstacle_axes is None else problem.obstacle_axes.to(obstacles.dtype)
+        axes = self._axes(problem, obstacles.dtype)
         distance = squared_obstacle_distance(near, obstacles, axes).amin(dim=-1)  # (E, G, M)
         if problem.obstacle_mask is not None:
             distance = torch.where(problem.obstacle_mask[:, None, :], distance, torch.full_like(distance, float("inf")))
