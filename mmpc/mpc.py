@@ -19,6 +19,7 @@ import torch
 from mmpc.config import require, require_field_types, require_int, require_non_negative, require_positive
 from mmpc.footprint import HIGHWAY_VEHICLE, covering_semi_axes
 from mmpc.goals import GoalSampler
+from mmpc.intent import DriverModel, mobil_lane_changes
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
@@ -48,6 +49,7 @@ ESCAPE_DEPTH = 0.05
 
 #: Obstacle shapes by :attr:`MPCConfig.obstacle_shape` name.
 OBSTACLE_SHAPES = ("fixed", "heading")
+CONTINGENCY_TRIGGERS = ("reach", "incentive")
 
 #: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
 #: road) -> (E, M, N, 2)`` centres.
@@ -85,6 +87,15 @@ class MPCConfig:
             about to enter: most of the expert's high-speed crashes. (As constraints of every
             plan, two such slots cost 78 % more meta cost on tuning seeds.) 0: none.
         contingency_window: how soon the ego must reach a car for it to get a contingency [s].
+        contingency_trigger: which cars get one: ``"reach"`` those two or more lanes from the
+            ego's, changing toward it; ``"incentive"`` any that MOBIL would move one lane now, in
+            MOBIL's direction, as estimated from the cars seen
+            (:func:`mmpc.intent.mobil_lane_changes`): most slow cars have no reason to change,
+            and the car the ego is about to pass on its own lane may have one.
+        contingency_min_gain: with ``"incentive"``, the acceleration gain [m/s^2] above which a
+            car is expected to change lanes: below MOBIL's own 0.2, it anticipates a car that
+            closes on a slower leader and will soon reach MOBIL's threshold (the gain grows by
+            about 0.2 m/s^2 per second then).
         contingency_lateral_speed: a contingency's speed across the road [m/s].
         obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
             ``ellipse_b`` for every car) or ``"heading"`` (widened across the road to cover the
@@ -143,6 +154,8 @@ class MPCConfig:
     contingencies: int = 0
     contingency_window: float = 4.0
     contingency_lateral_speed: float = 2.5
+    contingency_trigger: str = "reach"
+    contingency_min_gain: float = 0.2
     obstacle_shape: str = "fixed"
     passing_margin: float = 0.0
     max_passing_margin: float = 1.0
@@ -165,6 +178,8 @@ class MPCConfig:
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
         require(self.obstacle_shape in OBSTACLE_SHAPES,
                 f"`obstacle_shape` must be one of {list(OBSTACLE_SHAPES)}; got {self.obstacle_shape!r}")
+        require(self.contingency_trigger in CONTINGENCY_TRIGGERS,
+                f"`contingency_trigger` must be one of {list(CONTINGENCY_TRIGGERS)}; got {self.contingency_trigger!r}")
         require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies)
         require_positive("", contingency_window=self.contingency_window,
                          contingency_lateral_speed=self.contingency_lateral_speed)
@@ -396,7 +411,7 @@ class MPC:
         obstacles = self.predict(states, opt.times)
         solid = states.shape[1]
         if self.config.contingencies:
-            moving, hypothetical, chosen = self.contingencies(ego, states, mask)
+            moving, hypothetical, chosen = self.contingencies(ego, states, mask, vehicles, vehicle_mask)
             obstacles = torch.cat([obstacles, hypothetical], dim=1)
             states, mask = torch.cat([states, moving], dim=1), torch.cat([mask, chosen], dim=1)
         axes = self.obstacle_axes(ego, states)
@@ -412,9 +427,11 @@ class MPC:
         return ProblemBatch(ego, goals, obstacles, mask, axes, self.config.contingencies)
 
     def contingencies(
-        self, ego: torch.Tensor, states: torch.Tensor, mask: torch.Tensor
+        self, ego: torch.Tensor, states: torch.Tensor, mask: torch.Tensor, vehicles: torch.Tensor,
+        vehicle_mask: Optional[torch.Tensor],
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The :attr:`MPCConfig.contingencies` of the (E, M, 4) obstacles ``states`` around the (E, 6) egos.
+        """The :attr:`MPCConfig.contingencies` of the (E, M, 4) obstacles ``states`` around the (E, 6)
+        egos, among every vehicle seen, ``vehicles`` (E, V, 4) (``vehicle_mask`` (E, V)).
 
         Returns:
             the K contingencies' states as they would move (E, K, 4) (``vy`` the lateral speed,
@@ -422,12 +439,23 @@ class MPC:
             no obstacle qualified for the slot).
         """
         cfg, road = self.config, self.road
-        ego_lane = road.lane_index(ego[:, EGO_Y]).to(states.dtype)  # (E,)
-        lanes_away = (torch.round(states[..., 1] / road.lane_width) - ego_lane[:, None]).abs()
         ahead = states[..., 0] - ego[:, None, EGO_X]
         closing = _speed_advantage(ego, states)
         reached = ahead.clamp_min(0.0) / closing.clamp_min(1e-3)  # s until the ego draws level
-        qualifies = mask & (lanes_away >= 2) & (ahead > -self.wheelbase) & (closing > 0) & (reached <= cfg.contingency_window)
+        qualifies = mask & (ahead > -self.wheelbase) & (closing > 0) & (reached <= cfg.contingency_window)
+        if cfg.contingency_trigger == "incentive":
+            seen = torch.ones(vehicles.shape[:2], dtype=torch.bool, device=vehicles.device) \
+                if vehicle_mask is None else vehicle_mask
+            seen_ego = torch.stack([ego[:, EGO_X], ego[:, EGO_Y], ego[:, EGO_V] * torch.cos(ego[:, EGO_PSI])], dim=-1)
+            model = DriverModel(min_gain=cfg.contingency_min_gain)
+            side = mobil_lane_changes(states, vehicles, seen, seen_ego, road, model).to(states.dtype)
+            qualifies = qualifies & (side != 0)
+            toward = states[..., 1] + side * road.lane_width  # (E, M)
+        else:
+            ego_lane = road.lane_index(ego[:, EGO_Y]).to(states.dtype)  # (E,)
+            lanes_away = (torch.round(states[..., 1] / road.lane_width) - ego_lane[:, None]).abs()
+            qualifies = qualifies & (lanes_away >= 2)
+            toward = ego[:, EGO_Y, None].expand_as(ahead)
         order = torch.where(qualifies, reached, torch.full_like(reached, float("inf"))).argsort(dim=1)
         order = order[:, : cfg.contingencies]
         if order.shape[1] < cfg.contingencies:  # fewer obstacles than slots
@@ -435,7 +463,7 @@ class MPC:
         chosen_mask = torch.gather(qualifies, 1, order) if states.shape[1] else torch.zeros_like(order, dtype=torch.bool)
         chosen = torch.gather(states, 1, order[..., None].expand(-1, -1, 4)) if states.shape[1] else \
             states.new_zeros(*order.shape, 4)
-        toward = ego[:, EGO_Y, None]
+        toward = torch.gather(toward, 1, order) if states.shape[1] else chosen[..., 1]
         centres = predict_lane_change(chosen, self.optimizer.times.to(states.dtype), road, toward,
                                       cfg.contingency_lateral_speed)
         direction = torch.sign(toward - chosen[..., 1])
