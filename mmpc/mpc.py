@@ -584,12 +584,19 @@ class MPC:
         """The MPC's own choice among the candidates of ``problem`` from its :meth:`score`: the
         feasible candidate of lowest meta cost (ties broken as :meth:`tie_break`), else the least
         violation; where some feasible candidates clear every contingency, only those compete."""
-        result = scored.result
-        if scored.exposed is not None:
-            safe = result.feasible & ~scored.exposed
-            result = result._replace(feasible=torch.where(safe.any(dim=1, keepdim=True), safe, result.feasible))
+        result = self.preferred(scored)
         return select_best(result, scored.cost, self.optimizer.config, violation=scored.violation,
                            **self.tie_break(result.trajectories, problem.ego))
+
+    @staticmethod
+    def preferred(scored: Scored) -> SolveResult:
+        """``scored.result`` with, in each problem where some feasible candidates clear every
+        contingency, only those counted feasible (every selection rule then prefers them)."""
+        result = scored.result
+        if scored.exposed is None:
+            return result
+        safe = result.feasible & ~scored.exposed
+        return result._replace(feasible=torch.where(safe.any(dim=1, keepdim=True), safe, result.feasible))
 
     def _axes(self, problem: ProblemBatch, dtype: torch.dtype) -> tuple[float, float] | torch.Tensor:
         """The ellipse semi-axes ``problem``'s obstacles were solved with: its (E, M, 2)
@@ -610,7 +617,8 @@ class MPC:
         """The :class:`Plan` of ``problem`` from its :meth:`score`: select a candidate per problem
         (``selector``, as :meth:`plan_problem`) and the commands that execute it (:meth:`command`)."""
         result = scored.result
-        selection = self.select(problem, scored) if selector is None else selector(result, scored.cost, scored.violation)
+        selection = self.select(problem, scored) if selector is None else \
+            selector(self.preferred(scored), scored.cost, scored.violation)
         trajectory = result.trajectories.select(selection.index)
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0

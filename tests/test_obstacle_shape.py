@@ -207,6 +207,9 @@ def test_the_mpc_prefers_candidates_that_clear_the_contingencies():
     choice = careful.select(problem, scored)
     index = int(choice.index[0])
     assert bool(choice.feasible[0]) and not bool(scored.exposed[0, index])
+    seen = []  # any selection rule (the safe layer's, the proposer's) gets the same preference
+    careful.choose(problem, scored, lambda result, cost, violation: seen.append(result.feasible) or choice)
+    assert bool(seen[0].any()) and not bool((seen[0] & scored.exposed).any())
     solid, contingency = problem.split_contingencies()
     assert solid.obstacles.shape[1] == 4 and contingency.obstacles.shape[1] == 1 and solid.contingencies == 0
     with pytest.raises(ValueError, match="`contingencies` must be an int in"):
