@@ -77,15 +77,14 @@ class MPCConfig:
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
             the horizon and leaves no feasible candidate.
-        contingencies: K contingency slots (:attr:`mmpc.ProblemBatch.contingencies`), each one of
-            the obstacles two or more lanes from the ego's, ahead and slower, which the ego
-            reaches within ``contingency_window``, starting a lane change toward the ego now
-            (:func:`mmpc.predict_lane_change`; the ones reached first). The optimizer leaves
-            them out; the selection prefers the feasible candidates that also clear them
-            (:meth:`MPC.select`). Traffic that changes lanes by MOBIL does not cut in directly
-            ahead of a car behind it in the target lane, but it does move into a lane the ego is
-            about to enter: most of the expert's high-speed crashes. (As constraints of every
-            plan, two such slots cost 78 % more meta cost on tuning seeds.) 0: none.
+        contingencies: K contingency slots (:attr:`mmpc.ProblemBatch.contingencies`), each a car
+            ahead (or level) and slower that the ego reaches within ``contingency_window``,
+            starting a lane change now (:func:`mmpc.predict_lane_change`; the cars reached first,
+            chosen by ``contingency_trigger``). The optimizer leaves them out; every selection
+            prefers the feasible candidates that also clear them (:meth:`MPC.preferred`).
+            Traffic that changes lanes by MOBIL does not cut in directly ahead of a car behind
+            it in the target lane, but it does move into a lane the ego is about to enter: most
+            of the expert's high-speed crashes. 0: none.
         contingency_window: how soon the ego must reach a car for it to get a contingency [s].
         contingency_trigger: which cars get one: ``"reach"`` those two or more lanes from the
             ego's, changing toward it; ``"incentive"`` any that MOBIL would move one lane now, in
@@ -95,7 +94,7 @@ class MPCConfig:
         contingency_min_gain: with ``"incentive"``, the acceleration gain [m/s^2] above which a
             car is expected to change lanes: below MOBIL's own 0.2, it anticipates a car that
             closes on a slower leader and will soon reach MOBIL's threshold (the gain grows by
-            about 0.2 m/s^2 per second then).
+            about 0.2 m/s^2 per second then; at 0.2 the warning came 0.1 s ahead).
         contingency_lateral_speed: a contingency's speed across the road [m/s].
         obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
             ``ellipse_b`` for every car) or ``"heading"`` (widened across the road to cover the
@@ -154,8 +153,8 @@ class MPCConfig:
     contingencies: int = 0
     contingency_window: float = 4.0
     contingency_lateral_speed: float = 2.5
-    contingency_trigger: str = "reach"
-    contingency_min_gain: float = 0.2
+    contingency_trigger: str = "incentive"
+    contingency_min_gain: float = 0.0
     obstacle_shape: str = "fixed"
     passing_margin: float = 0.0
     max_passing_margin: float = 1.0

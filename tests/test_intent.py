@@ -87,8 +87,8 @@ def test_the_incentive_trigger_gives_contingencies_to_the_cars_mobil_would_move(
                               [45.0, 8.0, 8.0, 0.0],     # its slower leader
                               [40.0, 4.0, 8.0, 0.0],     # lane 1, no better
                               [30.0, 16.0, 10.0, 0.0]]])  # lane 4, two lanes over, nothing to gain
-    reach = _mpc(max_obstacles=6, contingencies=1, contingency_window=3.0)
-    incentive = _mpc(max_obstacles=6, contingencies=1, contingency_window=3.0, contingency_trigger="incentive")
+    reach = _mpc(max_obstacles=6, contingencies=1, contingency_window=3.0, contingency_trigger="reach")
+    incentive = _mpc(max_obstacles=6, contingencies=1, contingency_window=3.0)  # the default trigger
     assert bool(reach.build_problem(ego, vehicles).obstacle_mask[0, -1])  # lane 4's car, toward the ego
     problem = incentive.build_problem(ego, vehicles)
     contingency = problem.obstacles[0, -1]

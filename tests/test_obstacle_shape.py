@@ -178,7 +178,7 @@ def test_a_lane_change_contingency_moves_one_lane_toward_the_ego_and_stays():
 
 
 def test_contingencies_go_to_slower_cars_two_lanes_over_that_the_ego_reaches_soon():
-    mpc = _mpc(max_obstacles=6, contingencies=2, contingency_window=3.0, contingency_lateral_speed=2.0,
+    mpc = _mpc(max_obstacles=6, contingencies=2, contingency_window=3.0, contingency_trigger="reach", contingency_lateral_speed=2.0,
                obstacle_shape="heading")
     ego = mmpc.ego_state(0.0, 9.0, 0.0, 20.0)  # lane 2, toward lane 3
     vehicles = torch.tensor([[[20.0, 16.0, 10.0, 0.0],   # lane 4, reached in 2 s: a contingency
@@ -198,7 +198,7 @@ def test_the_mpc_prefers_candidates_that_clear_the_contingencies():
     ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)  # lane 2
     vehicles = torch.tensor([[[30.0, 16.0, 9.6, 0.0], [45.0, 8.0, 10.0, 0.0]]])  # lane 4, slower; lane 2 ahead
     plain = _mpc(max_obstacles=6, obstacle_shape="heading")
-    careful = _mpc(max_obstacles=6, obstacle_shape="heading", contingencies=1)
+    careful = _mpc(max_obstacles=6, obstacle_shape="heading", contingencies=1, contingency_trigger="reach")
     problem = careful.build_problem(ego, vehicles)
     scored = careful.score(problem)
     assert scored.exposed is not None and bool(scored.exposed.any()) and not bool(scored.exposed.all())
