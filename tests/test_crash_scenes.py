@@ -9,14 +9,23 @@ import pytest
 from mmpc.highway import run_lockstep
 from mmpc.scenario import load_scenario
 
-#: seed -> when the expert at 1923571 crashed [s] (docs/experiments/2026-11-26-no-crash.md); in
-#: 50401 the expert of 14f0f67 too (7.9 s): the car the ego overtook on its lane moved into the
-#: lane the ego was entering, as MOBIL had let it (only a contingency foresees it).
-OLD_CRASHES = {40042: 2.7, 40005: 8.9, 50401: 8.0}
+#: seed -> when the expert at 1923571 crashed [s] (docs/experiments/2026-11-26-no-crash.md).
+OLD_CRASHES = {40042: 2.7, 40005: 8.9}
 
 
-@pytest.mark.parametrize("seed", [40042] + [pytest.param(seed, marks=pytest.mark.slow) for seed in (40005, 50401)])
+@pytest.mark.parametrize("seed", [40042, pytest.param(40005, marks=pytest.mark.slow)])
 def test_the_shipped_expert_passes_where_the_old_one_crashed(seed):
     scenario = dataclasses.replace(load_scenario("high_speed"), sim="batched", duration=OLD_CRASHES[seed] + 1.5)
     [result] = run_lockstep(scenario, [seed])
+    assert result.metrics["collisions"] == 0, result.metrics
+
+
+@pytest.mark.slow
+def test_a_contingency_foresees_the_overtaken_car_moving_into_the_ego_s_new_lane():
+    """Seed 50401: the shipped expert crashes at 7.9 s (checked), the car it overtakes on its
+    lane moving, as MOBIL lets it, into the lane the ego enters; one contingency avoids it."""
+    shipped = load_scenario("high_speed")
+    scenario = dataclasses.replace(shipped, sim="batched", duration=9.5,
+                                   mpc=dataclasses.replace(shipped.mpc, contingencies=1))
+    [result] = run_lockstep(scenario, [50401])
     assert result.metrics["collisions"] == 0, result.metrics
