@@ -49,6 +49,7 @@ ESCAPE_DEPTH = 0.05
 
 #: Obstacle shapes by :attr:`MPCConfig.obstacle_shape` name.
 OBSTACLE_SHAPES = ("fixed", "heading")
+#: Which cars get a contingency, by :attr:`MPCConfig.contingency_trigger` name.
 CONTINGENCY_TRIGGERS = ("reach", "incentive")
 
 #: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
