@@ -94,6 +94,15 @@ def mobil_lane_changes(
         >>> mobil_lane_changes(traffic[:, :1], traffic, seen, torch.tensor([[-5.0, 12.0, 20.0]]), Road()).tolist()
         [[-1]]
     """
+    environments = cars.shape[0] if cars.dim() == 3 else -1
+    shapes_fit = (cars.dim() == 3 and cars.shape[-1] == 4 and traffic.dim() == 3 and traffic.shape[-1] == 4
+                  and traffic.shape[0] == environments and tuple(traffic_mask.shape) == tuple(traffic.shape[:2])
+                  and traffic_mask.dtype == torch.bool and ego.dim() == 2 and ego.shape[0] == environments
+                  and ego.shape[1] >= 3)
+    if not shapes_fit:
+        raise ValueError(
+            "expected cars (E, M, 4), traffic (E, V, 4), traffic_mask (E, V) bool and ego (E, 3); got "
+            f"{tuple(cars.shape)}, {tuple(traffic.shape)}, {tuple(traffic_mask.shape)} {traffic_mask.dtype}, {tuple(ego.shape)}")
     width = road.lane_width
     ego_row = torch.cat([ego[:, :3], torch.zeros_like(ego[:, :1])], dim=-1)[:, None]  # (E, 1, 4)
     everyone = torch.cat([ego_row, traffic.to(cars.dtype)], dim=1)  # (E, 1 + V, 4), the ego first

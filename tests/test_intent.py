@@ -49,6 +49,10 @@ def test_no_traffic_no_change_and_bad_model_values_refused():
     absent = mobil_lane_changes(cars, torch.tensor([[[25.0, 8.0, 8.0, 0.0]]]), torch.zeros(1, 1, dtype=torch.bool),
                                 FAR_BEHIND, ROAD)
     assert absent.tolist() == [[0]]  # a masked row is nobody
+    with pytest.raises(ValueError, match=r"expected cars \(E, M, 4\).*got \(1, 1, 4\), \(1, 3\)"):
+        mobil_lane_changes(cars, torch.zeros(1, 3), torch.zeros(1, 3, dtype=torch.bool), FAR_BEHIND, ROAD)
+    with pytest.raises(ValueError, match="traffic_mask"):
+        mobil_lane_changes(cars, cars, torch.ones(1, 1), FAR_BEHIND, ROAD)  # a float mask
     with pytest.raises(ValueError, match="comfort_deceleration"):
         DriverModel(comfort_acc_min=1.0)
     with pytest.raises(ValueError, match="lane_margin"):
