@@ -113,8 +113,6 @@ def mobil_lane_changes(
     present = present & ~itself
     speed = cars[..., 2]
     other_speed = everyone[:, None, :, 2].expand_as(ahead)
-    is_ego = torch.zeros_like(ahead, dtype=torch.bool)
-    is_ego[..., 0] = True
 
     def nearest(on_lane: torch.Tensor, front: bool):
         """(found, gap [m], speed [m/s], is the ego) of the nearest car ahead (or behind) on ``on_lane`` (E, M)."""
@@ -123,8 +121,8 @@ def mobil_lane_changes(
         gap = torch.where(present & side & on, ahead.abs(), torch.full_like(ahead, float("inf")))
         gap, index = gap.min(dim=-1)
         found = torch.isfinite(gap)
-        pick = lambda field: torch.gather(field, -1, index[..., None])[..., 0]
-        return found, torch.where(found, gap, torch.ones_like(gap)), pick(other_speed), found & pick(is_ego)
+        found_speed = torch.gather(other_speed, -1, index[..., None])[..., 0]
+        return found, torch.where(found, gap, torch.ones_like(gap)), found_speed, found & (index == 0)  # the ego is row 0
 
     def behind(found, gap, leader_speed):  # IDM's gap term behind the leader found, 0 without one
         return torch.where(found, model.gap_term(speed, leader_speed, gap), torch.zeros_like(speed))

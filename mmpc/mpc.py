@@ -299,9 +299,14 @@ def nearest_obstacles(
     return states, mask
 
 
+def _speed_along_road(ego: torch.Tensor) -> torch.Tensor:
+    """(E,) the (E, 6) egos' velocity along the road [m/s]."""
+    return ego[:, EGO_V] * torch.cos(ego[:, EGO_PSI])
+
+
 def _speed_advantage(ego: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
     """(E, M) how much faster along the road each (E, 6) ego moves than its (E, M, 4) obstacles [m/s]."""
-    return ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - states[..., 2]
+    return _speed_along_road(ego)[:, None] - states[..., 2]
 
 
 def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]) -> None:
@@ -405,8 +410,9 @@ class MPC:
         check_state(ego, vehicles, vehicle_mask)
         ego = ego.to(dtype=opt.dtype)
         vehicles = vehicles.to(dtype=opt.dtype)
-        if vehicle_mask is not None:  # absent rows may hold anything, NaN included
-            vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))
+        if vehicle_mask is None:
+            vehicle_mask = torch.ones(vehicles.shape[:2], dtype=torch.bool, device=vehicles.device)
+        vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))  # absent rows may hold NaN
         states, mask = self.nearest_obstacles(ego, vehicles, vehicle_mask)
         obstacles = self.predict(states, opt.times)
         solid = states.shape[1]
@@ -428,10 +434,10 @@ class MPC:
 
     def contingencies(
         self, ego: torch.Tensor, states: torch.Tensor, mask: torch.Tensor, vehicles: torch.Tensor,
-        vehicle_mask: Optional[torch.Tensor],
+        vehicle_mask: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The :attr:`MPCConfig.contingencies` of the (E, M, 4) obstacles ``states`` around the (E, 6)
-        egos, among every vehicle seen, ``vehicles`` (E, V, 4) (``vehicle_mask`` (E, V)).
+        egos, among every vehicle seen, ``vehicles`` (E, V, 4) (``vehicle_mask`` (E, V) bool).
 
         Returns:
             the K contingencies' states as they would move (E, K, 4) (``vy`` the lateral speed,
@@ -444,11 +450,9 @@ class MPC:
         reached = ahead.clamp_min(0.0) / closing.clamp_min(1e-3)  # s until the ego draws level
         qualifies = mask & (ahead > -self.wheelbase) & (closing > 0) & (reached <= cfg.contingency_window)
         if cfg.contingency_trigger == "incentive":
-            seen = torch.ones(vehicles.shape[:2], dtype=torch.bool, device=vehicles.device) \
-                if vehicle_mask is None else vehicle_mask
-            seen_ego = torch.stack([ego[:, EGO_X], ego[:, EGO_Y], ego[:, EGO_V] * torch.cos(ego[:, EGO_PSI])], dim=-1)
+            seen_ego = torch.stack([ego[:, EGO_X], ego[:, EGO_Y], _speed_along_road(ego)], dim=-1)
             model = DriverModel(min_gain=cfg.contingency_min_gain)
-            side = mobil_lane_changes(states, vehicles, seen, seen_ego, road, model).to(states.dtype)
+            side = mobil_lane_changes(states, vehicles, vehicle_mask, seen_ego, road, model).to(states.dtype)
             qualifies = qualifies & (side != 0)
             toward = states[..., 1] + side * road.lane_width  # (E, M)
         else:
