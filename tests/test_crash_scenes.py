@@ -20,7 +20,6 @@ def test_the_shipped_expert_passes_where_the_old_one_crashed(seed):
     assert result.metrics["collisions"] == 0, result.metrics
 
 
-@pytest.mark.slow
 def test_a_contingency_foresees_the_overtaken_car_moving_into_the_ego_s_new_lane():
     """Seed 50401: the shipped expert crashes at 7.9 s (checked), the car it overtakes on its
     lane moving, as MOBIL lets it, into the lane the ego enters; one contingency avoids it."""
