@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import add_compile, add_config, add_set, add_sim, apply_compile, scenario_overrides, split_overrides
+from mmpc.cli.arguments import add_compile, add_config, add_device, add_set, add_sim, apply_compile, scenario_overrides, split_overrides
 
 
 def _scenario(args: argparse.Namespace, overrides: dict):
@@ -191,6 +191,7 @@ def _scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (per worker) (default 1)")
     add_sim(parser)
     add_compile(parser)
+    add_device(parser)
 
 
 def add_subcommands(sub) -> None:

@@ -111,8 +111,9 @@ def decision_infos(decision: Decision, observation: Observation, scenario: Scena
         if decision.plan is None:
             infos[name] = np.full(count, math.nan)
         else:
-            rows = torch.arange(count)
-            infos[name] = getattr(decision.plan.result, name)[rows, decision.goal_index].double().numpy()
+            residual = getattr(decision.plan.result, name)  # where the driver computed it
+            index = decision.goal_index.to(residual.device)
+            infos[name] = residual[torch.arange(count, device=residual.device), index].double().cpu().numpy()
     return infos
 
 

@@ -30,6 +30,7 @@ import logging
 import math
 import os
 import time
+from collections import OrderedDict
 from typing import NamedTuple, Optional
 
 import torch
@@ -61,6 +62,9 @@ _SIMD_BYTES = 64
 #: Recompiles of each compiled function a process allows (torch's default: 8): one per call layout
 #: (the CPU kernels are shape-specialised); past it, new layouts solve eagerly.
 _RECOMPILE_LIMIT = 256
+
+#: Captured CUDA graphs an optimizer keeps (least recently used dropped first): each holds its own memory.
+_GRAPH_CACHE = 16
 
 #: Elements per call of the compiled CPU path: a tile's (3N, 2, tile) samples and residuals
 #: (~0.6 MB in float32) stay in a core's L2 cache between the products and the fused steps.
@@ -118,15 +122,17 @@ class BatchOptimizer(nn.Module):
             (seconds on a CPU); later solves are several times faster than eager. On
             the CPU the cold start and the outputs are compiled too, C++ wrappers call the
             kernels, and a small batch is padded with copies of its last goal to whole SIMD
-            vectors (the copies are dropped from the result). On CUDA each chunk is replayed
-            as a CUDA graph. Eager (the default) is the reference and supports autograd
+            vectors (the copies are dropped from the result). On CUDA every call layout's whole
+            solve is captured once as a CUDA graph and replayed (E rounded up to a few sizes per
+            octave, :func:`_graph_bucket`); results are copied out of the graph. Eager (the default) is the reference and supports autograd
             everywhere: a compiled optimizer solves inputs that require grad (autograd enabled)
             eagerly, with torch's sin, cos and atan2 (the same values to float32 rounding), as
             its compiled graphs are not differentiated. On the CPU every call layout gets its
             own shape-specialised kernels (a few seconds to compile each; torch's dynamic-shape
             kernels, its default from a second shape on, ran up to 2x slower); on CUDA a second
-            batch shape recompiles with dynamic dims (torch's default). ``"auto"``: compiled on
-            the CPU in float32 when a C++ compiler is found (inductor needs one), else eager;
+            batch shape recompiles with dynamic dims (torch's default). ``"auto"``: compiled in
+            float32 on the CPU when a C++ compiler is found (inductor needs one) and on CUDA
+            when triton is found, else eager;
             the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
             Compiled, the first call of every new call layout (problems, goals, obstacle slots,
             same or mixed obstacle counts; per tile) runs twice: once to compile, once timed as
@@ -180,7 +186,7 @@ class BatchOptimizer(nn.Module):
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
         if compile == "auto":
-            compile = _auto_compile(on_cpu and dtype == torch.float32)
+            compile = _auto_compile(dtype == torch.float32, on_cpu)
         if not isinstance(compile, bool):
             raise ValueError(f"`compile` must be True, False or 'auto'; got {compile!r}")
         # mmpc.trig is exact to float32 rounding, not to float64's.
@@ -198,6 +204,7 @@ class BatchOptimizer(nn.Module):
         if tile_size is None and compile and on_cpu:
             tile_size = _CPU_TILE_SIZE
         self.tile_size = tile_size
+        self._graphs: OrderedDict[tuple, Optional[_GraphSolve]] = OrderedDict()  # CUDA: layout -> captured solve
         self._layout, self._start, self._summarise, self._iterate = _layout, _start, _summarise, _iterate
         self.chunk = self.config.iterations
         if compile:
@@ -206,8 +213,13 @@ class BatchOptimizer(nn.Module):
             # overhead is paid once per chunk rather than once per iteration.
             self.chunk = min(_COMPILED_CHUNK, self.config.iterations)
             if not on_cpu:
-                # "reduce-overhead" replays each chunk as a CUDA graph: one launch per chunk.
-                self._iterate = torch.compile(_iterate, fullgraph=True, mode="reduce-overhead")
+                # Fused triton kernels; each call layout's whole solve is then captured as one
+                # CUDA graph (:meth:`_replay`), so that a solve is one launch, not thousands.
+                compile_cuda = functools.partial(torch.compile, fullgraph=True)
+                self._layout = compile_cuda(_layout)
+                self._start = compile_cuda(_start)
+                self._summarise = compile_cuda(_summarise)
+                self._iterate = compile_cuda(_iterate)
             else:
                 # A C++ wrapper calls the kernels, without Python between them; the layout, the cold start
                 # and the outputs are compiled too (at small batch their eager op-by-op
@@ -275,7 +287,10 @@ class BatchOptimizer(nn.Module):
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:
-            bucket = _problem_bucket(num_problems, num_goals, self.tile_size) if compiled else num_problems
+            bucket = num_problems
+            if compiled:
+                on_cpu = self.device.type == "cpu"
+                bucket = _problem_bucket(num_problems, num_goals, self.tile_size) if on_cpu else _graph_bucket(num_problems)
             if bucket == num_problems:
                 return self._solve(ego, goals, obstacles, mask, axes, history, compiled)
             ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask, axes))
@@ -311,6 +326,8 @@ class BatchOptimizer(nn.Module):
     ) -> SolveResult:
         """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`);
         compiled, a new call layout is run once untimed first (see :attr:`last_compile_ms`)."""
+        if compiled and self.device.type == "cuda":
+            return self._replay(ego, goals, obstacles, mask, axes, history)
         start = time.perf_counter()
         prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled)  # compiles the input layout too
         if compiled:
@@ -320,6 +337,35 @@ class BatchOptimizer(nn.Module):
                 self.last_compile_ms += (time.perf_counter() - start) * 1e3
                 self._compiled_layouts.add(layout)
         return self._run(prepared, history)
+
+    def _replay(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                axes: Optional[torch.Tensor], history: bool) -> SolveResult:
+        """Compiled CUDA path: the call layout's whole solve (layout, cold start, iterations,
+        outputs) replayed as one CUDA graph, captured at its first call; the result is copied out
+        of the graph's memory, so a later solve leaves it intact. A layout whose capture fails
+        runs the compiled functions without a graph (warned once)."""
+        counts = mask.sum(dim=1).unique()  # the one host synchronisation: operators differ per count
+        uniform = int(counts[0]) if counts.numel() == 1 else None
+        key = (tuple(goals.shape), mask.shape[1], uniform, axes is None, history)
+        inputs = (ego, goals, obstacles, mask, axes)
+        if key not in self._graphs:
+            start = time.perf_counter()
+            self._graphs[key] = _GraphSolve.capture(functools.partial(self._solve_prepared, uniform=uniform, history=history),
+                                                    inputs)
+            self.last_compile_ms += (time.perf_counter() - start) * 1e3
+            if len(self._graphs) > _GRAPH_CACHE:
+                self._graphs.popitem(last=False)  # frees the oldest graph's memory pool
+        self._graphs.move_to_end(key)
+        graph = self._graphs[key]
+        if graph is None:
+            return self._solve_prepared(*inputs, uniform=uniform, history=history)
+        return graph.replay(inputs)
+
+    def _solve_prepared(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                        axes: Optional[torch.Tensor], *, uniform: Optional[int], history: bool) -> SolveResult:
+        """The compiled functions on one call whose obstacle-count layout (``uniform``) is known:
+        no host synchronisation, so that a CUDA graph can capture it."""
+        return self._run(self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform), history)
 
     def _run(self, prepared: _Prepared, history: bool) -> SolveResult:
         """The cold start, the iterations and the outputs of one prepared call."""
@@ -368,8 +414,10 @@ class BatchOptimizer(nn.Module):
 
     def _prepare(
         self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-        axes: Optional[torch.Tensor], compiled: bool,
+        axes: Optional[torch.Tensor], compiled: bool, *, uniform: Optional[int] | str = "find",
     ) -> _Prepared:
+        """The solver layout of one call; ``uniform``: the obstacle count every problem has
+        (``None``: counts differ), or ``"find"`` to read it from the mask (a host synchronisation)."""
         cfg = self.config
         padding = 0
         if compiled and self.device.type == "cpu":
@@ -379,8 +427,9 @@ class BatchOptimizer(nn.Module):
         origin, b_position, b_heading, obstacles, axes, goal_ahead, counts = layout(
             ego, goals, obstacles, mask, axes, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b), cfg.a_max
         )
-        count_values = counts.unique()
-        uniform = int(count_values[0]) if count_values.numel() == 1 else None
+        if uniform == "find":
+            count_values = counts.unique()
+            uniform = int(count_values[0]) if count_values.numel() == 1 else None
         return _Prepared(
             origin=origin,
             b_position=b_position,
@@ -453,19 +502,26 @@ def _layout(
     return origin, b_position, b_heading, scaled.contiguous(), axes, relative_goals[..., 0] > 0, mask.sum(dim=1)
 
 
-def _auto_compile(fast_path: bool) -> bool:
-    """``compile="auto"``: the compiled path where it is the fast one (CPU, float32) and a C++
-    compiler is found, unless the environment variable ``MMPC_COMPILE`` says 0 or 1."""
+def _auto_compile(float32: bool, on_cpu: bool) -> bool:
+    """``compile="auto"``: the compiled path where it is the fast one (float32, a kernel compiler
+    found), unless the environment variable ``MMPC_COMPILE`` says 0 or 1."""
     setting = os.environ.get(COMPILE_ENV, "").strip()
     if setting not in ("", "0", "1"):
         raise ValueError(f"environment variable {COMPILE_ENV} must be 0, 1 or unset; got {setting!r}")
     if setting:
         return setting == "1"
-    return fast_path and _cpp_compiler_found()
+    return float32 and _kernel_compiler_found(on_cpu)
 
 
-def _cpp_compiler_found() -> bool:
-    """Whether inductor finds the C++ compiler its CPU kernels need."""
+def _kernel_compiler_found(on_cpu: bool) -> bool:
+    """Whether inductor finds what its kernels need: a C++ compiler on the CPU, triton on CUDA."""
+    if not on_cpu:
+        from torch.utils._triton import has_triton
+
+        if not has_triton():
+            logger.info("BatchOptimizer(compile='auto'): triton not found; eager on CUDA")
+            return False
+        return True
     from torch._inductor.cpp_builder import get_cpp_compiler
 
     try:
@@ -497,6 +553,62 @@ def _problem_bucket(num_problems: int, num_goals: int, tile_size: Optional[int])
     if tile_size is None:
         return num_problems
     return max(num_problems, min(1 << (num_problems - 1).bit_length(), tile_size // num_goals))
+
+
+def _graph_bucket(num_problems: int) -> int:
+    """Problems to solve on the compiled CUDA path: E rounded up to 1-8, 10, 12, 14, 16, 20, 24, 28,
+    32, 40, ... (four sizes per octave, at most 25 % padding), so that batches of varying E share
+    a few captured graphs."""
+    if num_problems <= 8:
+        return num_problems
+    step = 1 << (num_problems.bit_length() - 3)
+    return _ceil_div(num_problems, step) * step
+
+
+class _GraphSolve:
+    """One call layout's solve captured as a CUDA graph: static inputs copied in, replayed, the
+    outputs cloned out."""
+
+    def __init__(self, graph: "torch.cuda.CUDAGraph", inputs: tuple[Optional[torch.Tensor], ...], output: SolveResult) -> None:
+        self.graph, self.inputs, self.output = graph, inputs, output
+
+    @staticmethod
+    def capture(solve, inputs: tuple[Optional[torch.Tensor], ...]) -> Optional["_GraphSolve"]:
+        """Warm ``solve`` up on ``inputs`` (compiling it) on a side stream, then capture it; ``None``
+        (warned) when the capture fails, so that the caller runs ``solve`` without a graph."""
+        static = tuple(None if t is None else t.clone() for t in inputs)
+        device = next(t.device for t in inputs if t is not None)
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        try:
+            with torch.cuda.stream(side):
+                solve(*static)  # compiles; allocates the cuBLAS workspace outside the capture
+            torch.cuda.current_stream(device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                output = solve(*static)
+        except RuntimeError as error:
+            torch.cuda.synchronize(device)
+            logger.warning("BatchOptimizer: capturing a CUDA graph failed (%s); this layout runs compiled without a graph",
+                           error)
+            return None
+        return _GraphSolve(graph, static, output)
+
+    def replay(self, inputs: tuple[Optional[torch.Tensor], ...]) -> SolveResult:
+        for static, given in zip(self.inputs, inputs):
+            if static is not None:
+                static.copy_(given)
+        self.graph.replay()
+        return _clone_result(self.output)
+
+
+def _clone_result(result: SolveResult) -> SolveResult:
+    """A copy of every per-element tensor of ``result`` (the sample times are a shared buffer)."""
+    trajectories = Trajectories(result.trajectories.times, *(field.clone() for field in result.trajectories[1:]))
+    return result._replace(trajectories=trajectories, **{
+        name: None if getattr(result, name) is None else getattr(result, name).clone()
+        for name in SolveResult._fields if name != "trajectories"
+    })
 
 
 def _ceil_div(numerator: int, denominator: int) -> int:

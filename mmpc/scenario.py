@@ -20,10 +20,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Mapping, Optional, Union
 
+import torch
 
 from mmpc.config import (OptimizerConfig, load_config, require, require_field_types, require_int, require_non_negative,
                          require_positive)
 from mmpc.configs import shipped_config_dir
+from mmpc.device import run_device
 from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost, MetaCost
@@ -547,8 +549,8 @@ class ScenarioConfig:
         return dataclasses.replace(self, **changes)
 
 
-def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto") -> MPC:
-    """The scenario's MPC (float32, CPU): its optimizer, goals, meta cost and loop settings, and
+def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device: torch.device | str | None = None) -> MPC:
+    """The scenario's MPC (float32): its optimizer, goals, meta cost and loop settings, and
     the vehicle length as wheelbase.
 
     Args:
@@ -558,10 +560,12 @@ def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto") -> MPC:
             0 (eager) or 1 (compiled); the command line's ``--compile auto|on|off`` sets that
             variable, so worker processes inherit it. ``True`` / ``False`` decide here. See
             :class:`mmpc.BatchOptimizer`.
+        device: where it computes; ``None``: the run's device (:func:`mmpc.device.run_device`,
+            the CPU unless ``--device`` / ``MMPC_DEVICE`` says otherwise).
     """
     road = scenario.road
     goals = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
-    optimizer = BatchOptimizer(scenario.optimizer, compile=compile)
+    optimizer = BatchOptimizer(scenario.optimizer, device=run_device() if device is None else device, compile=compile)
     return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0],
                vehicle_width=scenario.vehicle[1])
 

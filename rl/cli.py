@@ -11,7 +11,7 @@ from pathlib import Path
 
 def add_subcommands(sub: argparse._SubParsersAction) -> None:
     """Add ``mmpc rl {train, evaluate, report}``."""
-    from mmpc.cli.arguments import add_compile, add_config, add_set, add_sim
+    from mmpc.cli.arguments import add_compile, add_config, add_device, add_set, add_sim
     from mmpc.rl.config import ALGORITHMS
 
     rl = sub.add_parser("rl", help="safe RL: train, evaluate and report stable-baselines3 agents behind the layer")
@@ -22,6 +22,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     add_config(train, "RL config (mmpc.rl.config.RLConfig; scenario keys as scenario.KEY)")
     add_sim(train)
     add_compile(train)
+    add_device(train)
     train.add_argument("--timesteps", type=int, required=True, help="agent steps, summed over the vectorized environments")
     train.add_argument("--out", required=True, help="run directory (config.yaml, tb/, checkpoints/, model.zip, eval.json)")
     train.add_argument("--env", choices=("safe", "highway"), default="safe",
@@ -39,6 +40,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     add_set(evaluate, "run's RL config (not the road, observation or actions the agent was trained with)",
             example=", e.g. --set scenario.traffic.vehicles_count=30")
     add_compile(evaluate)
+    add_device(evaluate)
     evaluate.set_defaults(func=_evaluate)
 
     report = subparsers.add_parser("report", help="TensorBoard curves (PNG) and evaluation table (markdown, JSON) of runs")

@@ -8,7 +8,7 @@ import torch
 from torch.autograd.gradcheck import GradcheckError
 
 import mmpc
-from mmpc.optimizer import _cpp_compiler_found
+from mmpc.optimizer import _kernel_compiler_found
 from tests.conftest import small_config
 
 #: Every float tensor a solve returns (``history`` requested), in the order gradcheck numbers them.
@@ -105,7 +105,7 @@ def test_compiled_backward_is_finite_and_matches_eager(caplog):
     assert compiled.last_compile_ms == 0.0
 
 
-@pytest.mark.skipif(not _cpp_compiler_found(), reason="inductor's CPU kernels need a C++ compiler")
+@pytest.mark.skipif(not _kernel_compiler_found(on_cpu=True), reason="inductor's CPU kernels need a C++ compiler")
 def test_compiled_solve_then_backward_gives_the_compiled_values():
     # A compiled solve without grad, then the same problem with grad (eager): float32 rounding apart.
     config = small_config(num_steps=12, order=6, iterations=6, max_obstacles=2)

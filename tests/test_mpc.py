@@ -196,7 +196,7 @@ def test_undrivable_candidates_give_a_lane_keeping_brake(cruise_mpc):
     assert float(plan.heading_rate[0]) < 0.0  # back towards the centre of lane 2 (y = 8)
 
 
-def test_auto_compile_is_the_cpu_float32_path_with_a_compiler(monkeypatch):
+def test_auto_compile_is_the_float32_path_with_a_kernel_compiler(monkeypatch):
     import mmpc.optimizer
 
     assert not mmpc.BatchOptimizer(compile="auto").compiled  # conftest: MMPC_COMPILE=0
@@ -206,7 +206,7 @@ def test_auto_compile_is_the_cpu_float32_path_with_a_compiler(monkeypatch):
     monkeypatch.delenv(mmpc.optimizer.COMPILE_ENV)
     assert mmpc.BatchOptimizer(compile="auto").compiled
     assert not mmpc.BatchOptimizer(compile="auto", dtype=torch.float64).compiled  # mmpc.trig is float32-exact
-    monkeypatch.setattr(mmpc.optimizer, "_cpp_compiler_found", lambda: False)
+    monkeypatch.setattr(mmpc.optimizer, "_kernel_compiler_found", lambda on_cpu: False)
     assert not mmpc.BatchOptimizer(compile="auto").compiled
     with pytest.raises(ValueError, match="compile"):
         mmpc.BatchOptimizer(compile="fast")

@@ -11,6 +11,7 @@ from typing import Any, Optional
 
 import yaml
 
+from mmpc.device import DEVICE_ENV, run_device
 from mmpc.files import TEMPORARY_PREFIX
 from mmpc.optimizer import COMPILE_ENV
 
@@ -97,6 +98,23 @@ def add_compile(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", choices=tuple(COMPILE_CHOICES), default="auto",
                         help=f"compile the batch optimizer: auto (default: when a C++ compiler is found, unless "
                              f"{COMPILE_ENV} is set), on, off (eager)")
+
+
+def add_device(parser: argparse.ArgumentParser) -> None:
+    """``--device auto|cpu|cuda|cuda:N`` for verbs that build an MPC or the batched simulator
+    (:func:`apply_device`, called by :func:`mmpc.cli.main.main`)."""
+    parser.add_argument("--device", default=None, metavar="auto|cpu|cuda|cuda:N",
+                        help=f"where the batched simulator and the MPC compute: cpu (default), cuda, cuda:N, or auto "
+                             f"(the GPU when there is one); sets {DEVICE_ENV}, which worker processes inherit")
+
+
+def apply_device(choice: Optional[str]) -> None:
+    """Set :data:`mmpc.device.DEVICE_ENV` for ``--device`` (``None`` leaves it) and check it names a
+    device this machine has (``ValueError`` saying what came)."""
+    if choice is None:
+        return
+    os.environ[DEVICE_ENV] = choice
+    run_device()
 
 
 def apply_compile(choice: str) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import add_compile, add_set, add_sim, apply_compile, scenario_overrides, seed_list, unwritable
+from mmpc.cli.arguments import add_compile, add_device, add_set, add_sim, apply_compile, scenario_overrides, seed_list, unwritable
 from mmpc.collisions import CRASH_COLUMNS
 
 
@@ -103,6 +103,7 @@ def add_subcommand(sub: argparse._SubParsersAction) -> None:
                                        "--set traffic.target_speeds=null --set name=cruise_default_traffic")
     add_sim(drive)
     add_compile(drive)
+    add_device(drive)
     drive.add_argument("--no-video", action="store_true", help="skip episode.mp4 (single episode)")
     drive.add_argument("--workers", type=int, default=1, help="parallel episodes with --seeds (default 1)")
     drive.add_argument("--threads", type=int, default=1, help="torch threads per episode (default 1)")

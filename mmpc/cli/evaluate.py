@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from mmpc.cli.arguments import add_compile, add_set, add_sim, apply_compile, driver_specs, scenario_overrides, seed_list
+from mmpc.cli.arguments import add_compile, add_device, add_set, add_sim, apply_compile, driver_specs, scenario_overrides, seed_list
 
 
 def run(args: argparse.Namespace) -> int:
@@ -108,6 +108,7 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
     add_set(parser, "scenarios", example=", as in mmpc drive")
     add_sim(parser)
     add_compile(parser)
+    add_device(parser)
     parser.add_argument("--episode-outputs", action="store_true",
                         help="also write metrics.json, steps.csv and topdown.png per episode under OUT/episodes/")
     parser.add_argument("--collision-videos", action="store_true",

@@ -59,8 +59,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if getattr(args, "duration", None) is not None and not args.duration > 0:
         print("mmpc: error: --duration must be > 0 s", file=sys.stderr)
         return 2
+    from mmpc.cli.arguments import apply_device
     from mmpc.config import ConfigError
 
+    try:
+        apply_device(getattr(args, "device", None))
+    except ValueError as error:
+        print(f"mmpc: error: --device: {error}", file=sys.stderr)
+        return 2
     try:
         return int(args.func(args))
     except ConfigError as error:  # a bad config, --set or --sim: the message says what came and what was expected

@@ -42,7 +42,14 @@ class Observation(NamedTuple):
 
     def ids(self) -> torch.Tensor:
         """(E,) long environment ids (``env_ids`` or 0..E-1)."""
-        return self.env_ids if self.env_ids is not None else torch.arange(self.num_envs)
+        return self.env_ids if self.env_ids is not None else torch.arange(self.num_envs, device=self.ego.device)
+
+    def to(self, device: torch.device | str) -> "Observation":
+        """The observation with its tensors on ``device`` (itself when they are there already)."""
+        if self.ego.device == torch.device(device):
+            return self
+        return self._replace(**{name: getattr(self, name).to(device) for name in ("ego", "vehicles", "vehicle_mask", "env_ids")
+                                if getattr(self, name) is not None})
 
     @property
     def num_envs(self) -> int:
@@ -90,16 +97,30 @@ class Decision(NamedTuple):
     candidates: Optional[Candidates] = None
     plan: Optional[Plan] = None
 
+    def commands_to(self, device: torch.device | str) -> "Decision":
+        """The decision with its per-environment fields (commands, goal, counts, fallback, cost,
+        the candidates' goals and flags) on ``device``; the candidates' trajectories and the
+        plan stay where the driver computed them."""
+        if self.acceleration.device == torch.device(device):
+            return self
+        fields = ("acceleration", "steering", "goal_index", "feasible_goals", "fallback", "plan_cost")
+        moved = {name: getattr(self, name).to(device) for name in fields}
+        if self.candidates is not None:
+            goals = None if self.candidates.goals is None else self.candidates.goals.to(device)
+            moved["candidates"] = self.candidates._replace(feasible=self.candidates.feasible.to(device),
+                                                           best=self.candidates.best.to(device), goals=goals)
+        return self._replace(**moved)
+
     @classmethod
     def command_only(cls, acceleration: torch.Tensor, steering: torch.Tensor, solve_ms: float) -> "Decision":
         """A decision of a driver without candidates (e.g. a learned policy)."""
-        count = acceleration.shape[0]
+        count, device = acceleration.shape[0], acceleration.device
         return cls(
             acceleration, steering, solve_ms,
-            goal_index=torch.full((count,), -1, dtype=torch.long),
-            feasible_goals=torch.full((count,), -1, dtype=torch.long),
-            fallback=torch.zeros(count, dtype=torch.bool),
-            plan_cost=torch.full((count,), float("nan")),
+            goal_index=torch.full((count,), -1, dtype=torch.long, device=device),
+            feasible_goals=torch.full((count,), -1, dtype=torch.long, device=device),
+            fallback=torch.zeros(count, dtype=torch.bool, device=device),
+            plan_cost=torch.full((count,), float("nan"), device=device),
         )
 
 
@@ -107,10 +128,16 @@ class Driver(abc.ABC):
     """Commands for E environments per call.
 
     Subclasses set :attr:`name` and implement :meth:`decide`; drivers with memory across steps
-    (warm starts, recurrent policies) also override :meth:`reset`.
+    (warm starts, recurrent policies) also override :meth:`reset`. A driver that computes on a
+    GPU says so with :attr:`device`: the episode runner hands it observations there.
     """
 
     name: str = "driver"
+
+    @property
+    def device(self) -> torch.device:
+        """Where :meth:`decide` wants its observations (the CPU unless a driver says otherwise)."""
+        return torch.device("cpu")
 
     def reset(self, num_envs: int) -> None:
         """E new episodes start: forget anything carried from earlier steps."""

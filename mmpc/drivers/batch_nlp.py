@@ -166,7 +166,7 @@ def make_batch_nlp_driver(scenario, argument: Optional[str]) -> Driver:
         raise ValueError(f"batch-nlp: the batch size must be >= 1; got {batch}")
     if workers is None:
         workers = min(batch, os.cpu_count() or 1)
-    mpc = build_mpc(scenario)
+    mpc = build_mpc(scenario, device="cpu")  # CasADi solves on the CPU
     probe = mpc.goal_sampler(torch.zeros(1, 6, dtype=torch.float64), mpc.road)
     goal_subset(probe.shape[1], batch)  # validates B against the scenario's goal count
     return BatchNLPDriver(mpc, batch, BatchNLPSolver(mpc, workers))

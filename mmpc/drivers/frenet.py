@@ -267,4 +267,4 @@ def make_frenet_driver(scenario, argument: Optional[str]) -> Driver:
 
     if argument is not None:
         raise ValueError(f"driver 'frenet' takes no argument; got 'frenet:{argument}'")
-    return FrenetDriver(FrenetPlanner(build_mpc(scenario), scenario.objective.top_speed))
+    return FrenetDriver(FrenetPlanner(build_mpc(scenario, device="cpu"), scenario.objective.top_speed))

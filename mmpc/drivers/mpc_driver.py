@@ -24,6 +24,10 @@ class MPCDriver(Driver):
         self.mpc = mpc
         self.name = name
 
+    @property
+    def device(self) -> torch.device:
+        return self.mpc.optimizer.device
+
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask)

@@ -280,7 +280,9 @@ def run_lockstep(
                 observer.finished(i, episodes[i])
         while active:
             observation, singles = world.observe(active)
-            decision = driver.decide(observation)
+            decision = driver.decide(observation.to(driver.device))
+            # Records and observers read the host: one copy of each per-environment field per step.
+            observation, decision = observation.to("cpu"), decision.commands_to("cpu")
             for observer in observers:
                 observer.decided(observation, decision, active)
             world.apply(active, decision.acceleration, decision.steering)

@@ -13,6 +13,7 @@ from typing import NamedTuple, Optional, Protocol, Sequence
 import numpy as np
 import torch
 
+from mmpc.device import run_device
 from mmpc.drivers import Observation
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.scenario import ScenarioConfig
@@ -39,11 +40,12 @@ class World(Protocol):
 
 
 def make_world(scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False) -> World:
-    """The world of ``scenario.sim`` with one environment per seed (``render``: highway-env only)."""
+    """The world of ``scenario.sim`` with one environment per seed (``render``: highway-env only);
+    the batched simulator runs on the run's device (:func:`mmpc.device.run_device`)."""
     if scenario.sim == "batched":
         if render:
             raise ValueError(f"scenario {scenario.name!r}: videos are drawn by highway-env; run it with --sim highway-env")
-        return BatchedWorld(scenario, seeds)
+        return BatchedWorld(scenario, seeds, device=run_device())
     return HighwayEnvWorld(scenario, seeds, render=render)
 
 
@@ -89,7 +91,7 @@ class SimEpisodeView:
         self.world = world
         self.index = index
         self.scenario = world.scenario
-        self.seed = int(world.sim.seeds[index])
+        self.seed = world.seeds[index]
 
     @property
     def ego(self) -> EgoStatus:
@@ -115,11 +117,14 @@ class SimEpisodeView:
 
 class BatchedWorld:
     """One batched-simulator environment per seed (:class:`mmpc.sim.SimEpisodes`), all stepped
-    by one simulator call; finished episodes stay as they ended."""
+    by one simulator call; finished episodes stay as they ended. The batch it observes is on the
+    simulator's ``device``; the single-environment observations are host copies."""
 
-    def __init__(self, scenario: ScenarioConfig, seeds: Sequence[int], *, dtype: torch.dtype = torch.float32) -> None:
+    def __init__(self, scenario: ScenarioConfig, seeds: Sequence[int], *, dtype: torch.dtype = torch.float32,
+                 device: torch.device | str = "cpu") -> None:
         self.scenario = scenario
-        self.sim = SimEpisodes(scenario, list(seeds), dtype=dtype)
+        self.seeds = [int(seed) for seed in seeds]
+        self.sim = SimEpisodes(scenario, self.seeds, dtype=dtype, device=device)
         self.episodes = [SimEpisodeView(self, i) for i in range(self.sim.num_envs)]
         self._read_status()
 
@@ -130,20 +135,22 @@ class BatchedWorld:
         self.rewards: list[float] = highway_reward(self.sim.state, self.sim.config).tolist()
 
     def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
-        rows = torch.as_tensor(list(active), dtype=torch.long)
+        device = self.sim.device
+        rows = torch.as_tensor(list(active), dtype=torch.long, device=device)
         ego, vehicles, mask = self.sim.road_state()
-        kinematics = kinematics_observation(self.sim.state, self.sim.config)[rows].float().numpy()
+        kinematics = kinematics_observation(self.sim.state, self.sim.config)[rows].float().cpu().numpy()
         batch = Observation(ego[rows], vehicles[rows], mask[rows], kinematics, rows)
+        host = batch.to("cpu")
         singles = [Observation(e, v, m, k[None]) for e, v, m, k in
-                   zip(batch.ego.split(1), batch.vehicles.split(1), batch.vehicle_mask.split(1), kinematics)]
+                   zip(host.ego.split(1), host.vehicles.split(1), host.vehicle_mask.split(1), kinematics)]
         return batch, singles
 
     def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
-        rows = torch.as_tensor(list(active), dtype=torch.long)
-        dtype = self.sim.state.x.dtype
-        command = torch.zeros(self.sim.num_envs, 2, dtype=dtype)
-        command[rows] = torch.stack([acceleration, steering], dim=1).to(dtype)
-        running = torch.zeros(self.sim.num_envs, dtype=torch.bool)
+        device, dtype = self.sim.device, self.sim.state.x.dtype
+        rows = torch.as_tensor(list(active), dtype=torch.long, device=device)
+        command = torch.zeros(self.sim.num_envs, 2, dtype=dtype, device=device)
+        command[rows] = torch.stack([acceleration, steering], dim=1).to(device, dtype)
+        running = torch.zeros(self.sim.num_envs, dtype=torch.bool, device=device)
         running[rows] = True
         self.sim.step(command, running)
         self._read_status()

@@ -65,6 +65,11 @@ class SimEpisodes:
         self.applied = torch.zeros(self.num_envs, 2, dtype=dtype, device=self.seeds.device)
 
     @property
+    def device(self) -> torch.device:
+        """Where the state lives."""
+        return self.seeds.device
+
+    @property
     def num_envs(self) -> int:
         return self.seeds.shape[0]
 
