@@ -11,6 +11,9 @@ what the model was trained on:
   to acceleration and steering; with highway-env's ``DiscreteMetaAction`` its meta-action is
   executed by a lane and speed controller with highway-env's ``MDPVehicle`` control laws
   (:class:`MetaActionDriver`). Either holds its action for ``decision_frames`` steps.
+
+The SB3 policies run on the CPU and read numpy; a safe-layer driver computes on its safety
+layer's device (:attr:`SafeAgentDriver.device`, the run's), the plain ones on the CPU.
 """
 
 from __future__ import annotations
@@ -111,6 +114,11 @@ class SafeAgentDriver(Driver):
         self.hold = _Hold(self.config.decision_frames)
         self.held: dict[int, "HeldPlan"] = {}  # replan: decision, one-row plans by environment id
 
+    @property
+    def device(self) -> torch.device:
+        """Where the safety layer computes (its MPC's device): the runner hands observations there."""
+        return self.layer.device
+
     def reset(self, num_envs: int) -> None:
         self.hold.clear()
         self.held.clear()
@@ -148,7 +156,7 @@ class SafeAgentDriver(Driver):
         if self.config.replan == "decision":
             return self._decide_tracking(observation)
         start = time.perf_counter()
-        ids = [int(i) for i in observation.ids()]
+        ids = observation.ids().tolist()
         commands = torch.stack(self.hold.refresh(ids, lambda due: self._new_commands(observation, due)))
         safe = self.layer.plan(observation, commands)
         return _plan_decision(safe, (time.perf_counter() - start) * 1e3 - safe.plan.compile_ms)
@@ -163,7 +171,7 @@ class SafeAgentDriver(Driver):
         from mmpc.rl.safety import observation_rows
 
         start = time.perf_counter()
-        ids = [int(i) for i in observation.ids()]
+        ids = observation.ids().tolist()
         due = self.hold.due(ids)
         decided: Optional["SafePlan"] = None
         compile_ms = 0.0
@@ -176,21 +184,23 @@ class SafeAgentDriver(Driver):
         frames = [self.hold.frames - self.hold.left[env] for env in ids]  # 0 for the rows just decided
         self.hold.tick(ids)
         commands = torch.stack([self.hold.values[env] for env in ids])
-        count = len(ids)
+        count, device = len(ids), self.device
         dtype = self.layer.mpc.optimizer.dtype
-        acceleration = torch.zeros(count, dtype=dtype)
-        steering = torch.zeros(count, dtype=dtype)
-        fallback = torch.zeros(count, dtype=torch.bool)
-        feasible_goals = torch.full((count,), -1, dtype=torch.long)
+        acceleration = torch.zeros(count, dtype=dtype, device=device)
+        steering = torch.zeros(count, dtype=dtype, device=device)
+        fallback = torch.zeros(count, dtype=torch.bool, device=device)
+        feasible_goals = torch.full((count,), -1, dtype=torch.long, device=device)
         for frame in sorted(set(frames)):
-            rows = torch.as_tensor([row for row, f in enumerate(frames) if f == frame], dtype=torch.long)
-            held = None if frame == 0 else _cat_held([self.held[ids[row]] for row in rows.tolist()])
+            members = [row for row, f in enumerate(frames) if f == frame]
+            rows = torch.as_tensor(members, dtype=torch.long, device=device)
+            held = None if frame == 0 else _cat_held([self.held[ids[row]] for row in members])
             control = self.layer.frame(observation_rows(observation, rows), commands[rows], frame * self.period, held,
                                        decided if frame == 0 else None)
             if frame > 0 and bool(control.solved.any()):
                 compile_ms += self.layer.mpc.optimizer.last_compile_ms
-            for i, row in enumerate(rows.tolist()):
-                self.held[ids[row]] = control.held.take(torch.tensor([i]))
+            order = torch.arange(len(members), device=device)
+            for i, row in enumerate(members):
+                self.held[ids[row]] = control.held.take(order[i:i + 1])
             acceleration[rows] = control.acceleration.to(acceleration.dtype)
             steering[rows] = control.steering.to(steering.dtype)
             fallback[rows] = control.fallback

@@ -13,7 +13,9 @@ Rewards are summed over the frames; the step ends early at a collision.
 Several environments advance together through :func:`advance`, which gathers their problems at
 every frame into ONE optimizer call; a single environment's :meth:`SafeHighwayEnv.step` is
 :func:`advance` over itself, and :class:`mmpc.rl.vec_env.SafeHighwayVecEnv` uses it over all of
-its environments.
+its environments. highway-env's states are CPU tensors; the safety layer moves them to its
+device (the run's, :func:`mmpc.device.run_device`), and each frame's commands and flags come
+back to the host in one copy per field.
 
 Observation: highway-env's ``Kinematics`` observation (``kinematics_vehicles`` rows x
 presence, x, y, vx, vy, normalised and clipped to [-1, 1]), flattened, followed (with
@@ -370,6 +372,7 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
             held = held.take(torch.as_tensor([i in active for i in held_rows]))
         control = layer.frame(observation, commands[active], frame * period, held, decided if frame == 0 else None)
         held, held_rows = control.held, active
+        control = control.host()  # highway-env steps one environment at a time: read the host copies
         if bool(control.solved.any()) and not (frame == 0 and decided is not None):
             solve_ms.append(control.solve_ms)
         for row, i in enumerate(active):
@@ -391,6 +394,7 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
     if envs[0].config.solver_features:
         solve_ms.append(features_ms)
     mean_ms = float(np.mean(solve_ms)) if solve_ms else 0.0
+    goals = commands.tolist()  # one copy to the host
     outcomes = []
     for i, env in enumerate(envs):
         episode = env.episode
@@ -405,7 +409,7 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
             "speed": float(episode.ego.speed),
             "mean_speed": float(np.mean(speeds[i])),
             "crashed": crashed,
-            "goal": tuple(float(c) for c in commands[i]),
+            "goal": tuple(goals[i]),
             **last[i],
         }
         truncated = not crashed and episode.done

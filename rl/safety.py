@@ -142,7 +142,10 @@ class HeldPlan(NamedTuple):
     residuals: torch.Tensor
 
     def take(self, index: torch.Tensor) -> "HeldPlan":
-        """The plans of the rows ``index`` (long or bool over E), e.g. those of the environments still running."""
+        """The plans of the rows ``index`` (long or bool over E, on any device), e.g. those of
+        the environments still running."""
+        if isinstance(index, torch.Tensor):
+            index = index.to(self.planned_at.device)
         trajectory = Trajectories(self.trajectory.times, *(field[index] for field in self.trajectory[1:]))
         return HeldPlan(trajectory, *(field[index] for field in self[1:]))
 
@@ -171,9 +174,18 @@ class FrameControl(NamedTuple):
     solve_ms: float
     held: HeldPlan
 
+    def host(self) -> "FrameControl":
+        """The per-environment fields (commands, flags, counts, residuals) on the CPU, one copy
+        each; ``held`` stays where the layer computes."""
+        names = ("acceleration", "steering", "intervention", "fallback", "agent_feasible", "feasible_goals", "residuals",
+                 "solved")
+        return self._replace(**{name: getattr(self, name).cpu() for name in names})
+
 
 def observation_rows(observation: Observation, rows: torch.Tensor) -> Observation:
-    """The road-frame state of the environments ``rows`` (kinematics left out)."""
+    """The road-frame state of the environments ``rows`` (kinematics left out), on the
+    observation's device."""
+    rows = rows.to(observation.ego.device)
     mask = None if observation.vehicle_mask is None else observation.vehicle_mask[rows]
     ids = observation.ids()[rows]
     return Observation(observation.ego[rows], observation.vehicles[rows], mask, None, ids)
@@ -185,6 +197,10 @@ class SafetyLayer:
     Args:
         mpc: the scenario's MPC (optimizer, standard goals, meta cost, road).
         config: the environment settings (goal grid, action ranges, intervention distance).
+
+    The layer computes on its MPC's device (:attr:`device`): the observations, egos, actions and
+    commands it is given elsewhere (highway-env's CPU tensors, SB3's numpy actions) are moved
+    there at its entry points, and what it returns lies there, except :meth:`features` (numpy).
 
     Example:
         >>> import torch
@@ -207,8 +223,14 @@ class SafetyLayer:
         self.road = mpc.road
         self.horizon = mpc.optimizer.config.horizon
         offsets, speeds = np.meshgrid(np.asarray(config.lane_offsets), np.asarray(config.speeds), indexing="ij")
-        self._grid_offsets = torch.as_tensor(offsets.reshape(-1), dtype=torch.long)  # (A,)
-        self._grid_speeds = torch.as_tensor(speeds.reshape(-1), dtype=mpc.optimizer.dtype)  # (A,)
+        device = mpc.optimizer.device
+        self._grid_offsets = torch.as_tensor(offsets.reshape(-1), dtype=torch.long, device=device)  # (A,)
+        self._grid_speeds = torch.as_tensor(speeds.reshape(-1), dtype=mpc.optimizer.dtype, device=device)  # (A,)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the layer computes: its MPC's optimizer's device."""
+        return self.mpc.optimizer.device
 
     @property
     def num_discrete_goals(self) -> int:
@@ -226,31 +248,34 @@ class SafetyLayer:
         """Discrete actions -> goal commands.
 
         Args:
-            ego: (E, 6) ego states at decision time.
+            ego: (E, 6) ego states at decision time (any device).
             actions: (E,) indices into the grid ``lane_offsets x speeds`` (offset-major).
 
         Returns:
-            (E, 2) commands: target lane centre y [m] (the ego's nearest lane plus the offset,
-            clamped to the road) and target average speed [m/s].
+            (E, 2) commands on the layer's device: target lane centre y [m] (the ego's nearest
+            lane plus the offset, clamped to the road) and target average speed [m/s].
         """
         actions = torch.as_tensor(actions, dtype=torch.long).reshape(-1)
         if actions.shape[0] != ego.shape[0]:
             raise ValueError(f"`actions` must have shape ({ego.shape[0]},); got {tuple(actions.shape)}")
         if bool(((actions < 0) | (actions >= self.num_discrete_goals)).any()):
             raise ValueError(f"discrete actions must lie in [0, {self.num_discrete_goals}); got {actions.tolist()}")
-        return self._grid_commands(ego)[torch.arange(ego.shape[0]), actions]
+        ego, actions = ego.to(self.device), actions.to(self.device)
+        return self._grid_commands(ego)[torch.arange(ego.shape[0], device=self.device), actions]
 
     def continuous_commands(self, ego: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Continuous actions in [-1, 1]^2 (clipped) -> goal commands (E, 2).
 
         ``a[0]``: lateral target, the ego lane's centre plus ``a[0] * lateral_range`` lane
         widths, clamped to the road's lane centres; ``a[1]``: speed, linear onto ``speed_range``.
+        ``ego`` and ``actions`` may lie on any device; the commands lie on the layer's.
         """
         actions = torch.as_tensor(actions, dtype=ego.dtype).reshape(-1, 2)
         if actions.shape[0] != ego.shape[0]:
             raise ValueError(f"`actions` must have shape ({ego.shape[0]}, 2); got {tuple(actions.shape)}")
         if not bool(torch.isfinite(actions).all()):
             raise ValueError(f"continuous actions must be finite; got {actions.tolist()}")
+        ego, actions = ego.to(self.device), actions.to(self.device)
         actions = actions.clamp(-1.0, 1.0)
         lane_y = self.road.lane_index(ego[:, EGO_Y]).to(ego.dtype) * self.road.lane_width
         y = (lane_y + actions[:, 0] * self.config.lateral_range * self.road.lane_width).clamp(0.0, self.road.right_lane_y)
@@ -276,24 +301,27 @@ class SafetyLayer:
         """One frame for E environments: the agents' goals plus the standard goals, one solve.
 
         Args:
-            observation: the E environments' road-frame state.
+            observation: the E environments' road-frame state (any device).
             commands: (E, 2) goal commands ``(y [m], v [m/s])``.
 
         Returns:
             A :class:`SafePlan`; ``plan.acceleration`` / ``plan.steering`` are the commands to apply.
         """
-        commands = torch.as_tensor(commands, dtype=self.mpc.optimizer.dtype)
+        observation = observation.to(self.device)
+        commands = torch.as_tensor(commands, dtype=self.mpc.optimizer.dtype, device=self.device)
         if commands.shape != (observation.num_envs, 2):
             raise ValueError(f"`commands` must have shape ({observation.num_envs}, 2); got {tuple(commands.shape)}")
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         goals = torch.cat([self.goals(problem.ego, commands[:, None]), problem.goals], dim=1)
         problem = problem._replace(goals=goals)
-        agent = torch.zeros(observation.num_envs, dtype=torch.long)
+        agent = torch.zeros(observation.num_envs, dtype=torch.long, device=self.device)
         return self._safe_plan(self.mpc.plan_problem(problem, self._selector(agent, problem)), agent, commands)
 
     def decision_solve(self, observation: Observation) -> DecisionSolve:
         """ONE solve of the discrete goal grid (at the egos' current lanes) and the standard goals
-        for E states: the observation's solver features, and the candidates of a discrete decision."""
+        for E states (``observation`` on any device): the observation's solver features, and the
+        candidates of a discrete decision."""
+        observation = observation.to(self.device)
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         grid = self.goals(problem.ego, self._grid_commands(problem.ego))
         problem = problem._replace(goals=torch.cat([grid, problem.goals], dim=1))
@@ -309,6 +337,7 @@ class SafetyLayer:
             raise ValueError(f"`actions` must have shape ({solve.problem.num_problems},); got {tuple(actions.shape)}")
         if bool(((actions < 0) | (actions >= self.num_actions)).any()):
             raise ValueError(f"discrete actions must lie in [0, {self.num_actions}); got {actions.tolist()}")
+        actions = actions.to(solve.problem.ego.device)
         if solve.expert is None:
             return actions
         return torch.where(actions == self.num_discrete_goals, solve.expert, actions)
@@ -318,7 +347,7 @@ class SafetyLayer:
         of a :meth:`decision_solve`: the grid's commands, and for the expert's candidate its goal
         ``(x, y)`` as ``(y, (x - x_ego) / t_f)``."""
         ego = solve.problem.ego
-        rows = torch.arange(index.shape[0])
+        rows = torch.arange(index.shape[0], device=index.device)
         grid = self._grid_commands(ego)[rows, index.clamp(max=self.num_discrete_goals - 1)]
         goal = solve.problem.goals[rows, index]
         chosen = torch.stack([goal[:, 1], (goal[:, 0] - ego[:, EGO_X]) / self.horizon], dim=1)
@@ -328,18 +357,18 @@ class SafetyLayer:
         """How every discrete action's candidate fares at the solved states.
 
         Returns:
-            (E, num_actions, 3) float32 features in [0, 1] (the grid's goals, then the expert's
+            (E, num_actions, 3) float32 numpy features in [0, 1] (the grid's goals, then the expert's
             choice with ``expert_action``): feasible flag, squashed meta cost
             ``m / (m + feature_cost_scale)`` with ``m`` the cost per trajectory sample, and
             clearance ``min(1, d / 3)`` with ``d`` the smallest normalised ellipse distance to
             an obstacle (1/3: touching).
         """
         result = solve.scored.result
-        count = solve.problem.num_problems
-        columns = torch.arange(self.num_discrete_goals).expand(count, -1)
+        count, device = solve.problem.num_problems, solve.problem.ego.device
+        columns = torch.arange(self.num_discrete_goals, device=device).expand(count, -1)
         if solve.expert is not None:
             columns = torch.cat([columns, solve.expert[:, None]], dim=1)
-        rows = torch.arange(count)[:, None]
+        rows = torch.arange(count, device=device)[:, None]
         feasible = result.feasible[rows, columns].to(torch.float32)
         samples = result.trajectories.x.shape[-1]
         cost = solve.scored.cost[rows, columns].to(torch.float32) / samples
@@ -347,7 +376,7 @@ class SafetyLayer:
         squashed = torch.where(torch.isinf(cost), torch.ones_like(cost), cost / (cost + self.config.feature_cost_scale))
         distance = torch.nan_to_num(result.min_obstacle_distance[rows, columns].to(torch.float32), nan=0.0, posinf=3.0)
         clearance = (distance / 3.0).clamp(0.0, 1.0)
-        return torch.stack([feasible, squashed, clearance], dim=-1).numpy()
+        return torch.stack([feasible, squashed, clearance], dim=-1).cpu().numpy()  # one copy to the host
 
     def decide(self, solve: DecisionSolve, actions: torch.Tensor) -> SafePlan:
         """Discrete actions executed from the candidates of a :meth:`decision_solve` at the same
@@ -379,12 +408,13 @@ class SafetyLayer:
         or no feasible candidate), all in one call.
 
         Args:
-            observation: the E environments' road-frame state now.
+            observation: the E environments' road-frame state now (any device).
             commands: (E, 2) the goal commands held over the agent step.
             now: time since the decision [s].
             held: the previous frame's :attr:`FrameControl.held`; ``None`` at the decision.
             decided: the decision's plan from :meth:`decide`, or ``None`` to solve it now.
         """
+        observation, commands = observation.to(self.device), torch.as_tensor(commands, device=self.device)
         if held is None or self.config.replan == "frame":
             safe = decided if held is None and decided is not None else self.plan(observation, commands)
             return self._control(safe, now)
@@ -404,12 +434,13 @@ class SafetyLayer:
     def _control(self, safe: SafePlan, now: float) -> FrameControl:
         """Execute a fresh plan in every row and hold it."""
         plan = safe.plan
-        count = plan.acceleration.shape[0]
+        count, device = plan.acceleration.shape[0], plan.acceleration.device
         residuals = safe.residuals()
-        held = HeldPlan(plan.trajectory, torch.full((count,), now, dtype=plan.acceleration.dtype), plan.selection.feasible,
+        held = HeldPlan(plan.trajectory, torch.full((count,), now, dtype=plan.acceleration.dtype, device=device),
+                        plan.selection.feasible,
                         safe.intervention, safe.agent_feasible, safe.feasible_goals, residuals)
         return FrameControl(plan.acceleration, plan.steering, safe.intervention, safe.fallback, safe.agent_feasible,
-                            safe.feasible_goals, residuals, torch.ones(count, dtype=torch.bool), plan.solve_ms, held)
+                            safe.feasible_goals, residuals, torch.ones(count, dtype=torch.bool, device=device), plan.solve_ms, held)
 
     def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan) -> FrameControl:
         """Track the held plans; solve again (one call) where they are no longer safe to follow."""

@@ -7,6 +7,10 @@ highway-env environments): highway-env's ``Kinematics`` rows and the solver feat
 grid or Box goals held for ``decision_frames`` frames (the safety layer replans at every frame or
 at the decisions, :attr:`mmpc.rl.config.SafeEnvConfig.replan`), highway-env's reward summed over the frames minus the intervention penalty. Episodes that end
 are started again at once from a new seed (SB3's auto-reset; gymnasium's ``SAME_STEP`` mode).
+
+The simulator, the safety layer and the per-step tallies live on the run's device
+(:func:`mmpc.device.run_device`, ``--device``); observations, rewards and ``info`` come to the
+host once per agent step, in a few bulk copies.
 """
 
 from __future__ import annotations
@@ -69,6 +73,9 @@ class SafeSimBatch:
         reward: reward settings.
         continuous: Box goal actions instead of the discrete grid.
         seed: seeds the draws of episode seeds for resets that get none.
+
+    The simulator runs where the layer's MPC computes (:func:`mmpc.scenario.build_mpc`: the run's
+    device, :func:`mmpc.device.run_device`).
     """
 
     def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
@@ -85,6 +92,7 @@ class SafeSimBatch:
         action_space(config, self.continuous)  # refuses settings the action type cannot have
         self.layer = SafetyLayer(build_mpc(scenario), config)
         self.dtype = self.layer.mpc.optimizer.dtype
+        self.device = self.layer.device
         self.rng = np.random.default_rng(seed)
         self.sim: Optional[SimEpisodes] = None
         self._decision: Optional[DecisionSolve] = None
@@ -109,7 +117,7 @@ class SafeSimBatch:
             solve = self.layer.decision_solve(self._road_observation(rows))
         features = self.layer.features(solve) if self.config.solver_features else None
         kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles)
-        return observation_vectors(kinematics[rows].float().numpy(), features, self.config), solve
+        return observation_vectors(kinematics[rows].float().cpu().numpy(), features, self.config), solve
 
     def _frame_rewards(self) -> torch.Tensor:
         """(E,) float64 rewards of the current states (:class:`mmpc.rl.config.RewardConfig`)."""
@@ -127,8 +135,8 @@ class SafeSimBatch:
         if len(seeds) != self.num_envs:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
         episode_seeds = self._seeds(seeds)
-        self.sim = SimEpisodes(self.scenario, episode_seeds)
-        observations, self._decision = self._observations(torch.arange(self.num_envs))
+        self.sim = SimEpisodes(self.scenario, episode_seeds, device=self.device)
+        observations, self._decision = self._observations(torch.arange(self.num_envs, device=self.device))
         solve_ms = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
         return observations, [{"solve_ms": solve_ms, "episode_seed": s} for s in episode_seeds]
 
@@ -154,23 +162,23 @@ class SafeSimBatch:
                 raise ValueError(f"environment {index}: {error}") from None
         if bool(self.sim.done.any()):
             raise RuntimeError(f"environments {self.sim.done.nonzero()[:, 0].tolist()} are over: reset them first")
-        count = self.num_envs
-        everyone = torch.arange(count)
+        count, device = self.num_envs, self.device
+        everyone = torch.arange(count, device=device)
         decided = None
         if self._decides_from_features_solve:
             decided = self.layer.decide(self._decision, torch.as_tensor(checked, dtype=torch.long))
             commands = decided.commands
         else:
             commands = goal_commands(self.layer, self._road_observation(everyone).ego, checked, self.continuous)
-        rewards = torch.zeros(count, dtype=torch.float64)
-        interventions = torch.zeros(count, dtype=torch.long)
-        fallbacks = torch.zeros(count, dtype=torch.long)
-        solved = torch.zeros(count, dtype=torch.long)
-        frames = torch.zeros(count, dtype=torch.long)
-        speed_sum = torch.zeros(count, dtype=torch.float64)
-        feasible_goals = torch.zeros(count, dtype=torch.long)
-        agent_feasible = torch.zeros(count, dtype=torch.bool)
-        residuals = torch.zeros(count, 3, dtype=torch.float64)
+        rewards = torch.zeros(count, dtype=torch.float64, device=device)
+        interventions = torch.zeros(count, dtype=torch.long, device=device)
+        fallbacks = torch.zeros(count, dtype=torch.long, device=device)
+        solved = torch.zeros(count, dtype=torch.long, device=device)
+        frames = torch.zeros(count, dtype=torch.long, device=device)
+        speed_sum = torch.zeros(count, dtype=torch.float64, device=device)
+        feasible_goals = torch.zeros(count, dtype=torch.long, device=device)
+        agent_feasible = torch.zeros(count, dtype=torch.bool, device=device)
+        residuals = torch.zeros(count, 3, dtype=torch.float64, device=device)
         solve_ms: list[float] = []  # the decision's solve was timed at the end of the step before
         period = 1.0 / self.scenario.frequency
         held, held_rows = None, everyone
@@ -186,7 +194,7 @@ class SafeSimBatch:
             held, held_rows = control.held, rows
             if bool(control.solved.any()) and not (frame == 0 and decided is not None):
                 solve_ms.append(control.solve_ms)
-            command = torch.zeros(count, 2, dtype=self.sim.state.x.dtype)
+            command = torch.zeros(count, 2, dtype=self.sim.state.x.dtype, device=device)
             command[rows] = torch.stack([control.acceleration, control.steering], dim=1).to(command.dtype)
             self.sim.step(command, running)
             rewards[rows] += self._frame_rewards()[rows] - self.config.intervention_penalty * control.intervention.double()
@@ -198,9 +206,13 @@ class SafeSimBatch:
             feasible_goals[rows] = control.feasible_goals
             agent_feasible[rows] = control.agent_feasible
             residuals[rows] = control.residuals.double()
-        crashed = self.sim.crashed.clone()
-        truncated = self.sim.done & ~crashed
-        end_speed = self.sim.state.speed[:, 0].tolist()
+        # the step's tallies to the host: one copy of the counts and flags, one of the reals (exact in float64)
+        ended_crashed = self.sim.crashed
+        counts = torch.stack([interventions, fallbacks, solved, frames, feasible_goals, agent_feasible.long(),
+                              ended_crashed.long(), (self.sim.done & ~ended_crashed).long()], dim=1).cpu().numpy()
+        reals = torch.cat([rewards[:, None], self.sim.state.speed[:, :1].double(), (speed_sum / frames.clamp(min=1))[:, None],
+                           commands.double(), residuals], dim=1).cpu().numpy()
+        crashed, truncated = counts[:, 6].astype(np.bool_), counts[:, 7].astype(np.bool_)
         finished = self.sim.done.nonzero()[:, 0]
         final: dict[int, np.ndarray] = {}
         reset_infos: dict[int, dict] = {}
@@ -218,9 +230,9 @@ class SafeSimBatch:
         for info in reset_infos.values():
             info["solve_ms"] = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
         mean_ms = WallTime(float(np.mean(solve_ms)) if solve_ms else 0.0)
-        columns = zip(interventions.tolist(), fallbacks.tolist(), solved.tolist(), frames.tolist(), end_speed,
-                      (speed_sum / frames.clamp(min=1)).tolist(), crashed.tolist(), commands.tolist(),
-                      feasible_goals.tolist(), agent_feasible.tolist(), residuals.tolist())
+        columns = zip(counts[:, 0].tolist(), counts[:, 1].tolist(), counts[:, 2].tolist(), counts[:, 3].tolist(),
+                      reals[:, 1].tolist(), reals[:, 2].tolist(), crashed.tolist(), reals[:, 3:5].tolist(),
+                      counts[:, 4].tolist(), counts[:, 5].astype(np.bool_).tolist(), reals[:, 5:].tolist())
         infos = [{
             "intervention": intervened > 0, "intervention_frames": intervened, "fallback_frames": fallback,
             "solved_frames": solves, "frames": frame, "solve_ms": mean_ms, "speed": speed, "mean_speed": mean_speed,
@@ -228,7 +240,7 @@ class SafeSimBatch:
             "goal": tuple(goal), "feasible_goals": feasible, "agent_feasible": own,
             "residuals": {"obstacle": residual[0], "acceleration": residual[1], "nonholonomic": residual[2]},
         } for intervened, fallback, solves, frame, speed, mean_speed, crash, goal, feasible, own, residual in columns]
-        return BatchStep(observations, rewards.numpy(), crashed.numpy(), truncated.numpy(), infos, final, reset_infos)
+        return BatchStep(observations, reals[:, 0].copy(), crashed, truncated, infos, final, reset_infos)
 
 
 class SafeSimVecEnv(VecEnv):

@@ -160,8 +160,9 @@ def evaluate(
         env_kind: ``safe`` or ``highway``.
         continuous: Box actions.
         seeds: one episode per seed.
-        lockstep: safe environments: episodes run together, one batched solve per frame, in
-            groups ``seed // lockstep`` (mmpc's one grouping rule).
+        lockstep: safe environments: episodes run together, one batched solve per frame (on the
+            run's device, :func:`mmpc.device.run_device`), in groups ``seed // lockstep``
+            (mmpc's one grouping rule).
         on_episode: called with every finished episode.
     """
     if env_kind not in ENV_KINDS:
@@ -345,6 +346,8 @@ def train(
         # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
         (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
         env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
+        # the policy stays on the CPU and reads numpy whatever --device says (that is the MPC's and the simulator's)
+        kwargs.setdefault("device", "cpu")
         model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
         if expert_prior > 0:
             prefer_expert_action(model, expert_prior)

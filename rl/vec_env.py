@@ -5,6 +5,8 @@ layer. Its ``step`` advances them together (:func:`mmpc.rl.envs.advance`): at ev
 frame the problems of all E environments (each its agent's goal plus the standard goals) go to
 the optimizer as ONE (E, 1 + G0) batch. With ``batched=False`` each environment is solved on its
 own instead (E calls per frame), the reference the benchmark (:mod:`mmpc.rl.bench`) compares with.
+The shared layer's MPC computes on the run's device (:func:`mmpc.device.run_device`); it moves
+highway-env's CPU states there itself.
 """
 
 from __future__ import annotations
