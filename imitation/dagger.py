@@ -144,11 +144,11 @@ class DaggerConfig:
 
 
 def _rows(observation: Observation, rows: torch.Tensor) -> Observation:
-    """The observation of some of its E environments."""
+    """The observation of some of its E environments (``rows`` on the observation's device)."""
     return Observation(
         observation.ego[rows], observation.vehicles[rows],
         None if observation.vehicle_mask is None else observation.vehicle_mask[rows],
-        None if observation.kinematics is None else observation.kinematics[rows.numpy()],
+        None if observation.kinematics is None else observation.kinematics[rows.cpu().numpy()],
         observation.ids()[rows],
     )
 
@@ -165,6 +165,9 @@ class MixtureDriver(Driver):
         learner: the policy being trained.
         beta: the expert's probability, in [0, 1].
         rng: the coin flips.
+
+    The mixture takes its observations where the learner computes (:attr:`device`) and hands the
+    expert its rows on the expert's device; the decision lies on the learner's device.
     """
 
     def __init__(self, expert: Driver, learner: Driver, beta: float, rng: np.random.Generator) -> None:
@@ -173,6 +176,10 @@ class MixtureDriver(Driver):
         self.expert, self.learner, self.beta, self.rng = expert, learner, beta, rng
         self.name = f"mixture(beta={beta:g})"
 
+    @property
+    def device(self) -> torch.device:
+        return self.learner.device
+
     def reset(self, num_envs: int) -> None:
         self.expert.reset(num_envs)
         self.learner.reset(num_envs)
@@ -180,15 +187,15 @@ class MixtureDriver(Driver):
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         decision = self.learner.decide(observation)
-        chosen = torch.from_numpy(self.rng.random(observation.num_envs) < self.beta)
+        chosen = torch.from_numpy(self.rng.random(observation.num_envs) < self.beta).to(observation.ego.device)
         chosen &= observation.ego[:, EGO_V] >= 0  # the MPC plans forward motion only; the learner keeps the rest
         if bool(chosen.any()):
             rows = chosen.nonzero().squeeze(1)
-            expert = self.expert.decide(_rows(observation, rows))
+            expert = self.expert.decide(_rows(observation, rows).to(self.expert.device))
             merged = {}
             for name in ("acceleration", "steering", "goal_index", "feasible_goals", "fallback", "plan_cost"):
                 values = getattr(decision, name).clone()
-                values[rows] = getattr(expert, name).to(values.dtype)
+                values[rows.to(values.device)] = getattr(expert, name).to(values.device, values.dtype)
                 merged[name] = values
             decision = Decision(solve_ms=0.0, **merged)
         return decision._replace(solve_ms=(time.perf_counter() - start) * 1e3)
@@ -207,18 +214,24 @@ class NoisyDriver(Driver):
         self.driver, self.std, self.rng = driver, std, rng
         self.name = f"{driver.name}+noise{tuple(std)}"
 
+    @property
+    def device(self) -> torch.device:
+        return self.driver.device
+
     def reset(self, num_envs: int) -> None:
         self.driver.reset(num_envs)
 
     def decide(self, observation: Observation) -> Decision:
         decision = self.driver.decide(observation)
         noise = torch.from_numpy(self.rng.normal(0.0, 1.0, (observation.num_envs, 2)) * np.asarray(self.std))
+        noise = noise.to(decision.acceleration.device)
         return decision._replace(acceleration=decision.acceleration + noise[:, 0].to(decision.acceleration.dtype),
                                  steering=decision.steering + noise[:, 1].to(decision.steering.dtype))
 
 
 def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> np.ndarray:
-    """The expert's executed commands at ``states`` (E = 1 observations), ``batch`` states per call.
+    """The expert's executed commands at ``states`` (E = 1 observations, on any device; each
+    batch goes to the expert's device, its commands come back in one copy), ``batch`` states per call.
 
     Returns:
         (S, 2) float32 (acceleration [m/s^2], steering [rad]), clipped as highway-env applies them.
@@ -227,9 +240,10 @@ def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> n
     expert.reset(min(batch, len(states)))
     for start in range(0, len(states), batch):
         chunk = list(states[start:start + batch])
-        decision = expert.decide(stack_observations(chunk, range(len(chunk))))
-        for row in range(len(chunk)):
-            labels[start + row] = executed_command(float(decision.acceleration[row]), float(decision.steering[row]))
+        decision = expert.decide(stack_observations(chunk, range(len(chunk))).to(expert.device))
+        commands = zip(decision.acceleration.cpu().tolist(), decision.steering.cpu().tolist())
+        for row, (acceleration, steering) in enumerate(commands):
+            labels[start + row] = executed_command(acceleration, steering)
     return labels
 
 

@@ -56,8 +56,9 @@ def ranking_fields(num_goals: int) -> dict[str, tuple[type, tuple[int, ...], flo
 
 def goal_count(mpc: MPC) -> int:
     """G, the size of the MPC's goal set (goal sampler and stop goals): fixed per scenario."""
-    ego = torch.tensor([[0.0, 0.0, 0.0, 10.0, 0.0, 0.0]])
-    return mpc.build_problem(ego, torch.zeros(1, 0, 4)).num_goals
+    device = mpc.optimizer.device
+    ego = torch.tensor([[0.0, 0.0, 0.0, 10.0, 0.0, 0.0]], dtype=torch.float32, device=device)
+    return mpc.build_problem(ego, torch.zeros(1, 0, 4, device=device)).num_goals
 
 
 class RankingExpert(Driver):
@@ -69,6 +70,8 @@ class RankingExpert(Driver):
         beta: probability that the expert drives an environment-step, in [0, 1].
         keep: goals the learner keeps per step besides the ego lane's stop goal.
         seed: seeds the draw of who drives.
+
+    It computes on its MPC's device (:attr:`device`); its labels come to the host once per step.
     """
 
     def __init__(self, mpc: MPC, proposer: Optional[ModeProposer] = None, *, beta: float = 1.0, keep: int = DEFAULT_KEEP,
@@ -84,6 +87,11 @@ class RankingExpert(Driver):
         self.name = "ranking-expert"
         self._labels: dict[str, np.ndarray] = {}
 
+    @property
+    def device(self) -> torch.device:
+        """Where the expert (and the learner) compute: the MPC's device."""
+        return self.mpc.optimizer.device
+
     def reset(self, num_envs: int) -> None:
         if self.learner is not None:
             self.learner.reset(num_envs)
@@ -94,13 +102,15 @@ class RankingExpert(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
-        count = observation.num_envs
+        count, device = observation.num_envs, self.device
+        observation = observation.to(device)
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         scored = self.mpc.score(problem)
         expert = self.mpc.select(problem, scored)
-        learner_rows = torch.as_tensor(self.rng.random(count) >= self.beta)
-        selection, learner = expert, torch.zeros(count, dtype=torch.bool)
-        if self.learner is not None and bool(learner_rows.any()):
+        draws = self.rng.random(count) >= self.beta
+        learner_rows = torch.as_tensor(draws, device=device)
+        selection, learner = expert, torch.zeros(count, dtype=torch.bool, device=device)
+        if self.learner is not None and bool(draws.any()):
             slots = self.learner.propose(observation, problem)
             proposed = torch.zeros_like(scored.result.feasible).scatter(1, slots, True)
             narrowed = scored._replace(result=scored.result._replace(feasible=scored.result.feasible & proposed))
@@ -111,11 +121,11 @@ class RankingExpert(Driver):
         if self.learner is not None:
             self.learner.remember(observation, problem, selection.index)
         plan = self.mpc.choose(problem, scored, lambda result, cost, violation: selection)
-        self._labels = {
-            "goal_cost": scored.cost.float().numpy(),
-            "goal_feasible": scored.result.feasible.numpy(),
-            "expert_goal": expert.index.numpy(),
-            "learner_drove": learner.numpy(),
+        self._labels = {  # one copy of each to the host
+            "goal_cost": scored.cost.float().cpu().numpy(),
+            "goal_feasible": scored.result.feasible.cpu().numpy(),
+            "expert_goal": expert.index.cpu().numpy(),
+            "learner_drove": learner.cpu().numpy(),
         }
         trajectories = plan.result.trajectories
         candidates = Candidates(torch.stack([trajectories.x, trajectories.y], dim=-1), plan.result.feasible,

@@ -9,6 +9,10 @@ ranks its own set (feasibility, meta cost, tie-break, the same fallback), so a b
 meta cost, never safety checks. Where none of the proposed goals is feasible the step escalates:
 the full goal set is solved for those environments (``escalate``), so the proposer never leaves
 the ego on the fallback while the expert would have had a feasible plan.
+
+The driver computes on its MPC's device (the run's, :func:`mmpc.device.run_device`), the
+proposer network included; the road features are computed on the host from one copy of the
+observation per step.
 """
 
 from __future__ import annotations
@@ -77,6 +81,8 @@ class ProposerDriver(Driver):
 
     Attributes:
         decided_rows, escalated_rows: environment-steps decided, and those that escalated.
+
+    The proposer is moved to the MPC's device (in place, as it is put in eval mode).
     """
 
     def __init__(self, mpc: MPC, proposer: ModeProposer, *, keep: int = DEFAULT_KEEP, escalate: bool = True,
@@ -86,7 +92,7 @@ class ProposerDriver(Driver):
         if not isinstance(keep, int) or isinstance(keep, bool) or not 1 <= keep <= proposer.num_goals:
             raise ValueError(f"`keep` must be an int in [1, {proposer.num_goals}] (the goal set); got {keep!r}")
         self.mpc = mpc
-        self.proposer = proposer.eval()
+        self.proposer = proposer.to(mpc.optimizer.device).eval()
         self.keep = keep
         self.escalate = escalate
         self.name = name
@@ -95,15 +101,21 @@ class ProposerDriver(Driver):
         # environment id -> the goal driven at its last step, (x ahead of the ego [m], y [m])
         self._previous: dict[int, tuple[float, float]] = {}
 
+    @property
+    def device(self) -> torch.device:
+        """Where the driver computes: its MPC's device."""
+        return self.mpc.optimizer.device
+
     def reset(self, num_envs: int) -> None:
         self._previous = {}
 
     def remember(self, observation: Observation, problem: ProblemBatch, slots: torch.Tensor) -> None:
         """Note the goals of ``slots`` (E,) driven in the environments of ``observation``, whose
         goal set is ``problem``'s, for their next step."""
-        goals = problem.goals[torch.arange(problem.num_problems), slots]
+        goals = problem.goals[torch.arange(problem.num_problems, device=slots.device), slots]
         ahead = goals[:, 0] - problem.ego[:, EGO_X]
-        self._previous.update(zip(observation.ids().tolist(), zip(ahead.tolist(), goals[:, 1].tolist())))
+        driven = torch.stack([ahead, goals[:, 1]], dim=1).tolist()  # one copy to the host
+        self._previous.update(zip(observation.ids().tolist(), map(tuple, driven)))
 
     def previous_goal(self, observation: Observation, problem: ProblemBatch) -> Optional[torch.Tensor]:
         """(E,) slot of the goal nearest the one each environment drove at its last step (the same
@@ -113,7 +125,7 @@ class ProposerDriver(Driver):
         previous = [self._previous.get(i) for i in observation.ids().tolist()]
         if all(p is None for p in previous):
             return None
-        known = torch.tensor([p is not None for p in previous])
+        known = torch.tensor([p is not None for p in previous], dtype=torch.bool, device=problem.goals.device)
         target = problem.goals.new_tensor([p if p is not None else (0.0, 0.0) for p in previous])  # (E, 2)
         ahead = problem.goals[..., 0] - problem.ego[:, EGO_X, None]
         lane_width = self.mpc.road.lane_width
@@ -128,19 +140,22 @@ class ProposerDriver(Driver):
         if problem.num_goals != self.proposer.num_goals:
             raise ValueError(f"the proposer scores {self.proposer.num_goals} goals; this MPC's goal set has "
                              f"{problem.num_goals} (was it trained on another scenario?)")
-        mask = None if observation.vehicle_mask is None else observation.vehicle_mask.numpy()
-        ego = observation.ego.numpy()
-        neighbours = nearest_neighbours(ego, observation.vehicles.numpy(), mask, ellipse=self.proposer.scene.ellipse)
+        host = observation.to("cpu")  # the road features are numpy: one copy of the state per step
+        mask = None if host.vehicle_mask is None else host.vehicle_mask.numpy()
+        ego = host.ego.numpy()
+        neighbours = nearest_neighbours(ego, host.vehicles.numpy(), mask, ellipse=self.proposer.scene.ellipse)
         forced = [slot for slot in (ego_lane_stop_goal(self.mpc, problem.ego, problem.num_goals),) if slot is not None]
         previous = self.previous_goal(observation, problem)
         if previous is not None:
             forced.append(previous)
         count = min(self.keep + len(forced), problem.num_goals)
         stacked = torch.stack(forced, dim=1) if forced else None
-        return self.proposer.top_goals(self.proposer.features(ego, neighbours), count, forced=stacked).sort(dim=1).values
+        features = torch.as_tensor(self.proposer.features(ego, neighbours), dtype=torch.float32, device=self.device)
+        return self.proposer.top_goals(features, count, forced=stacked).sort(dim=1).values
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
+        observation = observation.to(self.device)
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         slots = self.propose(observation, problem)
         subset = subset_problem(problem, slots)
@@ -156,9 +171,11 @@ class ProposerDriver(Driver):
         solved = torch.stack([plan.result.trajectories.x, plan.result.trajectories.y], dim=-1)  # (E, K, N, 2)
         paths = solved.new_full((problem.num_problems, problem.num_goals, *solved.shape[2:]), float("nan"))
         paths.scatter_(1, slots[:, :, None, None].expand_as(solved), solved)
-        feasible = torch.zeros(problem.num_problems, problem.num_goals, dtype=torch.bool).scatter(1, slots, plan.result.feasible)
+        feasible = torch.zeros(problem.num_problems, problem.num_goals, dtype=torch.bool,
+                               device=slots.device).scatter(1, slots, plan.result.feasible)
         escalated = fallback & self.escalate
-        if bool(escalated.any()):
+        escalated_count = int(escalated.sum())
+        if escalated_count:
             rows = escalated.nonzero().flatten()
             full = self.mpc.plan_problem(problem_rows(problem, rows))
             compile_ms += full.compile_ms
@@ -171,7 +188,7 @@ class ProposerDriver(Driver):
             feasible[rows] = full.result.feasible
         self.remember(observation, problem, goal_index)
         self.decided_rows += observation.num_envs
-        self.escalated_rows += int(escalated.sum())
+        self.escalated_rows += escalated_count
         candidates = Candidates(paths, feasible, goal_index, problem.goals)
         elapsed_ms = (time.perf_counter() - start) * 1e3 - compile_ms
         return Decision(acceleration, steering, elapsed_ms, goal_index, feasible_goals, fallback, plan_cost, candidates)
