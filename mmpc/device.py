@@ -29,7 +29,16 @@ def run_device() -> torch.device:
         >>> run_device()  # MMPC_DEVICE unset
         device(type='cpu')
     """
-    setting = os.environ.get(DEVICE_ENV, "").strip() or "cpu"
+    return resolve_device(os.environ.get(DEVICE_ENV, ""))
+
+
+def resolve_device(setting: str) -> torch.device:
+    """A device setting (``cpu``, ``cuda``, ``cuda:N``, ``auto``; empty: ``cpu``) -> the device, with its index.
+
+    Raises:
+        ValueError: it names no device, or one this machine lacks, naming :data:`DEVICE_ENV`.
+    """
+    setting = setting.strip() or "cpu"
     if setting == "auto":
         return torch.device("cuda", torch.cuda.current_device()) if torch.cuda.is_available() else torch.device("cpu")
     return usable_device(setting, name=f"{DEVICE_ENV} (--device)")

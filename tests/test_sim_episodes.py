@@ -288,3 +288,26 @@ def test_episodes_on_cuda_match_cpu():
     for name, a, b in zip(cpu.state._fields, cuda.state, cpu.state):
         assert a.device.type == "cuda", name
         torch.testing.assert_close(a.cpu(), b, rtol=0, atol=1e-6, msg=name)
+
+
+def test_the_gpu_benchmark_runs_its_sections_on_the_cpu(tmp_path, capsys):
+    """scripts/bench_gpu.py with --device cpu: every section but the compiled solver (minutes of
+    compiling here) writes its rows; without CUDA the default device is refused."""
+    import bench_gpu
+
+    argv = ["--device", "cpu", "--sections", "sim,mpc,evaluate", "--sim-envs", "2", "--mpc-envs", "2", "--steps", "1",
+            "--scenarios", "high_speed", "--seeds", "0-1", "--duration", "0.3", "--out", str(tmp_path)]
+    assert bench_gpu.main(argv) == 0
+    report = json.loads((tmp_path / "bench_gpu.json").read_text())
+    assert report["device"] == "cpu" and report["args"] == " ".join(argv)
+    rows = report["rows"]
+    assert [(r["table"], r["num_envs"]) for r in rows if r["table"] in ("sim", "mpc")] == [("sim", 2), ("mpc", 2)]
+    assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] in ("sim", "mpc"))
+    (evaluation,) = [r for r in rows if r["table"] == "evaluate"]
+    assert evaluation["episodes"] == 2 and evaluation["errors"] == 0 and evaluation["collisions"] == 0
+    assert evaluation["mean_speed"] > 0 and evaluation["wall_s"] > 0
+    assert "evaluate high_speed: 2 episodes" in capsys.readouterr().out
+    if not torch.cuda.is_available():
+        assert bench_gpu.main(["--out", str(tmp_path)]) == 2
+    with pytest.raises(SystemExit):
+        bench_gpu.main(["--device", "cpu", "--sections", "solver,gpu", "--out", str(tmp_path)])

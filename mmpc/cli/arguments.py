@@ -11,7 +11,7 @@ from typing import Any, Optional
 
 import yaml
 
-from mmpc.device import DEVICE_ENV, run_device
+from mmpc.device import DEVICE_ENV, resolve_device
 from mmpc.files import TEMPORARY_PREFIX
 from mmpc.optimizer import COMPILE_ENV
 
@@ -111,10 +111,9 @@ def add_device(parser: argparse.ArgumentParser) -> None:
 def apply_device(choice: Optional[str]) -> None:
     """Set :data:`mmpc.device.DEVICE_ENV` for ``--device`` (``None`` leaves it) and check it names a
     device this machine has (``ValueError`` saying what came)."""
-    if choice is None:
-        return
-    os.environ[DEVICE_ENV] = choice
-    run_device()
+    if choice is not None:
+        resolve_device(choice)  # before it is set: a refused value leaves the process's setting as it was
+        os.environ[DEVICE_ENV] = choice
 
 
 def apply_compile(choice: str) -> None:

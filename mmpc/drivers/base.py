@@ -45,9 +45,7 @@ class Observation(NamedTuple):
         return self.env_ids if self.env_ids is not None else torch.arange(self.num_envs, device=self.ego.device)
 
     def to(self, device: torch.device | str) -> "Observation":
-        """The observation with its tensors on ``device`` (itself when they are there already)."""
-        if self.ego.device == torch.device(device):
-            return self
+        """The observation with its tensors on ``device`` (those there already are not copied)."""
         return self._replace(**{name: getattr(self, name).to(device) for name in ("ego", "vehicles", "vehicle_mask", "env_ids")
                                 if getattr(self, name) is not None})
 

@@ -52,49 +52,51 @@ class EpisodeResult(NamedTuple):
     metrics: dict
 
 
-def _clearance(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], ellipse: tuple[float, float]) -> float:
-    """Smallest normalised ellipse distance from one ego (6,) to its vehicles (V, 4) (inf without any)."""
+def _clearances(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], ellipse: tuple[float, float]) -> torch.Tensor:
+    """(A,) smallest normalised ellipse distance from each ego (A, 6) to its vehicles (A, V, 4) (inf without any)."""
+    squared = ellipse_distance_squared(vehicles[..., :2], ego[:, None, EGO_X:EGO_Y + 1], ellipse)  # (A, V)
     if mask is not None:
-        vehicles = vehicles[mask]
-    if vehicles.shape[0] == 0:
-        return float("inf")
-    return float(ellipse_distance_squared(vehicles[:, :2], ego[EGO_X:EGO_Y + 1], ellipse).min().sqrt())
+        squared = squared.masked_fill(~mask, float("inf"))
+    if squared.shape[1] == 0:
+        return squared.new_full((squared.shape[0],), float("inf"))
+    return squared.amin(dim=1).sqrt()
 
 
-def _record(step: int, episode: HighwayEpisode, observation: Observation, decision: Decision, row: int) -> StepRecord:
-    """The record of row ``row`` of a (lockstep) decision, after its episode applied the command."""
-    scenario = episode.scenario
-    ego = observation.ego[row]
-    goal = int(decision.goal_index[row])
-    goal_xy = (float("nan"), float("nan"))
-    if decision.candidates is not None and decision.candidates.goals is not None and goal >= 0:
-        goal_xy = tuple(float(c) for c in decision.candidates.goals[row, goal])
-    mask = None if observation.vehicle_mask is None else observation.vehicle_mask[row]
+def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observation, decision: Decision,
+                  scenario: ScenarioConfig) -> list[StepRecord]:
+    """The records of one lockstep step, row ``r`` for ``episodes[r]`` at its step ``steps[r]``,
+    after the commands were applied; ``observation`` and ``decision`` on the host. Every column is
+    computed for the whole batch at once."""
+    ego = observation.ego
+    rows = len(steps)
+    goal = decision.goal_index
+    goal_xy = ego.new_full((rows, 2), float("nan"))
+    if decision.candidates is not None and decision.candidates.goals is not None:
+        chosen = decision.candidates.goals[torch.arange(rows), goal.clamp_min(0)].to(goal_xy.dtype)
+        goal_xy = torch.where((goal >= 0)[:, None], chosen, goal_xy)
     road = scenario.road
-    return StepRecord(
-        step=step,
-        time=step / scenario.frequency,
-        x=float(ego[EGO_X]),
-        y=float(ego[EGO_Y]),
-        psi=float(ego[EGO_PSI]),
-        v=float(ego[EGO_V]),
-        acceleration=float(ego[EGO_A]),
-        heading_rate=float(ego[EGO_PSIDOT]),
-        lane=int(road.lane_index(ego[EGO_Y])),
-        command_acceleration=float(decision.acceleration[row]),
-        command_steering=float(decision.steering[row]),
-        goal_index=goal,
-        goal_x=goal_xy[0],
-        goal_y=goal_xy[1],
-        feasible_goals=int(decision.feasible_goals[row]),
-        fallback=bool(decision.fallback[row]),
-        meta_cost=scenario.objective.stage_cost(float(ego[EGO_V]), float(ego[EGO_Y]), road),
-        plan_cost=float(decision.plan_cost[row]),
-        solve_ms=decision.solve_ms,
-        clearance=_clearance(ego, observation.vehicles[row], mask, (scenario.optimizer.ellipse_a, scenario.optimizer.ellipse_b)),
-        crashed=bool(episode.ego.crashed),
-        on_road=bool(episode.ego.on_road),
+    speed, lateral = ego[:, EGO_V].double(), ego[:, EGO_Y].double()
+    ellipse = (scenario.optimizer.ellipse_a, scenario.optimizer.ellipse_b)
+    columns = zip(
+        ego[:, EGO_X].tolist(), ego[:, EGO_Y].tolist(), ego[:, EGO_PSI].tolist(), ego[:, EGO_V].tolist(),
+        ego[:, EGO_A].tolist(), ego[:, EGO_PSIDOT].tolist(), road.lane_index(ego[:, EGO_Y]).tolist(),
+        decision.acceleration.tolist(), decision.steering.tolist(), goal.tolist(), goal_xy.tolist(),
+        decision.feasible_goals.tolist(), decision.fallback.tolist(),
+        scenario.objective.stage_cost(speed, lateral, road).tolist(), decision.plan_cost.tolist(),
+        _clearances(ego, observation.vehicles, observation.vehicle_mask, ellipse).tolist(),
     )
+    frequency = scenario.frequency
+    return [
+        StepRecord(
+            step=step, time=step / frequency, x=x, y=y, psi=psi, v=v, acceleration=a, heading_rate=psidot, lane=lane,
+            command_acceleration=command_a, command_steering=command_steering, goal_index=goal_index, goal_x=xy[0],
+            goal_y=xy[1], feasible_goals=feasible, fallback=fallback, meta_cost=meta, plan_cost=plan_cost,
+            solve_ms=decision.solve_ms, clearance=clearance, crashed=bool(episode.ego.crashed),
+            on_road=bool(episode.ego.on_road),
+        )
+        for step, episode, (x, y, psi, v, a, psidot, lane, command_a, command_steering, goal_index, xy, feasible, fallback,
+                            meta, plan_cost, clearance) in zip(steps, episodes, columns)
+    ]
 
 
 def _crash_scene(after: Observation, scenario: ScenarioConfig) -> Optional[Crash]:
@@ -287,9 +289,11 @@ def run_lockstep(
                 observer.decided(observation, decision, active)
             world.apply(active, decision.acceleration, decision.steering)
             ended = world.done()
-            for row, i in enumerate(active):
-                records[i].append(_record(len(records[i]), episodes[i], observation, decision, row))
-                step = Step(i, episodes[i], singles[row], observation, decision, row, records[i][-1])
+            step_records = _step_records([len(records[i]) for i in active], [episodes[i] for i in active], observation,
+                                         decision, scenario)
+            for row, (i, record) in enumerate(zip(active, step_records)):
+                records[i].append(record)
+                step = Step(i, episodes[i], singles[row], observation, decision, row, record)
                 for observer in observers:
                     observer.applied(step)
                 if ended[i]:

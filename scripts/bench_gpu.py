@@ -1,0 +1,210 @@
+"""GPU benchmark, one command: the solver (eager and compiled), the batched simulator alone, the
+MPC in the loop, and the wall time of a full evaluation per scenario; a table per section and
+``bench_gpu.json`` (rewritten after every section, so a run stopped by its time limit keeps what
+it measured).
+
+    python scripts/bench_gpu.py --out benchmarks            # on a machine with CUDA
+
+Every timing synchronises the device before reading the clock. The solver rows use
+:func:`bench_solver.benchmark_problem` (one problem with B goals, 10 obstacles); the compiled
+column includes nothing of the first call of each shape (compiling and the CUDA-graph capture),
+which ``compile_s`` reports. The evaluation runs ``mmpc.evaluate`` in this process with the
+whole seed range in one lockstep group.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_sim import CONSTANT_COMMAND, _closed_loop  # noqa: E402
+from bench_solver import benchmark_problem, time_solver  # noqa: E402
+
+from mmpc.cli.arguments import int_list, seed_list  # noqa: E402
+from mmpc.device import DEVICE_ENV  # noqa: E402
+from mmpc.optimizer import BatchOptimizer  # noqa: E402
+from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario  # noqa: E402
+
+SECTIONS = ("solver", "sim", "mpc", "evaluate")
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int,
+                log: Callable[[str], None]) -> list[dict]:
+    """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's replay)."""
+    eager = BatchOptimizer(device=device)
+    compiled = BatchOptimizer(device=device, compile=True)
+    rows = []
+    for batch in batches:
+        problem = benchmark_problem(batch, obstacles, eager.times.cpu())
+        problem = problem._replace(**{name: getattr(problem, name).to(device) for name in ("ego", "goals", "obstacles")})
+        row = {"table": "solver", "batch": batch, "obstacles": obstacles}
+        for name, optimizer in (("eager", eager), ("compiled", compiled)):
+            try:
+                start = time.perf_counter()
+                optimizer(problem)
+                _sync(device)
+                row[f"{name}_first_s"] = time.perf_counter() - start
+                wall = time_solver(lambda: optimizer(problem), device, repeats, 2, budget=10.0)
+                row[f"{name}_ms"] = statistics.median(wall)
+            except RuntimeError as error:  # out of memory at the largest B: recorded, the rest goes on
+                row[f"{name}_error"] = f"{type(error).__name__}: {str(error)[:200]}"
+                if device.type == "cuda":
+                    torch.cuda.empty_cache()
+        if "eager_ms" in row and "compiled_ms" in row:
+            row["speedup"] = row["eager_ms"] / row["compiled_ms"]
+        log(f"solver B={batch:>6}: eager {row.get('eager_ms', float('nan')):8.2f} ms, compiled "
+            f"{row.get('compiled_ms', float('nan')):8.2f} ms (first call {row.get('compiled_first_s', float('nan')):.1f} s)"
+            + "".join(f"  {k}: {v}" for k, v in row.items() if k.endswith("_error")))
+        rows.append(row)
+    return rows
+
+
+def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int,
+             log: Callable[[str], None]) -> list[dict]:
+    """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command."""
+    from mmpc.sim import SimEpisodes
+
+    rows = []
+    for num_envs in envs:
+        sim = SimEpisodes(scenario.replace(duration=1e4), list(range(num_envs)), device=device)
+        command = torch.tensor(CONSTANT_COMMAND, device=device).expand(num_envs, 2).contiguous()
+        for _ in range(3):
+            sim.step(command)
+        _sync(device)
+        start = time.perf_counter()
+        for _ in range(steps):
+            sim.step(command)
+        _sync(device)
+        seconds = (time.perf_counter() - start) / steps
+        rows.append({"table": "sim", "num_envs": num_envs, "step_ms": seconds * 1e3, "env_steps_per_s": num_envs / seconds})
+        log(f"sim E={num_envs:>6}: {seconds * 1e3:7.2f} ms per step, {num_envs / seconds:,.0f} env-steps/s")
+    return rows
+
+
+def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, compile_modes: Sequence[bool],
+             log: Callable[[str], None]) -> list[dict]:
+    """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as bench_sim)."""
+    from mmpc.drivers.mpc_driver import MPCDriver
+    from mmpc.highway.worlds import BatchedWorld
+
+    rows = []
+    for compiled in compile_modes:
+        driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device))
+        for num_envs in envs:
+            row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "num_envs": num_envs}
+            try:
+                world = BatchedWorld(scenario, list(range(num_envs)), device=device)
+                _closed_loop(world, driver, num_envs, 1)  # compiles (and on CUDA captures) this E
+                world = BatchedWorld(scenario, list(range(num_envs)), device=device)
+                step_s, solve_s = _closed_loop(world, driver, num_envs, steps)
+                row.update(step_ms=step_s * 1e3, solve_share=solve_s / step_s, env_steps_per_s=num_envs / step_s)
+                log(f"mpc {scenario.name} {'compiled' if compiled else 'eager':>8} E={num_envs:>6}: {step_s * 1e3:8.2f} ms per "
+                    f"step, {num_envs / step_s:,.0f} env-steps/s (solve {solve_s / step_s:.0%})")
+            except RuntimeError as error:
+                row["error"] = f"{type(error).__name__}: {str(error)[:200]}"
+                log(f"mpc {scenario.name} E={num_envs}: {row['error']}")
+                if device.type == "cuda":
+                    torch.cuda.empty_cache()
+            rows.append(row)
+    return rows
+
+
+def evaluate_rows(scenarios: Sequence[ScenarioConfig], seeds: Sequence[int], out: Path, log: Callable[[str], None]) -> list[dict]:
+    """Wall time of ``mmpc evaluate --sim batched`` on the run's device over ``seeds`` per scenario, one
+    lockstep group, and the episodes' summary (collisions, mean speed, meta cost with intervals)."""
+    from mmpc.evaluate import EvaluationConfig, evaluate
+
+    lockstep = 1 << (max(seeds) - min(seeds)).bit_length()  # every seed in one group: seed // lockstep
+    if len({seed // lockstep for seed in seeds}) > 1:
+        lockstep *= 2
+    rows = []
+    for scenario in scenarios:
+        folder = out / f"evaluate_{scenario.name}"
+        start = time.perf_counter()
+        evaluation = evaluate([scenario], folder, EvaluationConfig(drivers=("mpc",), seeds=tuple(seeds), workers=1,
+                                                                    lockstep=lockstep, report=False))
+        wall = time.perf_counter() - start
+        summary = evaluation.summary[0]
+        row = {"table": "evaluate", "scenario": scenario.name, "episodes": summary["episodes"], "wall_s": wall,
+               "seeds": f"{min(seeds)}-{max(seeds)}", "duration_s": scenario.duration,
+               **{key: summary[key] for key in ("collisions", "collision_seeds", "errors", "collision_rate_ci", "mean_speed",
+                                                "mean_speed_ci", "meta_cost_mean", "meta_cost_mean_ci")},
+               "fallback_steps": summary.get("fallback_steps"), "fallback_steps_ci": summary.get("fallback_steps_ci")}
+        log(f"evaluate {scenario.name}: {summary['episodes']} episodes x {scenario.duration:g} s in {wall:.1f} s; collisions "
+            f"{summary['collisions']}, mean speed {summary['mean_speed']:.3f}, meta cost {summary['meta_cost_mean']:.3f}")
+        rows.append(row)
+    return rows
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default="benchmarks", help="folder of bench_gpu.json (default benchmarks)")
+    parser.add_argument("--device", default="cuda", help="cuda (default) or cpu (a dry run of the script at small sizes)")
+    parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated, of {', '.join(SECTIONS)}")
+    parser.add_argument("--batches", type=int_list, default=(1, 16, 256, 1024, 4096, 16384, 65536), help="solver B")
+    parser.add_argument("--sim-envs", type=int_list, default=(1024, 4096, 16384, 65536), help="simulator E")
+    parser.add_argument("--mpc-envs", type=int_list, default=(256, 1024, 4096, 16384), help="MPC in the loop E")
+    parser.add_argument("--mpc-eager", action="store_true", help="also time the eager MPC in the loop")
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per simulator / MPC row")
+    parser.add_argument("--repeats", type=int, default=20, help="timed solves per solver row")
+    parser.add_argument("--scenarios", default="cruise,high_speed", help="scenarios of the MPC and evaluation rows")
+    parser.add_argument("--seeds", type=seed_list, default=tuple(range(60000, 61024)), help="evaluation seeds")
+    parser.add_argument("--duration", type=float, default=None, help="evaluation episode length [s] (default the scenario's)")
+    args = parser.parse_args(argv)
+    sections = [s for s in args.sections.split(",") if s]
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        parser.error(f"--sections: unknown {unknown}; expected some of {list(SECTIONS)}")
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print("bench_gpu: no CUDA device; nothing to measure (--device cpu runs the script on the CPU)", file=sys.stderr)
+        return 2
+    os.environ[DEVICE_ENV] = str(device)
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scenarios = [load_scenario(name, {"sim": "batched"}) for name in args.scenarios.split(",") if name]
+    if args.duration is not None:
+        scenarios = [s.replace(duration=args.duration) for s in scenarios]
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
+    report = {"device": name, "torch": torch.__version__, "args": " ".join(sys.argv[1:] if argv is None else argv), "rows": []}
+    path = out / "bench_gpu.json"
+
+    def save(rows: list[dict]) -> None:
+        report["rows"].extend(rows)
+        path.write_text(json.dumps(report, indent=2) + "\n")
+
+    log = lambda line: print(line, flush=True)  # noqa: E731
+    log(f"{report['device']}, torch {report['torch']}")
+    for section in sections:
+        start = time.perf_counter()
+        if section == "solver":
+            save(solver_rows(device, args.batches, 10, args.repeats, log))
+        elif section == "sim":
+            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, log))
+        elif section == "mpc":
+            for scenario in scenarios:
+                save(mpc_rows(device, scenario, args.mpc_envs, args.steps, (True, False) if args.mpc_eager else (True,), log))
+        else:
+            save(evaluate_rows(scenarios, args.seeds, out, log))
+        log(f"-- {section}: {time.perf_counter() - start:.0f} s")
+    log(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
