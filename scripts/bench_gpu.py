@@ -200,7 +200,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for scenario in scenarios:
                 save(mpc_rows(device, scenario, args.mpc_envs, args.steps, (True, False) if args.mpc_eager else (True,), log))
         else:
-            save(evaluate_rows(scenarios, args.seeds, out, log))
+            for scenario in scenarios:
+                save(evaluate_rows([scenario], args.seeds, out, log))
         log(f"-- {section}: {time.perf_counter() - start:.0f} s")
     log(f"wrote {path}")
     return 0
