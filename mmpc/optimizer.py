@@ -128,9 +128,9 @@ class BatchOptimizer(nn.Module):
             everywhere: a compiled optimizer solves inputs that require grad (autograd enabled)
             eagerly, with torch's sin, cos and atan2 (the same values to float32 rounding), as
             its compiled graphs are not differentiated. On the CPU every call layout gets its
-            own shape-specialised kernels (a few seconds to compile each; torch's dynamic-shape
-            kernels, its default from a second shape on, ran up to 2x slower); on CUDA a second
-            batch shape recompiles with dynamic dims (torch's default). ``"auto"``: compiled in
+            own shape-specialised kernels (a few seconds to compile each, 10-30 s on CUDA; torch's
+            dynamic-shape kernels, its default from a second shape on, ran up to 2x slower on the
+            CPU and 4-5x on CUDA). ``"auto"``: compiled in
             float32 on the CPU when a C++ compiler is found (inductor needs one) and on CUDA
             when triton is found, else eager;
             the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
@@ -213,9 +213,10 @@ class BatchOptimizer(nn.Module):
             # overhead is paid once per chunk rather than once per iteration.
             self.chunk = min(_COMPILED_CHUNK, self.config.iterations)
             if not on_cpu:
-                # Fused triton kernels; each call layout's whole solve is then captured as one
-                # CUDA graph (:meth:`_replay`), so that a solve is one launch, not thousands.
-                compile_cuda = functools.partial(torch.compile, fullgraph=True)
+                # Fused triton kernels, specialised to each call layout's shapes (dynamic ones,
+                # compiled at a small batch, ran 4-5x slower at large ones); each layout's whole
+                # solve is then captured as one CUDA graph (:meth:`_replay`): one launch per solve.
+                compile_cuda = functools.partial(torch.compile, fullgraph=True, dynamic=False)
                 self._layout = compile_cuda(_layout)
                 self._start = compile_cuda(_start)
                 self._summarise = compile_cuda(_summarise)

@@ -111,6 +111,7 @@ def test_the_safe_layer_drivers_drive_on_cuda(tmp_path, on_cuda):
 
 
 def test_demonstrations_on_cuda(tmp_path, on_cuda):
+    pytest.importorskip("minari", reason="the demonstrations are written as a Minari dataset (mmpc[datasets])")
     from mmpc.cli.main import main
     from mmpc.imitation.dataset import load_episode
 
@@ -141,6 +142,8 @@ def test_a_shipped_proposer_drives_on_cuda(tmp_path, on_cuda):
 def test_proposer_labelling_and_check_on_cuda(tmp_path, on_cuda):
     """Round 0 (the expert labels), round 1 (the proposer drives half the steps) and the check drives."""
     import json
+
+    pytest.importorskip("minari", reason="the labels are written as a Minari dataset (mmpc[datasets])")
 
     from mmpc.cli.main import main
 
