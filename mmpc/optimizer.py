@@ -52,8 +52,9 @@ _EPS_SQUARED = 1.0e-12
 #: Iterations per compiled graph in the ``compile=True`` path.
 _COMPILED_CHUNK = 10
 #: Environment variable that decides ``compile="auto"`` (what :func:`mmpc.scenario.build_mpc`
-#: passes): ``0`` eager, ``1`` compiled, unset: compiled on the CPU in float32 when a C++
-#: compiler is found. Read in one place, :func:`_auto_compile`; the command line's
+#: passes): ``0`` eager, ``1`` compiled at once, unset: compiled in float32 where a kernel
+#: compiler is found, each call layout once its eager solving would have cost
+#: :data:`AUTO_COMPILE_AFTER_S`. Read in one place, :func:`_auto_compile`; the command line's
 #: ``--compile auto|on|off`` sets it (:func:`mmpc.cli.arguments.apply_compile`), so that worker
 #: processes inherit the choice. Compiling is a run option, not part of a scenario.
 COMPILE_ENV = "MMPC_COMPILE"
@@ -62,6 +63,14 @@ _SIMD_BYTES = 64
 #: Recompiles of each compiled function a process allows (torch's default: 8): one per call layout
 #: (the CPU kernels are shape-specialised); past it, new layouts solve eagerly.
 _RECOMPILE_LIMIT = 256
+
+#: ``compile="auto"``: estimated seconds of eager solving of a call layout before it is compiled.
+#: Compiling a layout takes 10-60 s, so a run that would not repay it (one ``mmpc drive`` episode:
+#: ~12 s of solving) stays eager, and a long one pays at most this much more than compiling at once.
+AUTO_COMPILE_AFTER_S = 20.0
+#: Eager seconds per call (fixed, per (problem, goal) element): CPU (one thread), CUDA; from
+#: ``scripts/bench_solver.py`` (CPU: 13.6 ms at B = 1, 2.76 s at B = 4096; H100: ~60 ms to B = 4096).
+_EAGER_SECONDS = {False: (0.013, 0.67e-3), True: (0.06, 5e-6)}
 
 #: Captured CUDA graphs an optimizer keeps (least recently used dropped first): each holds its own memory.
 _GRAPH_CACHE = 16
@@ -132,8 +141,9 @@ class BatchOptimizer(nn.Module):
             dynamic-shape kernels, its default from a second shape on, ran up to 2x slower on the
             CPU and 4-5x on CUDA). ``"auto"``: compiled in
             float32 on the CPU when a C++ compiler is found (inductor needs one) and on CUDA
-            when triton is found, else eager;
-            the environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled).
+            when triton is found, else eager; each call layout is compiled only after
+            :data:`AUTO_COMPILE_AFTER_S` of eager solving of it (``compile_after``). The
+            environment variable ``MMPC_COMPILE=0`` makes it eager (``1``: compiled at once).
             Compiled, the first call of every new call layout (problems, goals, obstacle slots,
             same or mixed obstacle counts; per tile) runs twice: once to compile, once timed as
             a solve; :attr:`last_compile_ms` reports the first.
@@ -143,6 +153,10 @@ class BatchOptimizer(nn.Module):
             (dropped from the result) so that every tile has one shape, compiled once.
             ``None``: 256 on the compiled CPU path, where it keeps a tile's working set in
             the L2 cache (~7 % faster at B = 1024), and no tiling elsewhere.
+        compile_after: compiled, the estimated seconds of eager solving of a call layout (counted
+            from its calls and sizes: deterministic) before the layout is compiled, so that a run
+            too short to repay a compile stays eager. ``None``: :data:`AUTO_COMPILE_AFTER_S` for
+            ``compile="auto"`` (without ``MMPC_COMPILE``), else 0 (compile at the first call).
 
     Attributes:
         last_compile_ms: wall time the last call spent compiling new call layouts [ms]; 0 when
@@ -170,6 +184,7 @@ class BatchOptimizer(nn.Module):
         device: torch.device | str | None = None,
         compile: bool | str = False,
         tile_size: Optional[int] = None,
+        compile_after: Optional[float] = None,
     ) -> None:
         super().__init__()
         if not dtype.is_floating_point:
@@ -185,10 +200,17 @@ class BatchOptimizer(nn.Module):
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
+        deferred = compile == "auto" and not os.environ.get(COMPILE_ENV, "").strip()  # --compile on: at once
         if compile == "auto":
             compile = _auto_compile(dtype == torch.float32, on_cpu)
         if not isinstance(compile, bool):
             raise ValueError(f"`compile` must be True, False or 'auto'; got {compile!r}")
+        if compile_after is None:
+            compile_after = AUTO_COMPILE_AFTER_S if deferred else 0.0
+        if isinstance(compile_after, bool) or not isinstance(compile_after, (int, float)) or not compile_after >= 0:
+            raise ValueError(f"`compile_after` must be None or a number of seconds >= 0; got {compile_after!r}")
+        self.compile_after = float(compile_after)
+        self._eager_seconds: dict[tuple, float] = {}  # call layout -> estimated eager solving so far [s]
         # mmpc.trig is exact to float32 rounding, not to float64's.
         polynomial_trig = compile and on_cpu and dtype == torch.float32
         self._limits = _Limits(
@@ -326,27 +348,43 @@ class BatchOptimizer(nn.Module):
         compiled: bool,
     ) -> SolveResult:
         """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`);
-        compiled, a new call layout is run once untimed first (see :attr:`last_compile_ms`)."""
-        if compiled and self.device.type == "cuda":
-            return self._replay(ego, goals, obstacles, mask, axes, history)
-        start = time.perf_counter()
-        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled)  # compiles the input layout too
+        compiled, a call layout solves eagerly until :attr:`compile_after` is spent on it, and a
+        new one is then run once untimed first (see :attr:`last_compile_ms`)."""
+        uniform: Optional[int] | str = "find"
         if compiled:
-            layout = (mask.shape[0], prepared.num_goals, mask.shape[1], prepared.uniform_count is None, axes is None)
+            counts = mask.sum(dim=1).unique()  # a host synchronisation: the operators differ per obstacle count
+            uniform = int(counts[0]) if counts.numel() == 1 else None
+            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None)
+            compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1])
+        if compiled and self.device.type == "cuda":
+            return self._replay(ego, goals, obstacles, mask, axes, history, uniform)
+        start = time.perf_counter()
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform)  # compiles the input layout too
+        if compiled:
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)
                 self.last_compile_ms += (time.perf_counter() - start) * 1e3
                 self._compiled_layouts.add(layout)
         return self._run(prepared, history)
 
+    def _deferred(self, layout: tuple, elements: int) -> bool:
+        """Whether this call of ``layout`` solves eagerly: less than :attr:`compile_after` seconds
+        of eager solving of it estimated so far (from call counts and sizes, not clocks, so that a
+        run's episodes are the same however loaded the machine)."""
+        spent = self._eager_seconds.get(layout, 0.0)
+        if spent >= self.compile_after:
+            return False
+        fixed, per_element = _EAGER_SECONDS[self.device.type == "cuda"]
+        self._eager_seconds[layout] = spent + fixed + per_element * elements
+        return True
+
     def _replay(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                axes: Optional[torch.Tensor], history: bool) -> SolveResult:
+                axes: Optional[torch.Tensor], history: bool, uniform: Optional[int]) -> SolveResult:
         """Compiled CUDA path: the call layout's whole solve (layout, cold start, iterations,
         outputs) replayed as one CUDA graph, captured at its first call; the result is copied out
         of the graph's memory, so a later solve leaves it intact. A layout whose capture fails
-        runs the compiled functions without a graph (warned once)."""
-        counts = mask.sum(dim=1).unique()  # the one host synchronisation: operators differ per count
-        uniform = int(counts[0]) if counts.numel() == 1 else None
+        runs the compiled functions without a graph (warned once); ``uniform``: every problem's
+        obstacle count, ``None`` where they differ."""
         key = (tuple(goals.shape), mask.shape[1], uniform, axes is None, history)
         inputs = (ego, goals, obstacles, mask, axes)
         if key not in self._graphs:

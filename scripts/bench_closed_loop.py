@@ -32,7 +32,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
-from mmpc.cli.arguments import seed_list
+from mmpc.cli.arguments import compile_at_once, seed_list
 from mmpc.config import require_int, require_positive
 from mmpc.scenario import SIMULATORS
 
@@ -430,7 +430,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                        help="the world: highway-env (default, the reference) or batched (mmpc.sim)")
     bench.add_argument("--quick", action="store_true", help="a small run: one seed, 1 s episodes, small scaling figure")
     bench.add_argument("--out", default="runs/bench", help="output folder (default runs/bench)")
-    return _bench(bench.parse_args(argv))
+    args = bench.parse_args(argv)
+    compile_at_once()
+    return _bench(args)
 
 
 if __name__ == "__main__":

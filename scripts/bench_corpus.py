@@ -39,7 +39,6 @@ import math
 import platform
 import statistics
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -48,7 +47,7 @@ import torch
 import yaml
 
 from build_problem_corpus import CorpusError, corpus_path, git_state, load_corpus
-from mmpc.cli.arguments import add_compile, apply_compile, override
+from mmpc.cli.arguments import add_compile, apply_compile, compile_at_once, override
 from mmpc.config import ConfigError, to_dict
 from mmpc.mpc import MPC, Scored
 from mmpc.problem import ProblemBatch
@@ -275,6 +274,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     apply_compile(args.compile)
+    compile_at_once()  # auto: at the first call, so that the warm-up compiles
     settings = ([] if args.no_shipped else [Variant("shipped", {})]) + args.variant + [v for values in args.set for v in values]
     if not settings:
         parser.error("no setting to run: drop --no-shipped or give --variant / --set")

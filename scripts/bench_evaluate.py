@@ -25,7 +25,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from mmpc.cli.arguments import int_list
+from mmpc.cli.arguments import compile_at_once, int_list
 from mmpc.evaluate import EvaluationConfig, evaluate
 from mmpc.scenario import load_scenario
 
@@ -190,6 +190,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     bench.add_argument("--threads", type=int, default=1, help="torch threads per task (default 1)")
     bench.add_argument("--out", default="runs/bench_evaluate", help="output folder for bench_evaluate.json")
     args = bench.parse_args(argv)
+    compile_at_once()
     try:
         spec = EvaluateBenchmark(scenario=args.scenario, duration=args.duration, driver=args.driver, episodes=args.episodes,
                                  workers=args.worker_counts, rounds=args.rounds, lockstep=args.lockstep, threads=args.threads)

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_sim import CONSTANT_COMMAND, _closed_loop  # noqa: E402
 from bench_solver import benchmark_problem, time_solver  # noqa: E402
 
-from mmpc.cli.arguments import int_list, seed_list  # noqa: E402
+from mmpc.cli.arguments import compile_at_once, int_list, seed_list  # noqa: E402
 from mmpc.device import DEVICE_ENV  # noqa: E402
 from mmpc.optimizer import BatchOptimizer  # noqa: E402
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario  # noqa: E402
@@ -165,6 +165,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--seeds", type=seed_list, default=tuple(range(60000, 61024)), help="evaluation seeds")
     parser.add_argument("--duration", type=float, default=None, help="evaluation episode length [s] (default the scenario's)")
     args = parser.parse_args(argv)
+    compile_at_once()
     sections = [s for s in args.sections.split(",") if s]
     unknown = sorted(set(sections) - set(SECTIONS))
     if unknown:

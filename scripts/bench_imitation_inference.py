@@ -27,7 +27,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from mmpc.cli.arguments import override
+from mmpc.cli.arguments import compile_at_once, override
 from mmpc.drivers import Driver, MPCDriver, Observation
 from mmpc.imitation.policy import PolicyDriver, load_policy
 from mmpc.imitation.rollout import rollout_lockstep
@@ -124,6 +124,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                        help="consecutive states per driver in the 'consecutive' order (default 50)")
     bench.add_argument("--out", default="benchmarks/bench_imitation_inference.json", help="JSON output")
     args = bench.parse_args(argv)
+    compile_at_once()
     torch.set_num_threads(args.threads)
     scenario = load_scenario(args.scenario, dict(args.set))
     report = benchmark_inference(scenario, Path(args.policy), seed=args.seed, steps=args.steps, block=args.block)

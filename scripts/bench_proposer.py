@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from mmpc.cli.arguments import compile_at_once
 from mmpc.drivers import Driver, MPCDriver
 from mmpc.highway import run_lockstep
 from mmpc.imitation.proposer import load_proposer
@@ -43,6 +44,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
+    compile_at_once()
     torch.set_num_threads(args.threads)
     scenario = load_scenario(args.scenario).replace(sim="batched", duration=args.duration)
     path = Path(args.proposer)

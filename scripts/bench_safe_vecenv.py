@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from mmpc.cli.arguments import compile_at_once
 from mmpc.config import load_config
 from mmpc.rl.config import RLConfig
 
@@ -124,6 +125,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="benchmarks/bench_safe_vecenv.json", help="JSON report")
     args = parser.parse_args(argv)
+    compile_at_once()
     report = run_benchmark(load_config(RLConfig, args.config), num_envs=args.envs, steps=args.steps, seed=args.seed,
                            threads=args.threads, out=Path(args.out))
     print(format_report(report))

@@ -33,7 +33,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from mmpc.cli.arguments import int_list
+from mmpc.cli.arguments import compile_at_once, int_list
 from mmpc.scenario import ScenarioConfig, load_scenario
 
 #: The world table's command of every ego, (acceleration [m/s^2], steering [rad]): a world's cost
@@ -281,6 +281,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--memory-probe", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--out", default="runs/bench_sim", help="output folder (default runs/bench_sim)")
     args = parser.parse_args(argv)
+    compile_at_once()
     if args.memory_probe is not None:
         print(json.dumps(memory_probe(args.scenario, args.memory_probe, args.steps)))
         return 0

@@ -1,5 +1,6 @@
 """The torch.compile path gives the eager answers (float32 tolerance)."""
 
+import pytest
 import torch
 
 import mmpc
@@ -116,3 +117,42 @@ def test_compiled_layouts_past_the_recompile_limit_solve_eagerly(monkeypatch, ca
     expected = eager(wide)
     torch.testing.assert_close(result.trajectories.x, expected.trajectories.x, atol=1e-3, rtol=1e-5)
     assert torch.equal(result.feasible, expected.feasible)
+
+
+def test_a_layout_solves_eagerly_until_its_estimated_eager_time_is_spent(monkeypatch):
+    """compile_after: each call layout runs eagerly until the eager seconds estimated from its calls
+    (not clocks: the same episodes on any machine load) reach it, then compiled (warm-up + timed)."""
+    from mmpc.optimizer import _EAGER_SECONDS
+
+    runs = []
+
+    class Counting(mmpc.BatchOptimizer):
+        def _run(self, prepared, history):
+            runs.append((prepared.num_goals - prepared.padding, prepared.compiled))
+            return super()._run(prepared, history)
+
+    optimizer = Counting()
+    optimizer.compiled = True  # the deferral only reads the flag; eager functions keep the test fast
+    scene = synthetic_scenes(1, seed=3)[0]
+    goals = scene.problem.goals.shape[1]
+    fixed, per_element = _EAGER_SECONDS[False]
+    optimizer.compile_after = 2.5 * (fixed + per_element * goals)  # three eager calls reach it
+    for _ in range(5):
+        optimizer(scene.problem)
+    assert runs == [(goals, False)] * 3 + [(goals, True)] * 3  # then the compile's warm-up run and two solves
+    fewer = scene.problem._replace(goals=scene.problem.goals[:, :2])  # another layout starts eagerly again
+    optimizer(fewer)
+    assert runs[-1] == (2, False)
+
+
+def test_compile_after_defaults_to_deferring_only_for_auto(monkeypatch):
+    from mmpc.optimizer import AUTO_COMPILE_AFTER_S, COMPILE_ENV
+
+    assert mmpc.BatchOptimizer(compile=True).compile_after == 0.0
+    monkeypatch.delenv(COMPILE_ENV)
+    assert mmpc.BatchOptimizer(compile="auto").compile_after == AUTO_COMPILE_AFTER_S
+    monkeypatch.setenv(COMPILE_ENV, "1")  # --compile on: at the first call
+    assert mmpc.BatchOptimizer(compile="auto").compile_after == 0.0
+    for bad in (-1.0, True, "soon", float("nan")):
+        with pytest.raises(ValueError, match="compile_after"):
+            mmpc.BatchOptimizer(compile_after=bad)
