@@ -311,3 +311,18 @@ def test_the_gpu_benchmark_runs_its_sections_on_the_cpu(tmp_path, capsys):
         assert bench_gpu.main(["--out", str(tmp_path)]) == 2
     with pytest.raises(SystemExit):
         bench_gpu.main(["--device", "cpu", "--sections", "solver,gpu", "--out", str(tmp_path)])
+
+
+def test_the_goal_usage_script_counts_every_labelled_goal(tmp_path, capsys):
+    import goal_usage
+
+    argv = ["--scenario", "high_speed", "--seeds", "0-1", "--duration", "0.5", "--out", str(tmp_path)]
+    assert goal_usage.main(argv) == 0
+    report = json.loads((tmp_path / "goal_usage_high_speed.json").read_text())
+    labels = [goal["label"] for goal in report["goals"]]
+    assert len(labels) == 35 and labels[0] == "base 0" and labels[11] == "near-lane slot 0 at 4 m/s"
+    assert labels[-3:] == ["stop slot 0", "stop slot 1", "stop slot 2"]
+    assert report["steps"] == 10 and report["episodes"] == 2
+    assert sum(goal["chosen"] for goal in report["goals"]) == report["steps"] - report["fallback_steps"]
+    assert all(0.0 <= goal["feasible_share"] <= 1.0 and goal["only_feasible"] >= 0 for goal in report["goals"])
+    assert "| 11 | near-lane slot 0 at 4 m/s |" in capsys.readouterr().out
