@@ -326,3 +326,13 @@ def test_the_goal_usage_script_counts_every_labelled_goal(tmp_path, capsys):
     assert sum(goal["chosen"] for goal in report["goals"]) == report["steps"] - report["fallback_steps"]
     assert all(0.0 <= goal["feasible_share"] <= 1.0 and goal["only_feasible"] >= 0 for goal in report["goals"])
     assert "| 11 | near-lane slot 0 at 4 m/s |" in capsys.readouterr().out
+
+
+def test_the_offline_warm_start_study_reports_every_variant(tmp_path):
+    import warm_start_offline
+
+    rows = warm_start_offline.main(["cruise", "0,1", "0.3", str(tmp_path / "warm.json")])
+    assert json.loads((tmp_path / "warm.json").read_text()) == rows
+    assert {"cold10", "cold50", "warm10_keep_tail", "warm30_zero_tail"} <= set(rows)
+    assert rows["cold10"]["steps"] == 3 and rows["warm10_keep_tail"]["steps"] == 2  # no warm start at the first step
+    assert all(0.0 <= row["recall"] <= 1.0 and 0.0 <= row["agreement"] <= 1.0 for row in rows.values())
