@@ -8,7 +8,7 @@ from mmpc.mpc import MPC, MPCConfig, Plan
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state, predict_constant_velocity, predict_lane_change, predict_within_lanes
 from mmpc.ranking import Selection, constraint_violation, select_best
-from mmpc.result import SolveResult, Status, Trajectories
+from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road
 
 __version__ = "0.1.0"
@@ -36,6 +36,7 @@ __all__ = [
     "SolveResult",
     "Status",
     "Trajectories",
+    "WarmStart",
     "bernstein_basis",
     "ego_state",
     "predict_constant_velocity",

@@ -80,3 +80,16 @@ def bernstein_basis(order: int, num_steps: int, horizon: float) -> Basis:
     lower_first = _derivative_of_bernstein(order - 1, _bernstein(order - 2, tau))
     ddP = _derivative_of_bernstein(order, lower_first)
     return Basis(times=tau * horizon, P=P, Pdot=dP / horizon, Pddot=ddP / horizon**2)
+
+
+def bernstein_shift(order: int, num_steps: int, horizon: float, dt: float) -> torch.Tensor:
+    """(K, K) float64 ``S`` with ``P S c`` ~ the trajectory of ``c`` delayed by ``dt`` [s]
+    (``p(t + dt)``; past ``horizon`` extrapolated), in the least-squares sense over the
+    ``num_steps`` sample instants: the next control step's start for a plan.
+
+    Example:
+        >>> bool(torch.allclose(bernstein_shift(10, 100, 8.0, 0.0), torch.eye(11, dtype=torch.float64)))
+        True
+    """
+    tau = torch.linspace(0.0, 1.0, num_steps, dtype=torch.float64)
+    return torch.linalg.lstsq(_bernstein(order, tau), _bernstein(order, tau + dt / horizon)).solution

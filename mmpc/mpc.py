@@ -27,7 +27,7 @@ from mmpc.problem import (
     predict_within_lanes, require_on_device,
 )
 from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
-from mmpc.result import SolveResult, Status, Trajectories
+from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road
 from mmpc.stopping import conflict_deceleration, stop_goals
 
@@ -145,6 +145,9 @@ class MPCConfig:
         max_steering: steering saturation [rad].
         road_margin: a candidate whose centre comes closer than this to a road edge is
             infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].
+        warm_iterations: 0: every solve from the cold start. k > 0: a solve given the previous
+            step's final iterates (:meth:`plan`'s ``warm``; :class:`mmpc.drivers.MPCDriver`
+            keeps them per environment) runs only the last k iterations of the schedule.
     """
 
     num_obstacles: int = 6
@@ -171,6 +174,7 @@ class MPCConfig:
     stop_gap: float = 2.0
     max_steering: float = math.pi / 4
     road_margin: float = 1.0
+    warm_iterations: int = 0
 
     def __post_init__(self) -> None:
         require_field_types(self)
@@ -180,7 +184,8 @@ class MPCConfig:
                 f"`obstacle_shape` must be one of {list(OBSTACLE_SHAPES)}; got {self.obstacle_shape!r}")
         require(self.contingency_trigger in CONTINGENCY_TRIGGERS,
                 f"`contingency_trigger` must be one of {list(CONTINGENCY_TRIGGERS)}; got {self.contingency_trigger!r}")
-        require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies)
+        require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies,
+                    warm_iterations=self.warm_iterations)
         require_positive("", contingency_window=self.contingency_window,
                          contingency_lateral_speed=self.contingency_lateral_speed)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
@@ -393,6 +398,9 @@ class MPC:
                 f"MPCConfig.num_obstacles={self.config.num_obstacles} exceeds the optimizer's "
                 f"max_obstacles={optimizer.config.max_obstacles}"
             )
+        if self.config.warm_iterations > optimizer.config.iterations:
+            raise ValueError(f"MPCConfig.warm_iterations={self.config.warm_iterations} exceeds the optimizer's "
+                             f"iterations={optimizer.config.iterations}")
 
     def build_problem(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
@@ -525,7 +533,8 @@ class MPC:
 
     @torch.no_grad()
     def plan(
-        self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None
+        self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor] = None, *,
+        warm: Optional[WarmStart] = None,
     ) -> Plan:
         """One MPC step for E problems.
 
@@ -534,6 +543,7 @@ class MPC:
                 ``psidot`` are usually the previous command's.
             vehicles: (E, V, 4) other vehicles (x, y, vx, vy) [m, m/s]; V may be 0.
             vehicle_mask: (E, V) bool, True for real vehicles; ``None`` = all real.
+            warm: the previous step's final iterates moved to this step (see :meth:`score`).
 
         Returns:
             A :class:`Plan`. Where no candidate is feasible the fallback of :meth:`command`
@@ -545,10 +555,11 @@ class MPC:
         Raises:
             ValueError: bad input (see :meth:`build_problem`).
         """
-        return self.plan_problem(self.build_problem(ego, vehicles, vehicle_mask))
+        return self.plan_problem(self.build_problem(ego, vehicles, vehicle_mask), warm=warm)
 
     @torch.no_grad()
-    def plan_problem(self, problem: ProblemBatch, selector: Optional[Selector] = None) -> Plan:
+    def plan_problem(self, problem: ProblemBatch, selector: Optional[Selector] = None, *,
+                     warm: Optional[WarmStart] = None) -> Plan:
         """One MPC step for a problem batch built by the caller (e.g. :meth:`build_problem` with
         goals of its own added), with an optional selection rule: :meth:`score` then :meth:`choose`.
 
@@ -559,20 +570,27 @@ class MPC:
                 :func:`mmpc.ranking.select_best`, the feasible candidate of lowest meta cost (ties
                 within :attr:`MPCConfig.tie_tolerance` to the smallest lateral move).
                 A selection with ``feasible`` False gets :meth:`plan`'s fallback.
+            warm: see :meth:`score`.
 
         Returns:
             A :class:`Plan`, as :meth:`plan`.
         """
-        return self.choose(problem, self.score(problem), selector)
+        return self.choose(problem, self.score(problem, warm), selector)
 
     @torch.no_grad()
-    def score(self, problem: ProblemBatch) -> Scored:
+    def score(self, problem: ProblemBatch, warm: Optional[WarmStart] = None) -> Scored:
         """Solve every (problem, goal) of the batch and score it: road filter, escapes from a
         start inside an ellipse (:meth:`_allow_escape`), meta cost and the ranking of infeasible
         candidates. One optimizer call; :meth:`choose` may then pick from the same scores more
-        than once (e.g. for several agents' choices)."""
+        than once (e.g. for several agents' choices). ``warm``: the previous step's final iterates
+        (:attr:`mmpc.SolveResult.warm`, :meth:`mmpc.BatchOptimizer.shifted` to this step) to
+        start from with :attr:`MPCConfig.warm_iterations` iterations; ignored when that is 0 or
+        its shapes are not this batch's (another goal count)."""
         start = time.perf_counter()
-        result = self.optimizer(problem)
+        if warm is None or self.config.warm_iterations == 0 or warm.position.shape[:2] != problem.goals.shape[:2]:
+            result = self.optimizer(problem)
+        else:
+            result = self.optimizer(problem, warm=warm, warm_iterations=self.config.warm_iterations)
         if result.status.is_cuda:
             torch.cuda.synchronize(result.status.device)
         compile_ms = self.optimizer.last_compile_ms

@@ -37,11 +37,11 @@ import torch
 from torch import nn
 
 from mmpc import trig
-from mmpc.basis import bernstein_basis
+from mmpc.basis import bernstein_basis, bernstein_shift
 from mmpc.config import OptimizerConfig
 from mmpc.operators import build_operators
 from mmpc.problem import EGO_A, EGO_FIELDS, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y, ProblemBatch
-from mmpc.result import SolveResult, Status, Trajectories
+from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 
 logger = logging.getLogger(__name__)
 
@@ -102,6 +102,8 @@ class _Prepared(NamedTuple):
     num_goals: int  # G', the goals solved for: the G given and `padding` copies of the last
     padding: int  # goals appended to fill SIMD vectors (compiled CPU path), dropped from the result
     compiled: bool  # run the compiled functions; False: the eager ones (autograd)
+    warm: Optional[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]  # (K, 2B), (K, 2B), (K, B) iterates to start from
+    first_iteration: int  # the first iteration of the schedule run: 0 from the cold start
 
 
 class BatchOptimizer(nn.Module):
@@ -227,6 +229,7 @@ class BatchOptimizer(nn.Module):
             tile_size = _CPU_TILE_SIZE
         self.tile_size = tile_size
         self._graphs: OrderedDict[tuple, Optional[_GraphSolve]] = OrderedDict()  # CUDA: layout -> captured solve
+        self._shifts: dict[float, torch.Tensor] = {}  # dt -> (K, K) transposed time shift of the coefficients
         self._layout, self._start, self._summarise, self._iterate = _layout, _start, _summarise, _iterate
         self.chunk = self.config.iterations
         if compile:
@@ -264,12 +267,29 @@ class BatchOptimizer(nn.Module):
     def device(self) -> torch.device:
         return self.samples.device
 
-    def forward(self, problem: ProblemBatch, *, history: bool = False) -> SolveResult:
+    def shifted(self, warm: WarmStart, dt: float, start_offset: torch.Tensor) -> WarmStart:
+        """``warm`` moved ``dt`` seconds along its trajectories (the last ``dt`` extrapolated) and
+        to a start ``start_offset`` (E, 2) [m] from the old one: where the next control step's
+        solve of the same goals can start (:meth:`forward`'s ``warm``)."""
+        shift = self._shifts.get(dt)
+        if shift is None:
+            cfg = self.config
+            shift = bernstein_shift(cfg.order, cfg.num_steps, cfg.horizon, dt).T.to(self.device, self.dtype).contiguous()
+            self._shifts[dt] = shift
+        position = warm.position @ shift - start_offset.to(self.dtype)[:, None, :, None]  # Bernstein weights sum to 1
+        return WarmStart(position, warm.multipliers @ shift, warm.heading_multipliers @ shift)
+
+    def forward(self, problem: ProblemBatch, *, history: bool = False, warm: Optional[WarmStart] = None,
+                warm_iterations: Optional[int] = None) -> SolveResult:
         """Solve every (problem, goal) element of ``problem``.
 
         Args:
             problem: the batch (see :class:`mmpc.ProblemBatch` for shapes and units).
-            history: also return the residual norms after every iteration.
+            history: also return the residual norms after every iteration run.
+            warm: start from these iterates (an earlier result's ``warm``, moved to this problem's
+                start with :meth:`shifted`) instead of the cold start, and run only the last
+                ``warm_iterations`` iterations of the penalty schedule.
+            warm_iterations: with ``warm``: iterations to run, 1 ... ``config.iterations``.
 
         Returns:
             A :class:`mmpc.SolveResult` with leading dims (E, G).
@@ -277,10 +297,12 @@ class BatchOptimizer(nn.Module):
         Raises:
             TypeError: a non-tensor or non-floating input, or a non-bool mask.
             ValueError: a wrong shape or device, an empty batch, too many obstacle slots,
-                NaN/inf in the ego state, the goals or a present obstacle, a negative speed.
+                NaN/inf in the ego state, the goals or a present obstacle, a negative speed; a warm
+                start of other shapes, not finite, or without ``warm_iterations`` in range.
         """
         self.last_compile_ms = 0.0
         ego, goals, obstacles, mask, axes = _validate(problem, self.config, self.dtype, self.device)
+        warm, first_iteration = _validate_warm(warm, warm_iterations, self.config, goals.shape[:2], self.dtype, self.device)
         compiled = self.compiled
         if compiled and torch.is_grad_enabled() and any(t.requires_grad for t in (ego, goals, obstacles)):
             compiled = False  # the compiled graphs have no backward: autograd runs the eager functions
@@ -288,24 +310,25 @@ class BatchOptimizer(nn.Module):
                 logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
                 self._fallback_logged = True
         if not compiled:
-            return self._solve_batch(ego, goals, obstacles, mask, axes, history, compiled)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
         # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
         # functions, shared by every optimizer of the process: one driver mixing goal counts (a
         # proposer and its escalations) or several scenarios in one worker pass torch's default
         # limit of 8, where a fullgraph compile fails hard.
         try:
             with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT):
-                return self._solve_batch(ego, goals, obstacles, mask, axes, history, compiled)
+                return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
         except torch._dynamo.exc.FailOnRecompileLimitHit:
             if not self._limit_logged:
                 logger.warning("BatchOptimizer: %d compiled call layouts in this process (the limit); new layouts "
                                "solve eagerly", _RECOMPILE_LIMIT)
                 self._limit_logged = True
             self.last_compile_ms = 0.0
-            return self._solve_batch(ego, goals, obstacles, mask, axes, history, False)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, False)
 
     def _solve_batch(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                     axes: Optional[torch.Tensor], history: bool, compiled: bool) -> SolveResult:
+                     axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
+                     compiled: bool) -> SolveResult:
         """:meth:`forward` on validated inputs: one call, or tiles of :attr:`tile_size` elements."""
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
@@ -315,21 +338,25 @@ class BatchOptimizer(nn.Module):
                 on_cpu = self.device.type == "cpu"
                 bucket = _problem_bucket(num_problems, num_goals, self.tile_size) if on_cpu else _graph_bucket(num_problems)
             if bucket == num_problems:
-                return self._solve(ego, goals, obstacles, mask, axes, history, compiled)
+                return self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
             ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask, axes))
-            return self._solve(ego, goals, obstacles, mask, axes, history, compiled).head(num_problems, num_goals)
+            warm = _repeat_warm(warm, 0, bucket)
+            return self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled).head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
         padded_problems = _ceil_div(num_problems, tile_problems) * tile_problems
         ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, padded_problems) for t in (ego, goals, obstacles, mask, axes))
-        goals = _repeat_last(goals, 1, _ceil_div(num_goals, tile_goals) * tile_goals)
+        padded_goals = _ceil_div(num_goals, tile_goals) * tile_goals
+        goals = _repeat_last(goals, 1, padded_goals)
+        warm = _repeat_warm(_repeat_warm(warm, 0, padded_problems), 1, padded_goals)
         bands = []
-        for first in range(0, padded_problems, tile_problems):
-            problems = slice(first, first + tile_problems)
+        for row in range(0, padded_problems, tile_problems):
+            problems = slice(row, row + tile_problems)
             tile_axes = None if axes is None else axes[problems]
             tiles = [
                 self._solve(
                     ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], tile_axes,
+                    None if warm is None else WarmStart(*(field[problems, g : g + tile_goals] for field in warm)), first_iteration,
                     history, compiled,
                 )
                 for g in range(0, goals.shape[1], tile_goals)
@@ -344,6 +371,8 @@ class BatchOptimizer(nn.Module):
         obstacles: torch.Tensor,
         mask: torch.Tensor,
         axes: Optional[torch.Tensor],
+        warm: Optional[WarmStart],
+        first_iteration: int,
         history: bool,
         compiled: bool,
     ) -> SolveResult:
@@ -354,12 +383,13 @@ class BatchOptimizer(nn.Module):
         if compiled:
             counts = mask.sum(dim=1).unique()  # a host synchronisation: the operators differ per obstacle count
             uniform = int(counts[0]) if counts.numel() == 1 else None
-            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None)
+            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, first_iteration)
             compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1])
-        if compiled and self.device.type == "cuda":
+        if compiled and self.device.type == "cuda" and warm is None:
             return self._replay(ego, goals, obstacles, mask, axes, history, uniform)
         start = time.perf_counter()
-        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform)  # compiles the input layout too
+        # compiles the input layout too
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm, first_iteration=first_iteration)
         if compiled:
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)
@@ -411,10 +441,16 @@ class BatchOptimizer(nn.Module):
         start, iterate, summarise, limits = self._start, self._iterate, self._summarise, self._limits
         if not prepared.compiled:
             start, iterate, summarise, limits = _start, _iterate, _summarise, self._eager_limits
-        state = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples, self.gather[0],
-                      limits)
+        if prepared.warm is None:
+            state = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples,
+                          self.gather[0], limits)
+        else:  # the residual scaled as the first iteration's position QP expects (rho of the one before)
+            c, multipliers, multipliers_psi = prepared.warm
+            gather = self.gather[max(prepared.first_iteration - 1, 0)]
+            state = _State(c, _scaled_residual(c, prepared.obstacles, prepared.axes, self.samples, gather, limits), multipliers,
+                           multipliers_psi)
         records: list[torch.Tensor] = []
-        for first in range(0, self.config.iterations, self.chunk):
+        for first in range(prepared.first_iteration, self.config.iterations, self.chunk):
             last = min(first + self.chunk, self.config.iterations)
             if prepared.uniform_count is not None:
                 position = self.position[first:last, prepared.uniform_count]  # (U, 2, K, D)
@@ -434,6 +470,12 @@ class BatchOptimizer(nn.Module):
         history_norms = None
         if history:
             history_norms = torch.nan_to_num(torch.stack(records)[:, :, :num_goals], nan=float("inf"))
+        num_problems, order = prepared.obstacles.shape[3], state.c.shape[0]
+        warm = WarmStart(  # views of the final iterates in the batch-first layout, padding goals dropped
+            state.c.view(order, 2, num_problems, -1)[..., :num_goals].permute(2, 3, 1, 0),
+            state.multipliers.view(order, 2, num_problems, -1)[..., :num_goals].permute(2, 3, 1, 0),
+            state.multipliers_psi.view(order, num_problems, -1)[..., :num_goals].permute(1, 2, 0),
+        )
         return SolveResult(
             trajectories=Trajectories(self.times, *fields),
             coefficients=coefficients,
@@ -447,6 +489,7 @@ class BatchOptimizer(nn.Module):
             status=status,
             feasible=status == 0,
             history=history_norms,
+            warm=warm,
         )
 
     # ----------------------------------------------------------------------------- inputs
@@ -454,14 +497,17 @@ class BatchOptimizer(nn.Module):
     def _prepare(
         self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
         axes: Optional[torch.Tensor], compiled: bool, *, uniform: Optional[int] | str = "find",
+        warm: Optional[WarmStart] = None, first_iteration: int = 0,
     ) -> _Prepared:
         """The solver layout of one call; ``uniform``: the obstacle count every problem has
-        (``None``: counts differ), or ``"find"`` to read it from the mask (a host synchronisation)."""
+        (``None``: counts differ), or ``"find"`` to read it from the mask (a host synchronisation);
+        ``warm``: iterates to start from, at iteration ``first_iteration``."""
         cfg = self.config
         padding = 0
         if compiled and self.device.type == "cpu":
             padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
             goals = _repeat_last(goals, 1, goals.shape[1] + padding)
+            warm = _repeat_warm(warm, 1, goals.shape[1])
         layout = self._layout if compiled else _layout
         origin, b_position, b_heading, obstacles, axes, goal_ahead, counts = layout(
             ego, goals, obstacles, mask, axes, cfg.start_acceleration, (cfg.ellipse_a, cfg.ellipse_b), cfg.a_max
@@ -482,6 +528,8 @@ class BatchOptimizer(nn.Module):
             num_goals=goals.shape[1],
             padding=padding,
             compiled=compiled,
+            warm=None if warm is None else _solver_layout(warm),
+            first_iteration=first_iteration,
         )
 
 
@@ -644,9 +692,10 @@ class _GraphSolve:
 def _clone_result(result: SolveResult) -> SolveResult:
     """A copy of every per-element tensor of ``result`` (the sample times are a shared buffer)."""
     trajectories = Trajectories(result.trajectories.times, *(field.clone() for field in result.trajectories[1:]))
-    return result._replace(trajectories=trajectories, **{
+    warm = None if result.warm is None else WarmStart(*(field.clone() for field in result.warm))
+    return result._replace(trajectories=trajectories, warm=warm, **{
         name: None if getattr(result, name) is None else getattr(result, name).clone()
-        for name in SolveResult._fields if name != "trajectories"
+        for name in SolveResult._fields if name not in ("trajectories", "warm")
     })
 
 
@@ -660,6 +709,46 @@ def _repeat_last(tensor: Optional[torch.Tensor], dim: int, size: int) -> Optiona
         return None
     index = torch.arange(size, device=tensor.device).clamp_max(tensor.shape[dim] - 1)
     return tensor.index_select(dim, index)
+
+
+def _repeat_warm(warm: Optional[WarmStart], dim: int, size: int) -> Optional[WarmStart]:
+    """:func:`_repeat_last` of every field of a warm start (``None`` stays ``None``)."""
+    return None if warm is None else WarmStart(*(_repeat_last(field, dim, size) for field in warm))
+
+
+def _solver_layout(warm: WarmStart) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A batch-first warm start -> the iterations' (K, 2B), (K, 2B), (K, B), columns ordered (axis, e, g)."""
+    order = warm.position.shape[-1]
+    return (warm.position.permute(3, 2, 0, 1).reshape(order, -1), warm.multipliers.permute(3, 2, 0, 1).reshape(order, -1),
+            warm.heading_multipliers.permute(2, 0, 1).reshape(order, -1))
+
+
+def _validate_warm(warm: Optional[WarmStart], iterations: Optional[int], config: OptimizerConfig, batch: tuple[int, int],
+                   dtype: torch.dtype, device: torch.device) -> tuple[Optional[WarmStart], int]:
+    """A warm start checked against the (E, G) ``batch`` and cast to ``dtype``, and the first
+    iteration it runs from (0 without one)."""
+    if warm is None:
+        if iterations is not None:
+            raise ValueError(f"`warm_iterations` needs a `warm` start; got warm_iterations={iterations!r} without one")
+        return None, 0
+    if not isinstance(warm, WarmStart):
+        raise TypeError(f"`warm` must be a mmpc.WarmStart (a result's `warm`); got {type(warm).__name__}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or not 1 <= iterations <= config.iterations:
+        raise ValueError(f"`warm_iterations` must be an int in [1, {config.iterations}]; got {iterations!r}")
+    order = config.order + 1
+    expected = {"position": (*batch, 2, order), "multipliers": (*batch, 2, order), "heading_multipliers": (*batch, order)}
+    fields = []
+    for name, shape in expected.items():
+        value = getattr(warm, name)
+        if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape:
+            got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(f"`warm.{name}` must have shape {shape} for this batch; got {got}")
+        if value.device != device:
+            raise ValueError(f"`warm.{name}` is on {value.device} but the optimizer is on {device}; move it with .to()")
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"`warm.{name}` must be finite; got NaN or inf")
+        fields.append(value.to(dtype))
+    return WarmStart(*fields), config.iterations - iterations
 
 
 def _goal_padding(num_problems: int, num_goals: int, element_size: int) -> int:
@@ -892,18 +981,26 @@ def _start(
     Its residual (heading taken along the velocity) is mapped with ``gather`` = ``gather[0]``,
     ready for the first position QP. Shapes as in :func:`_iterate`.
     """
-    num_problems = obstacles.shape[3]
-    n = samples_operator.shape[0] // 3
-    c = _position_qp(position_init, b_position, num_problems)  # (K, 2B)
-    samples = (samples_operator @ c).view(3 * n, 2, num_problems, -1)
-    psi = _atan2(samples[2 * n :, 1], samples[2 * n :, 0], limits)
-    residuals = _closed_form_steps(samples, psi, obstacles, axes, limits)
+    c = _position_qp(position_init, b_position, obstacles.shape[3])  # (K, 2B)
     return _State(
         c=c,
-        scaled_residual=gather @ residuals.stacked.view(3 * n, -1),
+        scaled_residual=_scaled_residual(c, obstacles, axes, samples_operator, gather, limits),
         multipliers=torch.zeros_like(c),
         multipliers_psi=c.new_zeros(c.shape[0], c.shape[1] // 2),
     )
+
+
+def _scaled_residual(
+    c: torch.Tensor, obstacles: torch.Tensor, axes: Optional[torch.Tensor], samples_operator: torch.Tensor,
+    gather: torch.Tensor, limits: _Limits,
+) -> torch.Tensor:
+    """(K, 2B) ``gather @ (F c - g)`` of coefficients ``c`` (K, 2B), the heading taken along the
+    velocity: what the position QP after ``gather``'s iteration reads. Shapes as in :func:`_iterate`."""
+    n = samples_operator.shape[0] // 3
+    samples = (samples_operator @ c).view(3 * n, 2, obstacles.shape[3], -1)
+    psi = _atan2(samples[2 * n :, 1], samples[2 * n :, 0], limits)
+    residuals = _closed_form_steps(samples, psi, obstacles, axes, limits)
+    return gather @ residuals.stacked.view(3 * n, -1)
 
 
 def _summarise(

@@ -61,6 +61,25 @@ class Trajectories(NamedTuple):
         return Trajectories(self.times, *picked)
 
 
+class WarmStart(NamedTuple):
+    """The iterates a solve ended with, to start a later solve of the same goals from (the next
+    control step's, after :meth:`mmpc.BatchOptimizer.shifted`). Batch dims lead: (E, G, ...).
+
+    Fields:
+        position: (E, G, 2, K) x, y Bernstein coefficients relative to the problem's start [m].
+        multipliers: (E, G, 2, K) the position constraints' Lagrange multipliers.
+        heading_multipliers: (E, G, K) the heading constraint's multipliers.
+    """
+
+    position: torch.Tensor
+    multipliers: torch.Tensor
+    heading_multipliers: torch.Tensor
+
+    def take(self, rows: torch.Tensor) -> "WarmStart":
+        """The problems ``rows`` (long or bool over E)."""
+        return WarmStart(*(field[rows] for field in self))
+
+
 class SolveResult(NamedTuple):
     """Everything a batch solve returns. Batch dims lead: (E, G, ...).
 
@@ -84,6 +103,7 @@ class SolveResult(NamedTuple):
         feasible: (E, G) bool, ``status == 0``.
         history: (I, E, G, 3) obstacle, acceleration and non-holonomic residuals after every
             iteration, when requested; otherwise ``None``.
+        warm: the final iterates (:class:`WarmStart`), to warm-start the next step's solve.
     """
 
     trajectories: Trajectories
@@ -98,6 +118,7 @@ class SolveResult(NamedTuple):
     status: torch.Tensor
     feasible: torch.Tensor
     history: Optional[torch.Tensor] = None
+    warm: Optional[WarmStart] = None
 
     @staticmethod
     def concatenate(parts: Sequence["SolveResult"], dim: int) -> "SolveResult":
@@ -116,10 +137,11 @@ class SolveResult(NamedTuple):
         per_element = {
             name: join(getattr(part, name) for part in parts)
             for name in SolveResult._fields
-            if name not in ("trajectories", "history")
+            if name not in ("trajectories", "history", "warm")
         }
         history = None if first.history is None else join((part.history for part in parts), offset=1)
-        return SolveResult(trajectories=trajectories, **per_element, history=history)
+        warm = None if first.warm is None else WarmStart(*(join(fields) for fields in zip(*(part.warm for part in parts))))
+        return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
 
     def head(self, num_problems: int, num_goals: int) -> "SolveResult":
         """The first ``num_problems`` problems and, of each, the first ``num_goals`` goals."""
@@ -129,7 +151,8 @@ class SolveResult(NamedTuple):
         per_element = {
             name: getattr(self, name)[:num_problems, :num_goals]
             for name in SolveResult._fields
-            if name not in ("trajectories", "history")
+            if name not in ("trajectories", "history", "warm")
         }
         history = None if self.history is None else self.history[:, :num_problems, :num_goals]
-        return SolveResult(trajectories=trajectories, **per_element, history=history)
+        warm = None if self.warm is None else WarmStart(*(field[:num_problems, :num_goals] for field in self.warm))
+        return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
