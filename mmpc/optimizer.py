@@ -288,7 +288,8 @@ class BatchOptimizer(nn.Module):
             history: also return the residual norms after every iteration run.
             warm: start from these iterates (an earlier result's ``warm``, moved to this problem's
                 start with :meth:`shifted`) instead of the cold start, and run only the last
-                ``warm_iterations`` iterations of the penalty schedule.
+                ``warm_iterations`` iterations of the penalty schedule; elements whose iterates
+                are not finite (a diverged solve) start from the cold start.
             warm_iterations: with ``warm``: iterations to run, 1 ... ``config.iterations``.
 
         Returns:
@@ -298,7 +299,7 @@ class BatchOptimizer(nn.Module):
             TypeError: a non-tensor or non-floating input, or a non-bool mask.
             ValueError: a wrong shape or device, an empty batch, too many obstacle slots,
                 NaN/inf in the ego state, the goals or a present obstacle, a negative speed; a warm
-                start of other shapes, not finite, or without ``warm_iterations`` in range.
+                start of other shapes or devices, or without ``warm_iterations`` in range.
         """
         self.last_compile_ms = 0.0
         ego, goals, obstacles, mask, axes = _validate(problem, self.config, self.dtype, self.device)
@@ -436,6 +437,22 @@ class BatchOptimizer(nn.Module):
         no host synchronisation, so that a CUDA graph can capture it."""
         return self._run(self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform), history)
 
+    def _warm_state(self, prepared: _Prepared, start, limits: _Limits) -> _State:
+        """The iterations' state from a warm start: its iterates, the cold start's for elements
+        whose iterates are not finite (a diverged solve), and the residual scaled as the first
+        iteration's position QP expects (the rho of the iteration before it)."""
+        c, multipliers, multipliers_psi = prepared.warm
+        usable = (torch.isfinite(c).all(dim=0) & torch.isfinite(multipliers).all(dim=0)).view(2, -1).all(dim=0)
+        usable = usable & torch.isfinite(multipliers_psi).all(dim=0)  # (B,) elements, both axes
+        cold = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples, self.gather[0],
+                     limits)
+        c = torch.where(usable.repeat(2), c, cold.c)
+        multipliers = torch.where(usable.repeat(2), multipliers, 0.0)
+        multipliers_psi = torch.where(usable, multipliers_psi, 0.0)
+        gather = self.gather[max(prepared.first_iteration - 1, 0)]
+        return _State(c, _scaled_residual(c, prepared.obstacles, prepared.axes, self.samples, gather, limits), multipliers,
+                      multipliers_psi)
+
     def _run(self, prepared: _Prepared, history: bool) -> SolveResult:
         """The cold start, the iterations and the outputs of one prepared call."""
         start, iterate, summarise, limits = self._start, self._iterate, self._summarise, self._limits
@@ -444,11 +461,8 @@ class BatchOptimizer(nn.Module):
         if prepared.warm is None:
             state = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples,
                           self.gather[0], limits)
-        else:  # the residual scaled as the first iteration's position QP expects (rho of the one before)
-            c, multipliers, multipliers_psi = prepared.warm
-            gather = self.gather[max(prepared.first_iteration - 1, 0)]
-            state = _State(c, _scaled_residual(c, prepared.obstacles, prepared.axes, self.samples, gather, limits), multipliers,
-                           multipliers_psi)
+        else:
+            state = self._warm_state(prepared, start, limits)
         records: list[torch.Tensor] = []
         for first in range(prepared.first_iteration, self.config.iterations, self.chunk):
             last = min(first + self.chunk, self.config.iterations)
@@ -745,9 +759,7 @@ def _validate_warm(warm: Optional[WarmStart], iterations: Optional[int], config:
             raise ValueError(f"`warm.{name}` must have shape {shape} for this batch; got {got}")
         if value.device != device:
             raise ValueError(f"`warm.{name}` is on {value.device} but the optimizer is on {device}; move it with .to()")
-        if not bool(torch.isfinite(value).all()):
-            raise ValueError(f"`warm.{name}` must be finite; got NaN or inf")
-        fields.append(value.to(dtype))
+        fields.append(value.to(dtype))  # elements with NaN or inf (a diverged solve) start cold
     return WarmStart(*fields), config.iterations - iterations
 
 
