@@ -145,9 +145,12 @@ class MPCConfig:
         max_steering: steering saturation [rad].
         road_margin: a candidate whose centre comes closer than this to a road edge is
             infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].
-        warm_iterations: 0: every solve from the cold start. k > 0: a solve given the previous
-            step's final iterates (:meth:`plan`'s ``warm``; :class:`mmpc.drivers.MPCDriver`
-            keeps them per environment) runs only the last k iterations of the schedule.
+        warm_iterations: 0: every solve from the cold start. k > 0 (experimental): a solve given
+            the previous step's final iterates (:meth:`plan`'s ``warm``;
+            :class:`mmpc.drivers.MPCDriver` keeps them per environment) runs only the last k
+            iterations of the schedule.
+        warm_cold_every: with warm starts, every n-th step (and every step after a fallback)
+            solves cold: chains of warm solves drift to costlier plans.
     """
 
     num_obstacles: int = 6
@@ -175,6 +178,7 @@ class MPCConfig:
     max_steering: float = math.pi / 4
     road_margin: float = 1.0
     warm_iterations: int = 0
+    warm_cold_every: int = 5
 
     def __post_init__(self) -> None:
         require_field_types(self)
@@ -186,6 +190,7 @@ class MPCConfig:
                 f"`contingency_trigger` must be one of {list(CONTINGENCY_TRIGGERS)}; got {self.contingency_trigger!r}")
         require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies,
                     warm_iterations=self.warm_iterations)
+        require_int("", low=1, warm_cold_every=self.warm_cold_every)
         require_positive("", contingency_window=self.contingency_window,
                          contingency_lateral_speed=self.contingency_lateral_speed)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")

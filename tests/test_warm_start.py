@@ -87,7 +87,7 @@ def test_the_mpc_driver_warm_starts_every_environment_it_has_seen(cruise_mpc):
             calls.append(kwargs.get("warm") is not None)
             return super().forward(problem, **kwargs)
 
-    config = dataclasses.replace(cruise_mpc.config, warm_iterations=20)
+    config = dataclasses.replace(cruise_mpc.config, warm_iterations=20, warm_cold_every=100)
     mpc = mmpc.MPC(Recording(cruise_mpc.optimizer.config), cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road, config)
     with pytest.raises(ValueError, match="period"):
         MPCDriver(mpc)
@@ -120,3 +120,19 @@ def test_elements_whose_iterates_diverged_start_cold(solved):
     result = optimizer(problem, warm=cold.warm._replace(position=position), warm_iterations=30)
     assert bool(torch.isfinite(result.trajectories.x).all()) and bool(torch.isfinite(result.warm.position).all())
     assert torch.equal(result.feasible[:, 2:], optimizer(problem, warm=cold.warm, warm_iterations=30).feasible[:, 2:])
+
+
+def test_the_mpc_driver_solves_cold_every_nth_step(cruise_mpc):
+    calls = []
+
+    class Recording(mmpc.BatchOptimizer):
+        def forward(self, problem, **kwargs):
+            calls.append(kwargs.get("warm") is not None)
+            return super().forward(problem, **kwargs)
+
+    config = dataclasses.replace(cruise_mpc.config, warm_iterations=20, warm_cold_every=3)
+    mpc = mmpc.MPC(Recording(cruise_mpc.optimizer.config), cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road, config)
+    driver = MPCDriver(mpc, period=0.1)
+    for x in (0.0, 1.4, 2.8, 4.2, 5.6, 7.0, 8.4):
+        driver.decide(Observation(torch.tensor([[x, 8.0, 0.0, 14.0, 0.0, 0.0]]), torch.tensor([[[x + 60.0, 8.0, 10.0, 0.0]]])))
+    assert calls == [False, True, True, False, True, True, False]

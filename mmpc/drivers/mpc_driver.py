@@ -17,8 +17,10 @@ class MPCDriver(Driver):
     """The multi-modal MPC (:class:`mmpc.MPC`): one batched optimizer call for all E environments.
 
     With :attr:`mmpc.MPCConfig.warm_iterations` > 0 it keeps each environment's final iterates
-    and starts its next solve from them, moved one control step on; a step with an environment it
-    has none for (the first, or one that newly joined the batch) solves every row cold.
+    and starts its next solve from them, moved one control step on; every
+    :attr:`mmpc.MPCConfig.warm_cold_every`-th step, a step after any row's fallback, and a step
+    with an environment it has no iterates for (the first, or one that newly joined the batch)
+    solve every row cold.
 
     Args:
         mpc: the MPC (its goal sampler, meta cost and optimizer).
@@ -34,14 +36,18 @@ class MPCDriver(Driver):
         self.name = name
         self.period = period
         self._last: Optional[tuple[torch.Tensor, torch.Tensor, WarmStart]] = None  # env ids, (E, 2) starts, iterates
+        self._steps = 0  # decisions since the reset
+        self._fell_back = False  # some row of the last decision fell back
 
     def reset(self, num_envs: int) -> None:
         self._last = None
+        self._steps = 0
+        self._fell_back = False
 
     def _warm(self, observation: Observation) -> Optional[WarmStart]:
         """The last step's iterates of every environment of ``observation``, moved to this step;
         ``None`` when one has none."""
-        if self._last is None:
+        if self._last is None or self._fell_back or self._steps % self.mpc.config.warm_cold_every == 0:
             return None
         ids, starts, warm = self._last
         match = observation.ids()[:, None] == ids[None, :]  # (E, E_last)
@@ -61,6 +67,8 @@ class MPCDriver(Driver):
         plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask, warm=warm)
         if self.mpc.config.warm_iterations:
             self._last = (observation.ids(), observation.ego[:, :2], plan.result.warm)
+            self._fell_back = bool((~plan.selection.feasible).any())
+            self._steps += 1
         elapsed_ms = (time.perf_counter() - start) * 1e3 - plan.compile_ms
         trajectories = plan.result.trajectories
         candidates = Candidates(
