@@ -151,8 +151,8 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
                 compile_ms = []
                 score = mpc.score
 
-                def timed_score(problem, score=score, compile_ms=compile_ms):
-                    scored = score(problem)
+                def timed_score(problem, *args, score=score, compile_ms=compile_ms):
+                    scored = score(problem, *args)
                     compile_ms.append(scored.compile_ms)
                     return scored
 

@@ -53,9 +53,9 @@ def count_solves(driver: SafeAgentDriver) -> list[int]:
     calls = [0]
     score = driver.layer.mpc.score
 
-    def counted(problem):
+    def counted(problem, *args):
         calls[0] += 1
-        return score(problem)
+        return score(problem, *args)
 
     driver.layer.mpc.score = counted
     return calls
