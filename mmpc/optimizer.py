@@ -135,7 +135,8 @@ class BatchOptimizer(nn.Module):
             kernels, and a small batch is padded with copies of its last goal to whole SIMD
             vectors (the copies are dropped from the result). On CUDA every call layout's whole
             solve is captured once as a CUDA graph and replayed (E rounded up to a few sizes per
-            octave, :func:`_graph_bucket`); results are copied out of the graph. Eager (the default) is the reference and supports autograd
+            octave, :func:`_graph_bucket`); results are copied out of the graph. Eager (the
+            default) is the reference and supports autograd
             everywhere: a compiled optimizer solves inputs that require grad (autograd enabled)
             eagerly, with torch's sin, cos and atan2 (the same values to float32 rounding), as
             its compiled graphs are not differentiated. On the CPU every call layout gets its
@@ -342,7 +343,8 @@ class BatchOptimizer(nn.Module):
                 return self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
             ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask, axes))
             warm = _repeat_warm(warm, 0, bucket)
-            return self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled).head(num_problems, num_goals)
+            result = self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
+            return result.head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
         padded_problems = _ceil_div(num_problems, tile_problems) * tile_problems
@@ -357,8 +359,8 @@ class BatchOptimizer(nn.Module):
             tiles = [
                 self._solve(
                     ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], tile_axes,
-                    None if warm is None else WarmStart(*(field[problems, g : g + tile_goals] for field in warm)), first_iteration,
-                    history, compiled,
+                    None if warm is None else WarmStart(*(field[problems, g : g + tile_goals] for field in warm)),
+                    first_iteration, history, compiled,
                 )
                 for g in range(0, goals.shape[1], tile_goals)
             ]
@@ -389,8 +391,8 @@ class BatchOptimizer(nn.Module):
         if compiled and self.device.type == "cuda" and warm is None:
             return self._replay(ego, goals, obstacles, mask, axes, history, uniform)
         start = time.perf_counter()
-        # compiles the input layout too
-        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm, first_iteration=first_iteration)
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm,
+                                 first_iteration=first_iteration)  # compiles the input layout too
         if compiled:
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)

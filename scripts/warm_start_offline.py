@@ -56,7 +56,8 @@ def main(argv: list[str]) -> dict:
         limits = opt._eager_limits
         gather_index = max(first - 1, 0)
         if state is None:
-            state = _start(prepared.b_position, prepared.obstacles, prepared.axes, opt.position_init, opt.samples, opt.gather[gather_index], limits)
+            state = _start(prepared.b_position, prepared.obstacles, prepared.axes, opt.position_init, opt.samples,
+                           opt.gather[gather_index], limits)
         else:  # the residual of the warm c, scaled as the position QP of iteration `first` expects
             c = state.c
             n = opt.samples.shape[0] // 3
@@ -87,8 +88,8 @@ def main(argv: list[str]) -> dict:
         delta = (prepared_now.origin - prepared_prev.origin)  # (E, 2)
         offset = delta.T[:, :, None].expand(2, E, G).reshape(1, -1)  # columns (axis, e, g)
         c = SHIFT @ state.c - offset
-        lam = (SHIFT @ state.multipliers) if multipliers == "shift" else (state.multipliers if multipliers == "keep" else torch.zeros_like(state.c))
-        lam_psi = (SHIFT @ state.multipliers_psi) if multipliers == "shift" else (state.multipliers_psi if multipliers == "keep" else torch.zeros_like(state.multipliers_psi))
+        lam = state.multipliers if multipliers == "keep" else torch.zeros_like(state.multipliers)
+        lam_psi = state.multipliers_psi if multipliers == "keep" else torch.zeros_like(state.multipliers_psi)
         return state._replace(c=c, multipliers=lam, multipliers_psi=lam_psi)
 
 
@@ -110,9 +111,11 @@ def main(argv: list[str]) -> dict:
         variants = {}
         for k in (10, 20, 30, 50):
             variants[f"cold{k}"] = lambda k=k: solve(problem, None, 0, k)[0]
-            if k < 50 and previous is not None and previous[2].origin.shape == prepared.origin.shape and previous[0].c.shape == cold_state.c.shape:
+            same_shapes = previous is not None and previous[0].c.shape == cold_state.c.shape
+            if k < 50 and same_shapes and previous[2].origin.shape == prepared.origin.shape:
                 for lam in ("zero", "keep"):
-                    variants[f"warm{k}_{lam}_tail"] = lambda k=k, lam=lam: solve(problem, warm_state(previous[0], previous[2], prepared, lam), cfg.iterations - k)[0]
+                    variants[f"warm{k}_{lam}_tail"] = lambda k=k, lam=lam: solve(
+                        problem, warm_state(previous[0], previous[2], prepared, lam), cfg.iterations - k)[0]
         for key, run in variants.items():
             with torch.no_grad():
                 result = run()
@@ -121,7 +124,8 @@ def main(argv: list[str]) -> dict:
                                         "extra": 0, "same_choice": 0, "choice_steps": 0, "regret": 0.0, "ref_cost": 0.0})
             both = ok & ref_ok
             rows_e = torch.arange(index.shape[0])
-            regret = (ref_cost[rows_e, index] - ref_cost[rows_e, ref_index]).clamp_min(0)  # the cold cost of what the variant chose
+            # the reference cost of what the variant chose, above the reference's own choice
+            regret = (ref_cost[rows_e, index] - ref_cost[rows_e, ref_index]).clamp_min(0)
             row["regret"] += float(regret[both].sum())
             row["ref_cost"] += float(ref_cost[rows_e, ref_index][both].sum())
             row["steps"] += 1
@@ -134,9 +138,11 @@ def main(argv: list[str]) -> dict:
             row["choice_steps"] += int(ref_ok.sum())
         previous = (cold_state, None, prepared)
     out = {k: {**v, "recall": v["found"] / max(v["cold_feasible"], 1), "agreement": v["same_feasible"] / max(v["elements"], 1),
-               "same_choice_share": v["same_choice"] / max(v["choice_steps"], 1), "relative_regret": v["regret"] / max(v["ref_cost"], 1e-9)} for k, v in rows.items()}
+               "same_choice_share": v["same_choice"] / max(v["choice_steps"], 1),
+               "relative_regret": v["regret"] / max(v["ref_cost"], 1e-9)} for k, v in rows.items()}
     for k, v in sorted(out.items()):
-        print(f"{k:>20}: steps {v['steps']:4d} feasible recall {v['recall']:.3f}, extra {v['extra']:5d}, agreement {v['agreement']:.3f}, same choice {v['same_choice_share']:.3f}, cost regret {100 * v['relative_regret']:.2f} %")
+        print(f"{k:>20}: steps {v['steps']:4d} feasible recall {v['recall']:.3f}, extra {v['extra']:5d}, agreement "
+              f"{v['agreement']:.3f}, same choice {v['same_choice_share']:.3f}, cost regret {100 * v['relative_regret']:.2f} %")
     with open(out_path, "w") as handle:
         json.dump(out, handle, indent=1)
     return out

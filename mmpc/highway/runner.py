@@ -52,7 +52,8 @@ class EpisodeResult(NamedTuple):
     metrics: dict
 
 
-def _clearances(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], ellipse: tuple[float, float]) -> torch.Tensor:
+def _clearances(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor],
+                ellipse: tuple[float, float]) -> torch.Tensor:
     """(A,) smallest normalised ellipse distance from each ego (A, 6) to its vehicles (A, V, 4) (inf without any)."""
     squared = ellipse_distance_squared(vehicles[..., :2], ego[:, None, EGO_X:EGO_Y + 1], ellipse)  # (A, V)
     if mask is not None:
