@@ -99,14 +99,18 @@ def test_the_safe_environments_on_cuda_step_like_those_on_the_cpu(monkeypatch):
         env.close()
 
 
-def test_the_safe_layer_drivers_drive_on_cuda(tmp_path, on_cuda):
+def _evaluate_on_cuda(out: Path, drivers: str, scenario: str) -> list[dict]:
+    """``mmpc evaluate`` of ``drivers`` on seeds 0-1 x 1 s of the batched simulator on CUDA; its episode rows."""
     from mmpc.cli.main import main
 
-    argv = ["evaluate", "--driver", "safe-random:smoke,safe-expert:smoke", "--scenarios", "rl_highway_fast",
-            "--sim", "batched", "--seeds", "0-1", "--duration", "1", "--lockstep", "2", "--compile", "off",
-            "--device", "cuda", "--out", str(tmp_path)]
+    argv = ["evaluate", "--driver", drivers, "--scenarios", scenario, "--sim", "batched", "--seeds", "0-1", "--duration", "1",
+            "--lockstep", "2", "--compile", "off", "--device", "cuda", "--out", str(out)]
     assert main(argv) == 0
-    rows = _episodes(tmp_path)
+    return _episodes(out)
+
+
+def test_the_safe_layer_drivers_drive_on_cuda(tmp_path, on_cuda):
+    rows = _evaluate_on_cuda(tmp_path, "safe-random:smoke,safe-expert:smoke", "rl_highway_fast")
     assert len(rows) == 4 and all(row["status"] == "ok" for row in rows), rows
 
 
@@ -126,16 +130,11 @@ def test_demonstrations_on_cuda(tmp_path, on_cuda):
 
 
 def test_a_shipped_proposer_drives_on_cuda(tmp_path, on_cuda):
-    from mmpc.cli.main import main
     from mmpc.imitation.proposer_driver import shipped_proposers
 
     if "high_speed" not in shipped_proposers():
         pytest.skip("no shipped high_speed proposer under imitation/models/")
-    argv = ["evaluate", "--driver", "proposer:high_speed", "--scenarios", "high_speed", "--sim", "batched",
-            "--seeds", "0-1", "--duration", "1", "--lockstep", "2", "--compile", "off", "--device", "cuda",
-            "--out", str(tmp_path)]
-    assert main(argv) == 0
-    rows = _episodes(tmp_path)
+    rows = _evaluate_on_cuda(tmp_path, "proposer:high_speed", "high_speed")
     assert len(rows) == 2 and all(row["status"] == "ok" for row in rows), rows
 
 

@@ -79,7 +79,9 @@ def test_a_warm_start_follows_the_padding_and_tiles_of_the_compiled_path(solved)
     assert result.warm.position.shape == eager.warm.position.shape  # padding goals and tiles joined back
 
 
-def test_the_mpc_driver_warm_starts_every_environment_it_has_seen(cruise_mpc):
+def _recording_mpc(cruise_mpc: mmpc.MPC, **changes) -> tuple[mmpc.MPC, list[bool]]:
+    """``cruise_mpc`` with ``changes`` to its config, and the list its optimizer appends to at
+    every call: whether the call was warm-started."""
     calls = []
 
     class Recording(mmpc.BatchOptimizer):
@@ -87,8 +89,13 @@ def test_the_mpc_driver_warm_starts_every_environment_it_has_seen(cruise_mpc):
             calls.append(kwargs.get("warm") is not None)
             return super().forward(problem, **kwargs)
 
-    config = dataclasses.replace(cruise_mpc.config, warm_iterations=20, warm_cold_every=100)
-    mpc = mmpc.MPC(Recording(cruise_mpc.optimizer.config), cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road, config)
+    config = dataclasses.replace(cruise_mpc.config, **changes)
+    return mmpc.MPC(Recording(cruise_mpc.optimizer.config), cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road,
+                    config), calls
+
+
+def test_the_mpc_driver_warm_starts_every_environment_it_has_seen(cruise_mpc):
+    mpc, calls = _recording_mpc(cruise_mpc, warm_iterations=20, warm_cold_every=100)
     with pytest.raises(ValueError, match="period"):
         MPCDriver(mpc)
     driver = MPCDriver(mpc, period=0.1)
@@ -123,15 +130,7 @@ def test_elements_whose_iterates_diverged_start_cold(solved):
 
 
 def test_the_mpc_driver_solves_cold_every_nth_step(cruise_mpc):
-    calls = []
-
-    class Recording(mmpc.BatchOptimizer):
-        def forward(self, problem, **kwargs):
-            calls.append(kwargs.get("warm") is not None)
-            return super().forward(problem, **kwargs)
-
-    config = dataclasses.replace(cruise_mpc.config, warm_iterations=20, warm_cold_every=3)
-    mpc = mmpc.MPC(Recording(cruise_mpc.optimizer.config), cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road, config)
+    mpc, calls = _recording_mpc(cruise_mpc, warm_iterations=20, warm_cold_every=3)
     driver = MPCDriver(mpc, period=0.1)
     for x in (0.0, 1.4, 2.8, 4.2, 5.6, 7.0, 8.4):
         driver.decide(Observation(torch.tensor([[x, 8.0, 0.0, 14.0, 0.0, 0.0]]), torch.tensor([[[x + 60.0, 8.0, 10.0, 0.0]]])))
