@@ -446,11 +446,12 @@ class BatchOptimizer(nn.Module):
         c, multipliers, multipliers_psi = prepared.warm
         usable = (torch.isfinite(c).all(dim=0) & torch.isfinite(multipliers).all(dim=0)).view(2, -1).all(dim=0)
         usable = usable & torch.isfinite(multipliers_psi).all(dim=0)  # (B,) elements, both axes
-        cold = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples, self.gather[0],
-                     limits)
-        c = torch.where(usable.repeat(2), c, cold.c)
-        multipliers = torch.where(usable.repeat(2), multipliers, 0.0)
-        multipliers_psi = torch.where(usable, multipliers_psi, 0.0)
+        if not bool(usable.all()):  # the cold start only where it is needed (a rare diverged solve)
+            cold = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples,
+                         self.gather[0], limits)
+            c = torch.where(usable.repeat(2), c, cold.c)
+            multipliers = torch.where(usable.repeat(2), multipliers, 0.0)
+            multipliers_psi = torch.where(usable, multipliers_psi, 0.0)
         gather = self.gather[max(prepared.first_iteration - 1, 0)]
         return _State(c, _scaled_residual(c, prepared.obstacles, prepared.axes, self.samples, gather, limits), multipliers,
                       multipliers_psi)
