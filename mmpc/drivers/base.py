@@ -98,9 +98,7 @@ class Decision(NamedTuple):
     def commands_to(self, device: torch.device | str) -> "Decision":
         """The decision with its per-environment fields (commands, goal, counts, fallback, cost,
         the candidates' goals and flags) on ``device``; the candidates' trajectories and the
-        plan stay where the driver computed them."""
-        if self.acceleration.device == torch.device(device):
-            return self
+        plan stay where the driver computed them (fields there already are not copied)."""
         fields = ("acceleration", "steering", "goal_index", "feasible_goals", "fallback", "plan_cost")
         moved = {name: getattr(self, name).to(device) for name in fields}
         if self.candidates is not None:
