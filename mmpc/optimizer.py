@@ -203,13 +203,13 @@ class BatchOptimizer(nn.Module):
         cfg = self.config
         heading = None if cfg.heading_target_deg is None else math.radians(cfg.heading_target_deg)
         on_cpu = torch.device(device or "cpu").type == "cpu"
-        deferred = compile == "auto" and not os.environ.get(COMPILE_ENV, "").strip()  # --compile on: at once
+        deferral = 0.0  # compile_after's default
         if compile == "auto":
-            compile = _auto_compile(dtype == torch.float32, on_cpu)
+            compile, deferral = _auto_compile(dtype == torch.float32, on_cpu)
         if not isinstance(compile, bool):
             raise ValueError(f"`compile` must be True, False or 'auto'; got {compile!r}")
         if compile_after is None:
-            compile_after = AUTO_COMPILE_AFTER_S if deferred else 0.0
+            compile_after = deferral
         if isinstance(compile_after, bool) or not isinstance(compile_after, (int, float)) or not compile_after >= 0:
             raise ValueError(f"`compile_after` must be None or a number of seconds >= 0; got {compile_after!r}")
         self.compile_after = float(compile_after)
@@ -606,15 +606,17 @@ def _layout(
     return origin, b_position, b_heading, scaled.contiguous(), axes, relative_goals[..., 0] > 0, mask.sum(dim=1)
 
 
-def _auto_compile(float32: bool, on_cpu: bool) -> bool:
-    """``compile="auto"``: the compiled path where it is the fast one (float32, a kernel compiler
-    found), unless the environment variable ``MMPC_COMPILE`` says 0 or 1."""
+def _auto_compile(float32: bool, on_cpu: bool) -> tuple[bool, float]:
+    """``compile="auto"`` -> (compiled, the default ``compile_after`` [s]): the compiled path where
+    it is the fast one (float32, a kernel compiler found), each layout after
+    :data:`AUTO_COMPILE_AFTER_S`, unless the environment variable ``MMPC_COMPILE`` says 0 (eager)
+    or 1 (compiled at the first call)."""
     setting = os.environ.get(COMPILE_ENV, "").strip()
     if setting not in ("", "0", "1"):
         raise ValueError(f"environment variable {COMPILE_ENV} must be 0, 1 or unset; got {setting!r}")
     if setting:
-        return setting == "1"
-    return float32 and _kernel_compiler_found(on_cpu)
+        return setting == "1", 0.0
+    return float32 and _kernel_compiler_found(on_cpu), AUTO_COMPILE_AFTER_S
 
 
 def _kernel_compiler_found(on_cpu: bool) -> bool:
