@@ -34,6 +34,7 @@ class StepRecord(NamedTuple):
             cruise ``(v - v_cruise)^2``): the same yardstick for every driver.
         plan_cost: meta cost of the chosen plan as the driver ranked it (NaN: no plan).
         solve_ms: wall time of the driver's decision [ms].
+        iterations: optimizer iterations of this environment's solve (-1: not reported).
         clearance: smallest normalised ellipse distance ``sqrt((dx/a)^2 + (dy/b)^2)`` from the
             ego to another vehicle (inf without vehicles); < 1 is inside the safety ellipse.
         crashed: the ego had collided after this step's frame.
@@ -59,6 +60,7 @@ class StepRecord(NamedTuple):
     meta_cost: float
     plan_cost: float
     solve_ms: float
+    iterations: int
     clearance: float
     crashed: bool
     on_road: bool
@@ -112,7 +114,8 @@ def episode_metrics(
         (over the driven states' meta cost terms),
         ``plan_cost_mean`` (over the steps with a plan), ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
         ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
-        [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``,
+        [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``, ``iterations_mean`` (optimizer
+        iterations per step; ``None`` where the driver reports none),
         ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``,
         ``off_centre_share`` (share of steps farther than :data:`OFF_CENTRE` from the nearest
         lane centre), ``lane_change_s_mean`` (mean of :func:`lane_change_durations`; ``None`` without one).
@@ -141,6 +144,7 @@ def episode_metrics(
         ang_acc_mean=_mean([abs(b - a) / dt for a, b in zip(rates, rates[1:])]) if len(rates) > 1 else 0.0,
         solve_ms_mean=_mean([r.solve_ms for r in records]),
         solve_ms_max=max(r.solve_ms for r in records),
+        iterations_mean=_mean(iterations) if (iterations := [r.iterations for r in records if r.iterations >= 0]) else None,
         lane_changes=sum(a.lane != b.lane for a, b in zip(records, records[1:])),
         fallback_steps=sum(r.fallback for r in records),
         min_clearance=min(r.clearance for r in records),

@@ -231,7 +231,7 @@ class BatchOptimizer(nn.Module):
         self.tile_size = tile_size
         self._graphs: OrderedDict[tuple, Optional[_GraphSolve]] = OrderedDict()  # CUDA: layout -> captured solve
         self._shifts: dict[float, torch.Tensor] = {}  # dt -> (K, K) transposed time shift of the coefficients
-        self._layout, self._start, self._summarise, self._iterate = _layout, _start, _summarise, _iterate
+        self._layout, self._start, self._resume, self._summarise, self._iterate = _layout, _start, _resume, _summarise, _iterate
         self.chunk = self.config.iterations
         if compile:
             # Chunks of unrolled iterations: one compiled graph serves every chunk (the
@@ -245,6 +245,7 @@ class BatchOptimizer(nn.Module):
                 compile_cuda = functools.partial(torch.compile, fullgraph=True, dynamic=False)
                 self._layout = compile_cuda(_layout)
                 self._start = compile_cuda(_start)
+                self._resume = compile_cuda(_resume)
                 self._summarise = compile_cuda(_summarise)
                 self._iterate = compile_cuda(_iterate)
             else:
@@ -256,6 +257,7 @@ class BatchOptimizer(nn.Module):
                 compile_cpu = functools.partial(torch.compile, fullgraph=True, dynamic=False, options=options)
                 self._layout = compile_cpu(_layout)
                 self._start = compile_cpu(_start)
+                self._resume = compile_cpu(_resume)
                 self._summarise = compile_cpu(_summarise)
                 self._iterate = compile_cpu(_iterate)
             logger.info("BatchOptimizer: iterations compiled in chunks of %d", self.chunk)
@@ -289,12 +291,15 @@ class BatchOptimizer(nn.Module):
             history: also return the residual norms after every iteration run.
             warm: start from these iterates (an earlier result's ``warm``, moved to this problem's
                 start with :meth:`shifted`) instead of the cold start, and run only the last
-                ``warm_iterations`` iterations of the penalty schedule; elements whose iterates
-                are not finite (a diverged solve) start from the cold start.
+                ``warm_iterations`` iterations of the penalty schedule. A problem with any
+                iterate not finite (NaN marks a problem to restart, e.g. one new to the batch; inf
+                a diverged solve), and one whose warm solve finds no feasible goal, solves from
+                the cold start with the whole schedule, in a call of its own.
             warm_iterations: with ``warm``: iterations to run, 1 ... ``config.iterations``.
 
         Returns:
-            A :class:`mmpc.SolveResult` with leading dims (E, G).
+            A :class:`mmpc.SolveResult` with leading dims (E, G); with ``history`` and a warm
+            start, a record per iteration of the schedule, NaN before a problem's first.
 
         Raises:
             TypeError: a non-tensor or non-floating input, or a non-bool mask.
@@ -311,6 +316,44 @@ class BatchOptimizer(nn.Module):
             if not self._fallback_logged:
                 logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
                 self._fallback_logged = True
+        if warm is not None:
+            return self._solve_warm(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
+        return self._solve_compiled(ego, goals, obstacles, mask, axes, None, 0, history, compiled)
+
+    def _solve_warm(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                    axes: Optional[torch.Tensor], warm: WarmStart, first_iteration: int, history: bool,
+                    compiled: bool) -> SolveResult:
+        """A warm-started batch: the problems with finite iterates from them; those without, and
+        those whose warm solve found no feasible goal (what a cold start may still find), from the
+        cold start with the whole schedule; joined in the input order (host synchronisations)."""
+        inputs = (ego, goals, obstacles, mask, axes)
+        cold = ~torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
+        parts, solved = [], []
+        warm_rows = (~cold).nonzero().squeeze(1)
+        if warm_rows.numel():
+            part = self._solve_compiled(*_take_rows(inputs, warm_rows), warm.take(warm_rows), first_iteration, history,
+                                        compiled)
+            if history:  # the iterations the warm problems skipped: NaN
+                skipped = part.history.new_full((first_iteration, *part.history.shape[1:]), float("nan"))
+                part = part._replace(history=torch.cat([skipped, part.history]))
+            missed = ~part.feasible.any(dim=1)
+            if bool(missed.any()):
+                cold[warm_rows[missed]] = True
+                part, warm_rows = part.take(~missed), warm_rows[~missed]
+            parts.append(part)
+            solved.append(warm_rows)
+        cold_rows = cold.nonzero().squeeze(1)
+        if cold_rows.numel():
+            parts.append(self._solve_compiled(*_take_rows(inputs, cold_rows), None, 0, history, compiled))
+            solved.append(cold_rows)
+        if len(parts) == 1:
+            return parts[0]
+        return SolveResult.concatenate(parts, dim=0).take(torch.cat(solved).argsort())
+
+    def _solve_compiled(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                        axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
+                        compiled: bool) -> SolveResult:
+        """:meth:`_solve_batch` within the compiled path's recompile limit (eager past it)."""
         if not compiled:
             return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
         # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
@@ -439,33 +482,19 @@ class BatchOptimizer(nn.Module):
         no host synchronisation, so that a CUDA graph can capture it."""
         return self._run(self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform), history)
 
-    def _warm_state(self, prepared: _Prepared, start, limits: _Limits) -> _State:
-        """The iterations' state from a warm start: its iterates, the cold start's for elements
-        whose iterates are not finite (a diverged solve), and the residual scaled as the first
-        iteration's position QP expects (the rho of the iteration before it)."""
-        c, multipliers, multipliers_psi = prepared.warm
-        usable = (torch.isfinite(c).all(dim=0) & torch.isfinite(multipliers).all(dim=0)).view(2, -1).all(dim=0)
-        usable = usable & torch.isfinite(multipliers_psi).all(dim=0)  # (B,) elements, both axes
-        if not bool(usable.all()):  # the cold start only where it is needed (a rare diverged solve)
-            cold = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples,
-                         self.gather[0], limits)
-            c = torch.where(usable.repeat(2), c, cold.c)
-            multipliers = torch.where(usable.repeat(2), multipliers, 0.0)
-            multipliers_psi = torch.where(usable, multipliers_psi, 0.0)
-        gather = self.gather[max(prepared.first_iteration - 1, 0)]
-        return _State(c, _scaled_residual(c, prepared.obstacles, prepared.axes, self.samples, gather, limits), multipliers,
-                      multipliers_psi)
 
     def _run(self, prepared: _Prepared, history: bool) -> SolveResult:
         """The cold start, the iterations and the outputs of one prepared call."""
-        start, iterate, summarise, limits = self._start, self._iterate, self._summarise, self._limits
+        start, resume, iterate, summarise = self._start, self._resume, self._iterate, self._summarise
+        limits = self._limits
         if not prepared.compiled:
-            start, iterate, summarise, limits = _start, _iterate, _summarise, self._eager_limits
+            start, resume, iterate, summarise, limits = _start, _resume, _iterate, _summarise, self._eager_limits
         if prepared.warm is None:
             state = start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init, self.samples,
                           self.gather[0], limits)
         else:
-            state = self._warm_state(prepared, start, limits)
+            gather = self.gather[max(prepared.first_iteration - 1, 0)]
+            state = resume(*prepared.warm, prepared.obstacles, prepared.axes, self.samples, gather, limits)
         records: list[torch.Tensor] = []
         for first in range(prepared.first_iteration, self.config.iterations, self.chunk):
             last = min(first + self.chunk, self.config.iterations)
@@ -641,14 +670,17 @@ def _kernel_compiler_found(on_cpu: bool) -> bool:
 def _tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Optional[tuple[int, int]]:
     """(problems, goals) per tile for an E x G batch, or None when it fits one tile.
 
-    Whole problems per tile when a problem's goals fit in one, else one problem per tile with
-    its goals split evenly; tiles are balanced so that padding the last one adds little.
+    Whole problems per tile when a problem's goals fit in one: as many as fit, or fewer where
+    the batch fills its tiles less, rounded up to a power of two (so that batches of varying E,
+    e.g. the cold and the warm rows of warm-started steps, share a few compiled layouts); else
+    one problem per tile with its goals split evenly.
     """
     if tile_size is None or num_problems * num_goals <= tile_size:
         return None
     if num_goals <= tile_size:
-        tiles = _ceil_div(num_problems, tile_size // num_goals)
-        return _ceil_div(num_problems, tiles), num_goals
+        fit = tile_size // num_goals
+        balanced = _ceil_div(num_problems, _ceil_div(num_problems, fit))
+        return min(1 << (balanced - 1).bit_length(), fit), num_goals
     return 1, _ceil_div(num_goals, _ceil_div(num_goals, tile_size))
 
 
@@ -730,6 +762,11 @@ def _repeat_last(tensor: Optional[torch.Tensor], dim: int, size: int) -> Optiona
     return tensor.index_select(dim, index)
 
 
+def _take_rows(tensors: tuple[Optional[torch.Tensor], ...], rows: torch.Tensor) -> tuple[Optional[torch.Tensor], ...]:
+    """The problems ``rows`` of each tensor (``None`` stays ``None``)."""
+    return tuple(None if t is None else t[rows] for t in tensors)
+
+
 def _repeat_warm(warm: Optional[WarmStart], dim: int, size: int) -> Optional[WarmStart]:
     """:func:`_repeat_last` of every field of a warm start (``None`` stays ``None``)."""
     return None if warm is None else WarmStart(*(_repeat_last(field, dim, size) for field in warm))
@@ -764,7 +801,7 @@ def _validate_warm(warm: Optional[WarmStart], iterations: Optional[int], config:
             raise ValueError(f"`warm.{name}` must have shape {shape} for this batch; got {got}")
         if value.device != device:
             raise ValueError(f"`warm.{name}` is on {value.device} but the optimizer is on {device}; move it with .to()")
-        fields.append(value.to(dtype))  # elements with NaN or inf (a diverged solve) start cold
+        fields.append(value.to(dtype))  # problems with NaN or inf start cold (forward)
     return WarmStart(*fields), config.iterations - iterations
 
 
@@ -1005,6 +1042,15 @@ def _start(
         multipliers=torch.zeros_like(c),
         multipliers_psi=c.new_zeros(c.shape[0], c.shape[1] // 2),
     )
+
+
+def _resume(
+    c: torch.Tensor, multipliers: torch.Tensor, multipliers_psi: torch.Tensor, obstacles: torch.Tensor,
+    axes: Optional[torch.Tensor], samples_operator: torch.Tensor, gather: torch.Tensor, limits: _Limits,
+) -> _State:
+    """The iterations' state from a warm start's iterates (K, 2B), (K, 2B), (K, B): the residual
+    scaled as the first iteration run expects (``gather``: the rho of the iteration before it)."""
+    return _State(c, _scaled_residual(c, obstacles, axes, samples_operator, gather, limits), multipliers, multipliers_psi)
 
 
 def _scaled_residual(

@@ -143,6 +143,16 @@ class SolveResult(NamedTuple):
         warm = None if first.warm is None else WarmStart(*(join(fields) for fields in zip(*(part.warm for part in parts))))
         return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
 
+    def take(self, rows: torch.Tensor) -> "SolveResult":
+        """The problems ``rows`` (long or bool over E), in that order."""
+        trajectories = Trajectories(self.trajectories.times, *(field[rows] for field in self.trajectories[1:]))
+        per_element = {
+            name: getattr(self, name)[rows] for name in SolveResult._fields if name not in ("trajectories", "history", "warm")
+        }
+        history = None if self.history is None else self.history[:, rows]
+        warm = None if self.warm is None else self.warm.take(rows)
+        return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
+
     def head(self, num_problems: int, num_goals: int) -> "SolveResult":
         """The first ``num_problems`` problems and, of each, the first ``num_goals`` goals."""
         trajectories = Trajectories(

@@ -41,7 +41,9 @@ class SolverBenchmark:
         variants: "eager" (reference) and/or "compiled" (``BatchOptimizer(compile=True)``); with
             the suffix "-turned" the problem gives every obstacle its own ellipse
             (:attr:`mmpc.ProblemBatch.obstacle_axes` of :func:`turned_axes`), as the expert's
-            ``obstacle_shape: heading`` does.
+            ``obstacle_shape: heading`` does; with the suffix "-warmK" (e.g. "compiled-warm10") each
+            solve starts from the final iterates of a cold solve of the same problem and runs the
+            schedule's last K iterations (the solve of a warm-started MPC step).
         threads: CPU threads for the CPU rows.
         repeats: timed solves per row.
         warmup: untimed solves per row.
@@ -212,8 +214,16 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
     problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
     turned = problem._replace(obstacle_axes=turned_axes(obstacles, first.config).to(device))
     with torch.inference_mode():
-        solves = {variant: (lambda optimizer=optimizer, p=turned if variant.endswith("-turned") else problem: optimizer(p))
-                  for variant, optimizer in optimizers.items()}
+        solves = {}
+        for variant, optimizer in optimizers.items():
+            p = turned if "-turned" in variant else problem
+            iterations = warm_iterations(variant)
+            if iterations is None:
+                solves[variant] = lambda optimizer=optimizer, p=p: optimizer(p)
+            else:
+                warm = optimizer(p).warm
+                solves[variant] = lambda optimizer=optimizer, p=p, warm=warm, k=iterations: optimizer(p, warm=warm,
+                                                                                                     warm_iterations=k)
         times = time_interleaved(solves, device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
     load = os.getloadavg()[0]
     rows = []
@@ -226,7 +236,7 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
             "threads": spec.threads if device.type == "cpu" else None,
             "batch": batch,
             "obstacles": obstacles,
-            "iterations": spec.config.iterations,
+            "iterations": warm_iterations(variant) or spec.config.iterations,
             "ms_median": median,
             "ms_p90": wall[min(len(wall) - 1, int(0.9 * len(wall)))],
             "cpu_ms_median": statistics.median(cpu) if device.type == "cpu" else None,
@@ -237,8 +247,18 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
     return rows
 
 
+def warm_iterations(variant: str) -> Optional[int]:
+    """K of a "-warmK" variant (:class:`SolverBenchmark`), else ``None``."""
+    _, warm, iterations = variant.partition("-warm")
+    if not warm:
+        return None
+    if not iterations.isdigit() or int(iterations) < 1:
+        raise ValueError(f"variant {variant!r}: '-warm' must be followed by the iterations, e.g. 'compiled-warm10'")
+    return int(iterations)
+
+
 def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
-    """Compiled over eager speed-up, side by side from the same interleaved rounds."""
+    """Compiled over eager speed-up and warm over cold time, side by side from the same interleaved rounds."""
     eager = {(r["device"], r["batch"], r["obstacles"]): r for r in rows if r["variant"] == "eager"}
     for row in rows:
         key = (row["device"], row["batch"], row["obstacles"])
@@ -249,11 +269,17 @@ def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
                 row["cpu_speedup_vs_eager"] = eager[key]["cpu_ms_median"] / row["cpu_ms_median"]
                 text += f" (cpu time {row['cpu_speedup_vs_eager']:.2f}x)"
             log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is {text} faster than eager")
-    # per-obstacle ellipses against the shared ones, same optimizer kind, same rounds
     plain = {(r["device"], r["batch"], r["obstacles"], r["variant"]): r for r in rows}
+    for row in rows:  # a warm start against the cold solve, same optimizer kind, same rounds
+        cold = plain.get((row["device"], row["batch"], row["obstacles"], row["variant"].partition("-warm")[0]))
+        if warm_iterations(row["variant"]) is not None and cold is not None:
+            row["time_vs_cold"] = row["ms_median"] / cold["ms_median"]
+            log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} {row['variant']} takes "
+                f"{row['time_vs_cold']:.2f}x the time of {cold['variant']}")
+    # per-obstacle ellipses against the shared ones, same optimizer kind, same rounds
     for row in rows:
-        shared = plain.get((row["device"], row["batch"], row["obstacles"], row["variant"].removesuffix("-turned")))
-        if row["variant"].endswith("-turned") and shared is not None:
+        shared = plain.get((row["device"], row["batch"], row["obstacles"], row["variant"].replace("-turned", "", 1)))
+        if "-turned" in row["variant"] and shared is not None:
             row["time_vs_shared_axes"] = row["ms_median"] / shared["ms_median"]
             log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} {row['variant']} takes "
                 f"{row['time_vs_shared_axes']:.2f}x the time of {shared['variant']}")
@@ -294,7 +320,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     bench.add_argument("--batches", type=int_list, default=(1, 11, 64, 256, 1024, 4096), help="comma-separated batch sizes")
     bench.add_argument("--obstacles", type=int_list, default=(6, 10), help="comma-separated obstacle counts")
     bench.add_argument("--devices", default="cpu,cuda", help="cpu and/or cuda (cuda skipped without a GPU)")
-    bench.add_argument("--variants", default="eager,compiled", help="eager and/or compiled (torch.compile)")
+    bench.add_argument("--variants", default="eager,compiled",
+                       help="eager and/or compiled (torch.compile), each optionally with -turned (per-obstacle ellipses) "
+                            "and/or -warmK (K iterations from a cold solve's iterates), e.g. compiled,compiled-warm10")
     bench.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
     bench.add_argument("--repeats", type=int, default=20, help="timed solves per row")
     bench.add_argument("--max-seconds-per-row", type=float, default=20.0, help="time budget per row")
@@ -302,6 +330,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                        help="E for the one-call-vs-one-call-per-environment comparison (0 skips)")
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     args = bench.parse_args(argv)
+    try:
+        [warm_iterations(variant) for variant in args.variants.split(",")]
+    except ValueError as error:
+        bench.error(str(error))
     spec = SolverBenchmark(
         batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
         variants=tuple(args.variants.split(",")), threads=args.threads, repeats=args.repeats,

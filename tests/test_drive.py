@@ -21,9 +21,9 @@ REQUIRED_METRICS = {
 }
 
 
-def record(step, *, y=8.0, v=15.0, a=0.0, rate=0.0, lane=2, crashed=False, on_road=True, fallback=False):
+def record(step, *, y=8.0, v=15.0, a=0.0, rate=0.0, lane=2, crashed=False, on_road=True, fallback=False, iterations=100):
     return StepRecord(step, step * 0.1, 10.0 * step, y, 0.0, v, a, rate, lane, a, 0.0, 0, 0.0, 0.0, 5, fallback,
-                      float(step), float("nan"), 20.0 + step, 2.0, crashed, on_road)
+                      float(step), float("nan"), 20.0 + step, iterations, 2.0, crashed, on_road)
 
 
 def test_episode_metrics_follow_their_definitions():
@@ -37,7 +37,11 @@ def test_episode_metrics_follow_their_definitions():
     assert metrics["ang_acc_mean"] == pytest.approx(1.0)  # |0.1 - 0| / 0.1 twice
     assert metrics["lane_changes"] == 1 and metrics["offroad"] == 1 and metrics["fallback_steps"] == 1
     assert metrics["meta_cost_max"] == 2.0 and metrics["solve_ms_max"] == 22.0 and metrics["collisions"] == 0
+    assert metrics["iterations_mean"] == 100
     assert "speed_residual_mean" not in episode_metrics(records, dt=0.1, right_lane_y=20.0)
+    warm = [record(0), record(1, iterations=20), record(2, iterations=20)]
+    assert episode_metrics(warm, dt=0.1, right_lane_y=20.0)["iterations_mean"] == pytest.approx(140 / 3)
+    assert episode_metrics([record(0, iterations=-1)], dt=0.1, right_lane_y=20.0)["iterations_mean"] is None  # not reported
     assert episode_metrics([record(0, crashed=True)], dt=0.1, right_lane_y=20.0)["collisions"] == 1
     with pytest.raises(ValueError, match="records"):
         episode_metrics([], dt=0.1, right_lane_y=20.0)

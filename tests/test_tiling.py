@@ -51,13 +51,16 @@ def test_tiled_solve_equals_one_call(tile_size, expected_tiling):
     assert not expected.feasible.all() and expected.feasible.any()  # both outcomes compared
 
 
-def test_tiling_splits_evenly():
+def test_tiling_uses_few_tile_shapes():
     assert _tiling(1, 11, 256) is None  # one tile
     assert _tiling(3, 11, None) is None
     assert _tiling(1, 1024, 256) == (1, 256)
     assert _tiling(1, 1000, 256) == (1, 250)  # four even tiles, no padding
     assert _tiling(1, 257, 256) == (1, 129)  # two tiles, one padding goal
-    assert _tiling(64, 11, 256) == (22, 11)  # 3 tiles of 22 problems (23 fit): 2 padded, not 5
+    assert _tiling(64, 11, 256) == (23, 11)  # 3 tiles of as many problems as fit
+    assert _tiling(40, 11, 256) == (23, 11)
+    assert _tiling(8, 35, 256) == (4, 35)  # 2 tiles of 4 (7 fit), a power of two
+    assert _tiling(9, 35, 256) == (7, 35)
     assert _tiling(2, 300, 256) == (1, 150)
 
 

@@ -10,6 +10,7 @@ import mmpc
 from mmpc.basis import bernstein_basis
 from mmpc.drivers import Observation
 from mmpc.drivers.mpc_driver import MPCDriver
+from mmpc.result import WarmStart
 from mmpc.scenes import synthetic_scenes
 
 
@@ -34,7 +35,8 @@ def test_a_solve_started_from_its_own_iterates_keeps_its_answer(solved):
     torch.testing.assert_close(again.trajectories.y, cold.trajectories.y, atol=2e-2, rtol=0)
     assert again.warm.position.shape == cold.warm.position.shape == (*cold.feasible.shape, 2, optimizer.config.order + 1)
     history = optimizer(problem, warm=cold.warm, warm_iterations=10, history=True).history
-    assert history.shape[0] == 10  # the iterations run, not the schedule's
+    assert history.shape == (optimizer.config.iterations, *cold.feasible.shape, 3)
+    assert bool(history[:90].isnan().all()) and bool(history[90:].isfinite().all())  # the schedule's last 10 run
 
 
 def test_a_shift_follows_the_trajectory_and_moves_it_to_the_new_start(solved):
@@ -79,14 +81,16 @@ def test_a_warm_start_follows_the_padding_and_tiles_of_the_compiled_path(solved)
     assert result.warm.position.shape == eager.warm.position.shape  # padding goals and tiles joined back
 
 
-def _recording_mpc(cruise_mpc: mmpc.MPC, **changes) -> tuple[mmpc.MPC, list[bool]]:
+def _recording_mpc(cruise_mpc: mmpc.MPC, **changes) -> tuple[mmpc.MPC, list[tuple[bool, ...]]]:
     """``cruise_mpc`` with ``changes`` to its config, and the list its optimizer appends to at
-    every call: whether the call was warm-started."""
+    every call: per problem, whether it was warm-started."""
     calls = []
 
     class Recording(mmpc.BatchOptimizer):
         def forward(self, problem, **kwargs):
-            calls.append(kwargs.get("warm") is not None)
+            warm = kwargs.get("warm")
+            rows = problem.goals.shape[0]
+            calls.append((False,) * rows if warm is None else tuple(warm.position.flatten(1).isfinite().all(dim=1).tolist()))
             return super().forward(problem, **kwargs)
 
     config = dataclasses.replace(cruise_mpc.config, **changes)
@@ -106,10 +110,10 @@ def test_the_mpc_driver_warm_starts_every_environment_it_has_seen(cruise_mpc):
     for x in (0.0, 1.4, 2.8):
         driver.decide(observe([0, 1], x))
     driver.decide(observe([1], 4.2))  # a row ended: the other still warm
-    driver.decide(observe([0, 1], 5.6))  # environment 0 was not in the last step: all cold
+    driver.decide(observe([0, 1], 5.6))  # environment 0 was not in the last step: it alone cold
     driver.reset(2)
     driver.decide(observe([0, 1], 0.0))
-    assert calls == [False, True, True, True, False, False]
+    assert calls == [(False, False), (True, True), (True, True), (True,), (False, True), (False, False)]
 
 
 def test_warm_iterations_cannot_exceed_the_schedule(cruise_mpc):
@@ -120,13 +124,21 @@ def test_warm_iterations_cannot_exceed_the_schedule(cruise_mpc):
         mmpc.MPCConfig(warm_iterations=-1)
 
 
-def test_elements_whose_iterates_diverged_start_cold(solved):
+def test_problems_with_iterates_not_finite_solve_cold_with_the_whole_schedule(solved):
     optimizer, problem, cold = solved
     position = cold.warm.position.clone()
-    position[0, 1] = float("nan")  # goal 1 of problem 0 diverged; the others keep their iterates
-    result = optimizer(problem, warm=cold.warm._replace(position=position), warm_iterations=30)
-    assert bool(torch.isfinite(result.trajectories.x).all()) and bool(torch.isfinite(result.warm.position).all())
-    assert torch.equal(result.feasible[:, 2:], optimizer(problem, warm=cold.warm, warm_iterations=30).feasible[:, 2:])
+    position[0, 1] = float("nan")  # goal 1 of problem 0 diverged: problem 0 restarts, problem 1 stays warm
+    warm = cold.warm._replace(position=position)
+    result = optimizer(problem, warm=warm, warm_iterations=30, history=True)
+    warm_only = optimizer(problem, warm=cold.warm, warm_iterations=30)
+    torch.testing.assert_close(result.trajectories.x[0], cold.trajectories.x[0])
+    torch.testing.assert_close(result.trajectories.x[1:], warm_only.trajectories.x[1:])
+    assert torch.equal(result.feasible, torch.cat([cold.feasible[:1], warm_only.feasible[1:]]))
+    assert result.history.shape == (optimizer.config.iterations, *cold.feasible.shape, 3)
+    assert bool(torch.isfinite(result.history[:, 0]).all()) and bool(result.history[:70, 1:].isnan().all())
+    assert bool(torch.isfinite(result.history[70:, 1:]).all())
+    every = optimizer(problem, warm=WarmStart(*(torch.full_like(f, float("nan")) for f in warm)), warm_iterations=30)
+    torch.testing.assert_close(every.trajectories.x, cold.trajectories.x)
 
 
 def test_the_mpc_driver_solves_cold_every_nth_step(cruise_mpc):
@@ -134,4 +146,25 @@ def test_the_mpc_driver_solves_cold_every_nth_step(cruise_mpc):
     driver = MPCDriver(mpc, period=0.1)
     for x in (0.0, 1.4, 2.8, 4.2, 5.6, 7.0, 8.4):
         driver.decide(Observation(torch.tensor([[x, 8.0, 0.0, 14.0, 0.0, 0.0]]), torch.tensor([[[x + 60.0, 8.0, 10.0, 0.0]]])))
-    assert calls == [False, True, True, False, True, True, False]
+    assert calls == [(False,), (True,), (True,), (False,), (True,), (True,), (False,)]
+
+
+def test_the_mpc_driver_solves_cold_after_a_fallback_in_that_environment_only(cruise_mpc):
+    mpc, calls = _recording_mpc(cruise_mpc, warm_iterations=20, warm_cold_every=100)
+    driver = MPCDriver(mpc, period=0.1)
+    ego = torch.tensor([[0.0, 8.0, 0.0, 14.0, 0.0, 0.0], [0.0, 12.0, 0.0, 14.0, 0.0, 0.0]])
+    cars = torch.tensor([[[3.0, 8.0, 0.0, 0.0]], [[40.0, 12.0, 10.0, 0.0]]])  # environment 0 stuck behind a stopped car
+    decisions = [driver.decide(Observation(ego, cars, None, None, torch.tensor([0, 1]))) for _ in range(3)]
+    assert [d.fallback.tolist() for d in decisions] == [[True, False]] * 3
+    assert calls == [(False, False), (False, True), (False, True)]
+    assert [d.iterations.tolist() for d in decisions] == [[100, 100], [100, 20], [100, 20]]
+
+
+def test_a_problem_whose_warm_solve_finds_no_feasible_goal_solves_again_cold(solved):
+    optimizer, problem, cold = solved
+    assert bool(cold.feasible.any(dim=1).all())
+    standing = WarmStart(*(torch.zeros_like(field) for field in cold.warm))  # every plan a standstill at the start
+    result = optimizer(problem, warm=standing, warm_iterations=1, history=True)
+    assert torch.equal(result.feasible, cold.feasible)
+    torch.testing.assert_close(result.trajectories.x, cold.trajectories.x)
+    assert bool(result.history.isfinite().all())  # the whole schedule ran

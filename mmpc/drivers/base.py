@@ -83,6 +83,8 @@ class Decision(NamedTuple):
         plan_cost: (E,) the chosen plan's meta cost as the driver ranked it (NaN: not applicable).
         candidates: what was considered, for videos; ``None`` when the driver plans nothing.
         plan: the MPC's full :class:`mmpc.Plan` (MPC drivers only).
+        iterations: (E,) long, optimizer iterations run for each environment's solve (warm
+            starts run fewer); ``None``: not reported.
     """
 
     acceleration: torch.Tensor
@@ -94,13 +96,16 @@ class Decision(NamedTuple):
     plan_cost: torch.Tensor
     candidates: Optional[Candidates] = None
     plan: Optional[Plan] = None
+    iterations: Optional[torch.Tensor] = None
 
     def commands_to(self, device: torch.device | str) -> "Decision":
         """The decision with its per-environment fields (commands, goal, counts, fallback, cost,
-        the candidates' goals and flags) on ``device``; the candidates' trajectories and the
+        iterations, the candidates' goals and flags) on ``device``; the candidates' trajectories and the
         plan stay where the driver computed them (fields there already are not copied)."""
         fields = ("acceleration", "steering", "goal_index", "feasible_goals", "fallback", "plan_cost")
         moved = {name: getattr(self, name).to(device) for name in fields}
+        if self.iterations is not None:
+            moved["iterations"] = self.iterations.to(device)
         if self.candidates is not None:
             goals = None if self.candidates.goals is None else self.candidates.goals.to(device)
             moved["candidates"] = self.candidates._replace(feasible=self.candidates.feasible.to(device),

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import time
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 
 from mmpc.drivers.base import Candidates, Decision, Driver, Observation
-from mmpc.mpc import MPC
+from mmpc.mpc import MPC, Plan
 from mmpc.result import WarmStart
 from mmpc.scenario import ScenarioConfig, build_mpc
 
@@ -17,10 +17,10 @@ class MPCDriver(Driver):
     """The multi-modal MPC (:class:`mmpc.MPC`): one batched optimizer call for all E environments.
 
     With :attr:`mmpc.MPCConfig.warm_iterations` > 0 it keeps each environment's final iterates
-    and starts its next solve from them, moved one control step on; every
-    :attr:`mmpc.MPCConfig.warm_cold_every`-th step, a step after any row's fallback, and a step
-    with an environment it has no iterates for (the first, or one that newly joined the batch)
-    solve every row cold.
+    and starts its next solve from them, moved one control step on. An environment solves cold
+    at its first step (or when it newly joins the batch), at the step after its own fallback and
+    every :attr:`mmpc.MPCConfig.warm_cold_every`-th step since its last cold solve: chains of warm
+    solves drift to costlier plans.
 
     Args:
         mpc: the MPC (its goal sampler, meta cost and optimizer).
@@ -35,27 +35,37 @@ class MPCDriver(Driver):
         self.mpc = mpc
         self.name = name
         self.period = period
-        self._last: Optional[tuple[torch.Tensor, torch.Tensor, WarmStart]] = None  # env ids, (E, 2) starts, iterates
-        self._steps = 0  # decisions since the reset
-        self._fell_back = False  # some row of the last decision fell back
+        self._last: Optional[_LastSolve] = None
 
     def reset(self, num_envs: int) -> None:
         self._last = None
-        self._steps = 0
-        self._fell_back = False
 
-    def _warm(self, observation: Observation) -> Optional[WarmStart]:
-        """The last step's iterates of every environment of ``observation``, moved to this step;
-        ``None`` when one has none."""
-        if self._last is None or self._fell_back or self._steps % self.mpc.config.warm_cold_every == 0:
-            return None
-        ids, starts, warm = self._last
-        match = observation.ids()[:, None] == ids[None, :]  # (E, E_last)
-        if not bool(match.any(dim=1).all()):
-            return None
+    def _warm(self, observation: Observation) -> tuple[Optional[WarmStart], torch.Tensor]:
+        """The last step's iterates of every environment of ``observation`` moved to this step,
+        NaN for those that solve cold (``None``: all of them), and the (E,) bool of those."""
+        num_envs = observation.ego.shape[0]
+        cold = torch.ones(num_envs, dtype=torch.bool, device=observation.ego.device)
+        if self._last is None:
+            return None, cold
+        last = self._last
+        match = observation.ids()[:, None] == last.ids[None, :]  # (E, E_last)
         rows = match.int().argmax(dim=1)
-        offset = observation.ego[:, :2] - starts[rows]
-        return self.mpc.optimizer.shifted(warm.take(rows), self.period, offset)
+        cold = ~match.any(dim=1) | last.fell_back[rows] | (last.warm_steps[rows] + 1 >= self.mpc.config.warm_cold_every)
+        if bool(cold.all()):
+            return None, cold
+        warm = self.mpc.optimizer.shifted(last.warm.take(rows), self.period, observation.ego[:, :2] - last.starts[rows])
+        restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
+        warm = WarmStart(*(torch.where(cold.view(-1, *[1] * (field.dim() - 1)), restart, field) for field in warm))
+        return warm, cold
+
+    def _remember(self, observation: Observation, plan: Plan, cold: torch.Tensor) -> None:
+        """Keep this step's iterates and, per environment, its warm steps since its last cold solve."""
+        warm_steps = torch.zeros_like(cold, dtype=torch.long)
+        if self._last is not None:
+            rows = (observation.ids()[:, None] == self._last.ids[None, :]).int().argmax(dim=1)
+            warm_steps = torch.where(cold, 0, self._last.warm_steps[rows] + 1)
+        self._last = _LastSolve(observation.ids(), observation.ego[:, :2], plan.result.warm, warm_steps,
+                                ~plan.selection.feasible)
 
     @property
     def device(self) -> torch.device:
@@ -63,12 +73,12 @@ class MPCDriver(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
-        warm = self._warm(observation) if self.mpc.config.warm_iterations else None
+        warm, cold = None, torch.ones(observation.ego.shape[0], dtype=torch.bool, device=observation.ego.device)
+        if self.mpc.config.warm_iterations:
+            warm, cold = self._warm(observation)
         plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask, warm=warm)
         if self.mpc.config.warm_iterations:
-            self._last = (observation.ids(), observation.ego[:, :2], plan.result.warm)
-            self._fell_back = bool((~plan.selection.feasible).any())
-            self._steps += 1
+            self._remember(observation, plan, cold)
         elapsed_ms = (time.perf_counter() - start) * 1e3 - plan.compile_ms
         trajectories = plan.result.trajectories
         candidates = Candidates(
@@ -87,7 +97,18 @@ class MPCDriver(Driver):
             plan_cost=plan.selection.cost,
             candidates=candidates,
             plan=plan,
+            iterations=torch.where(cold, self.mpc.optimizer.config.iterations, self.mpc.config.warm_iterations),
         )
+
+
+class _LastSolve(NamedTuple):
+    """What :class:`MPCDriver` keeps of its last decision, per environment row (E)."""
+
+    ids: torch.Tensor  # (E,) environment ids
+    starts: torch.Tensor  # (E, 2) ego positions the iterates are relative to [m]
+    warm: WarmStart  # the final iterates, (E, G, ...)
+    warm_steps: torch.Tensor  # (E,) long, warm solves since the environment's last cold one
+    fell_back: torch.Tensor  # (E,) bool, the decision fell back
 
 
 def make_mpc_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:

@@ -27,7 +27,7 @@ from mmpc.metrics import OFF_CENTRE
 MEAN_METRICS = (
     "mean_speed", "meta_cost_mean", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean",
     "lane_changes", "fallback_steps", "plan_cost_mean", "solve_ms_mean", "solve_ms_per_episode_mean",
-    "off_centre_share", "lane_change_s_mean",
+    "iterations_mean", "off_centre_share", "lane_change_s_mean",
 )
 
 #: Rows of the plain-text table: (key, header, format).
@@ -51,6 +51,7 @@ TABLE = (
     ("solve_ms_mean", "solve ms mean", "{:.1f}"),
     ("solve_ms_per_episode_mean", "solve ms / episode", "{:.1f}"),
     ("solve_ms_max", "solve ms max", "{:.1f}"),
+    ("iterations_mean", "iterations / step", "{:.1f}"),
 )
 
 #: Rows of the markdown table and panels of the figure: (key, label).

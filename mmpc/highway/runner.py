@@ -83,6 +83,7 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
         ego[:, EGO_A].tolist(), ego[:, EGO_PSIDOT].tolist(), road.lane_index(ego[:, EGO_Y]).tolist(),
         decision.acceleration.tolist(), decision.steering.tolist(), goal.tolist(), goal_xy.tolist(),
         decision.feasible_goals.tolist(), decision.fallback.tolist(),
+        [-1] * rows if decision.iterations is None else decision.iterations.tolist(),
         scenario.objective.stage_cost(speed, lateral, road).tolist(), decision.plan_cost.tolist(),
         _clearances(ego, observation.vehicles, observation.vehicle_mask, ellipse).tolist(),
     )
@@ -92,11 +93,11 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
             step=step, time=step / frequency, x=x, y=y, psi=psi, v=v, acceleration=a, heading_rate=psidot, lane=lane,
             command_acceleration=command_a, command_steering=command_steering, goal_index=goal_index, goal_x=xy[0],
             goal_y=xy[1], feasible_goals=feasible, fallback=fallback, meta_cost=meta, plan_cost=plan_cost,
-            solve_ms=decision.solve_ms, clearance=clearance, crashed=bool(episode.ego.crashed),
+            solve_ms=decision.solve_ms, iterations=iterations, clearance=clearance, crashed=bool(episode.ego.crashed),
             on_road=bool(episode.ego.on_road),
         )
         for step, episode, (x, y, psi, v, a, psidot, lane, command_a, command_steering, goal_index, xy, feasible, fallback,
-                            meta, plan_cost, clearance) in zip(steps, episodes, columns)
+                            iterations, meta, plan_cost, clearance) in zip(steps, episodes, columns)
     ]
 
 
