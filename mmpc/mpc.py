@@ -145,12 +145,12 @@ class MPCConfig:
         max_steering: steering saturation [rad].
         road_margin: a candidate whose centre comes closer than this to a road edge is
             infeasible (:attr:`mmpc.Status.OFF_ROAD`); the optimizer itself knows no road edges [m].
-        warm_iterations: 0: every solve from the cold start. k > 0 (experimental): a solve given
-            the previous step's final iterates (:meth:`plan`'s ``warm``;
-            :class:`mmpc.drivers.MPCDriver` keeps them per environment) runs only the last k
-            iterations of the schedule.
-        warm_cold_every: with warm starts, every n-th step (and every step after a fallback)
-            solves cold: chains of warm solves drift to costlier plans.
+        warm_iterations: 0: every solve from the cold start. k > 0: a solve given the previous
+            step's final iterates (:meth:`plan`'s ``warm``; :class:`mmpc.drivers.MPCDriver` keeps
+            them per environment) runs only the last k iterations of the schedule; a problem
+            whose warm solve finds no feasible goal is solved again cold.
+        warm_cold_every: with warm starts, an environment solves cold every n-th step (and the
+            step after its fallback): chains of warm solves drift to costlier plans.
     """
 
     num_obstacles: int = 6

@@ -328,6 +328,7 @@ class BatchOptimizer(nn.Module):
         cold start with the whole schedule; joined in the input order (host synchronisations)."""
         inputs = (ego, goals, obstacles, mask, axes)
         cold = ~torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
+        again = torch.zeros_like(cold)  # warm-started, no feasible goal: solved again cold
         parts, solved = [], []
         warm_rows = (~cold).nonzero().squeeze(1)
         if warm_rows.numel():
@@ -336,19 +337,18 @@ class BatchOptimizer(nn.Module):
             if history:  # the iterations the warm problems skipped: NaN
                 skipped = part.history.new_full((first_iteration, *part.history.shape[1:]), float("nan"))
                 part = part._replace(history=torch.cat([skipped, part.history]))
-            missed = ~part.feasible.any(dim=1)
-            if bool(missed.any()):
-                cold[warm_rows[missed]] = True
-                part, warm_rows = part.take(~missed), warm_rows[~missed]
             parts.append(part)
             solved.append(warm_rows)
-        cold_rows = cold.nonzero().squeeze(1)
+            again[warm_rows] = ~part.feasible.any(dim=1)
+        cold_rows = (cold | again).nonzero().squeeze(1)
         if cold_rows.numel():
-            parts.append(self._solve_compiled(*_take_rows(inputs, cold_rows), None, 0, history, compiled))
+            part = self._solve_compiled(*_take_rows(inputs, cold_rows), None, 0, history, compiled)
+            warm_run = again[cold_rows, None].int() * (self.config.iterations - first_iteration)
+            parts.append(part._replace(iterations=part.iterations + warm_run))  # replaces the warm answer of those
             solved.append(cold_rows)
-        if len(parts) == 1:
+        if len(parts) == 1 and solved[0].numel() == ego.shape[0]:
             return parts[0]
-        return SolveResult.concatenate(parts, dim=0).take(torch.cat(solved).argsort())
+        return SolveResult.interleave(parts, solved, ego.shape[0])
 
     def _solve_compiled(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                         axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
@@ -431,8 +431,8 @@ class BatchOptimizer(nn.Module):
             uniform = int(counts[0]) if counts.numel() == 1 else None
             layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, first_iteration)
             compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1])
-        if compiled and self.device.type == "cuda" and warm is None:
-            return self._replay(ego, goals, obstacles, mask, axes, history, uniform)
+        if compiled and self.device.type == "cuda":
+            return self._replay(ego, goals, obstacles, mask, axes, warm, first_iteration, history, uniform)
         start = time.perf_counter()
         prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm,
                                  first_iteration=first_iteration)  # compiles the input layout too
@@ -455,32 +455,38 @@ class BatchOptimizer(nn.Module):
         return True
 
     def _replay(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                axes: Optional[torch.Tensor], history: bool, uniform: Optional[int]) -> SolveResult:
-        """Compiled CUDA path: the call layout's whole solve (layout, cold start, iterations,
+                axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
+                uniform: Optional[int]) -> SolveResult:
+        """Compiled CUDA path: the call layout's whole solve (layout, cold or warm start, iterations,
         outputs) replayed as one CUDA graph, captured at its first call; the result is copied out
         of the graph's memory, so a later solve leaves it intact. A layout whose capture fails
         runs the compiled functions without a graph (warned once); ``uniform``: every problem's
         obstacle count, ``None`` where they differ."""
-        key = (tuple(goals.shape), mask.shape[1], uniform, axes is None, history)
-        inputs = (ego, goals, obstacles, mask, axes)
+        key = (tuple(goals.shape), mask.shape[1], uniform, axes is None, history, first_iteration)
+        inputs = (ego, goals, obstacles, mask, axes, *(warm if warm is not None else (None,) * len(WarmStart._fields)))
+        solve = functools.partial(self._solve_prepared, uniform=uniform, history=history, first_iteration=first_iteration)
         if key not in self._graphs:
             start = time.perf_counter()
-            self._graphs[key] = _GraphSolve.capture(functools.partial(self._solve_prepared, uniform=uniform, history=history),
-                                                    inputs)
+            self._graphs[key] = _GraphSolve.capture(solve, inputs)
             self.last_compile_ms += (time.perf_counter() - start) * 1e3
             if len(self._graphs) > _GRAPH_CACHE:
                 self._graphs.popitem(last=False)  # frees the oldest graph's memory pool
         self._graphs.move_to_end(key)
         graph = self._graphs[key]
         if graph is None:
-            return self._solve_prepared(*inputs, uniform=uniform, history=history)
+            return solve(*inputs)
         return graph.replay(inputs)
 
     def _solve_prepared(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                        axes: Optional[torch.Tensor], *, uniform: Optional[int], history: bool) -> SolveResult:
-        """The compiled functions on one call whose obstacle-count layout (``uniform``) is known:
-        no host synchronisation, so that a CUDA graph can capture it."""
-        return self._run(self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform), history)
+                        axes: Optional[torch.Tensor], *warm: Optional[torch.Tensor], uniform: Optional[int], history: bool,
+                        first_iteration: int) -> SolveResult:
+        """The compiled functions on one call whose obstacle-count layout (``uniform``) is known,
+        from the cold start or from ``warm``'s fields at ``first_iteration``: no host
+        synchronisation, so that a CUDA graph can capture it."""
+        start = None if warm[0] is None else WarmStart(*warm)
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform, warm=start,
+                                 first_iteration=first_iteration)
+        return self._run(prepared, history)
 
 
     def _run(self, prepared: _Prepared, history: bool) -> SolveResult:
@@ -534,6 +540,7 @@ class BatchOptimizer(nn.Module):
             max_nonholonomic_error=scalars[3],
             status=status,
             feasible=status == 0,
+            iterations=torch.full_like(status, self.config.iterations - prepared.first_iteration),
             history=history_norms,
             warm=warm,
         )

@@ -101,6 +101,8 @@ class SolveResult(NamedTuple):
         max_nonholonomic_error: (E, G) largest |(xdot, ydot) - v (cos psi, sin psi)| [m/s].
         status: (E, G) int32 bit mask of :class:`Status`.
         feasible: (E, G) bool, ``status == 0``.
+        iterations: (E, G) int32, iterations run for the element: the schedule's, fewer from a
+            warm start, both where a warm start found no feasible goal and its problem was solved again cold.
         history: (I, E, G, 3) obstacle, acceleration and non-holonomic residuals after every
             iteration, when requested; otherwise ``None``.
         warm: the final iterates (:class:`WarmStart`), to warm-start the next step's solve.
@@ -117,6 +119,7 @@ class SolveResult(NamedTuple):
     max_nonholonomic_error: torch.Tensor
     status: torch.Tensor
     feasible: torch.Tensor
+    iterations: torch.Tensor
     history: Optional[torch.Tensor] = None
     warm: Optional[WarmStart] = None
 
@@ -125,6 +128,8 @@ class SolveResult(NamedTuple):
         """Join results of sub-batches along the problem (``dim=0``) or goal (``dim=1``) axis."""
         if dim not in (0, 1) or not parts:
             raise ValueError(f"need at least one part and dim 0 or 1; got {len(parts)} parts, dim={dim}")
+        if len(parts) == 1:
+            return parts[0]
 
         def join(tensors: Iterable[torch.Tensor], offset: int = 0) -> torch.Tensor:
             return torch.cat(list(tensors), dim=dim + offset)
@@ -143,14 +148,30 @@ class SolveResult(NamedTuple):
         warm = None if first.warm is None else WarmStart(*(join(fields) for fields in zip(*(part.warm for part in parts))))
         return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
 
-    def take(self, rows: torch.Tensor) -> "SolveResult":
-        """The problems ``rows`` (long or bool over E), in that order."""
-        trajectories = Trajectories(self.trajectories.times, *(field[rows] for field in self.trajectories[1:]))
+    @staticmethod
+    def interleave(parts: Sequence["SolveResult"], rows: Sequence[torch.Tensor], num_problems: int) -> "SolveResult":
+        """Join results of subsets of ``num_problems`` problems: ``parts[i]`` solved the problems
+        ``rows[i]`` (long indices); where subsets overlap, the later part's problems are kept."""
+        if not parts or len(parts) != len(rows):
+            raise ValueError(f"need one row index per part; got {len(parts)} parts and {len(rows)} row indices")
+
+        def join(fields: Sequence[torch.Tensor], dim: int = 0) -> torch.Tensor:
+            out = fields[0].new_empty((*fields[0].shape[:dim], num_problems, *fields[0].shape[dim + 1 :]))
+            for field, index in zip(fields, rows):
+                out.index_copy_(dim, index, field)
+            return out
+
+        first = parts[0]
+        trajectories = Trajectories(
+            first.trajectories.times, *(join([part.trajectories[i] for part in parts]) for i in range(1, len(Trajectories._fields)))
+        )
         per_element = {
-            name: getattr(self, name)[rows] for name in SolveResult._fields if name not in ("trajectories", "history", "warm")
+            name: join([getattr(part, name) for part in parts])
+            for name in SolveResult._fields
+            if name not in ("trajectories", "history", "warm")
         }
-        history = None if self.history is None else self.history[:, rows]
-        warm = None if self.warm is None else self.warm.take(rows)
+        history = None if first.history is None else join([part.history for part in parts], dim=1)
+        warm = None if first.warm is None else WarmStart(*(join(list(fields)) for fields in zip(*(part.warm for part in parts))))
         return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
 
     def head(self, num_problems: int, num_goals: int) -> "SolveResult":

@@ -7,8 +7,9 @@ Four tables, one torch thread unless ``--threads``:
    batched simulator for each E, and on highway-env (one episode after another, as the runner
    steps it: ``HighwayEpisode.apply`` + ``observe``), with constant commands;
 2. **MPC in the loop**: the runner's world + the multi-modal MPC (one optimizer call for all E
-   environments per step) on both worlds at each E: environment-steps per second, their ratio
-   and the solve's share of the step;
+   environments per step) on both worlds at each E: environment-steps per second, their ratio,
+   the solve's share of the step and the optimizer iterations per environment-step, cold and
+   with the scenario's warm starts (``--mpc-warm``);
 3. **safe RL**: agent steps per second of the safe vector environment (:mod:`mmpc.rl`) on
    highway-env (``SafeHighwayVecEnv``) and on the batched simulator (``SafeSimVecEnv``), with the
    safety layer replanning at every frame and at the agent's decisions only;
@@ -22,10 +23,13 @@ Every row is written to ``OUT/bench_sim.json`` with the machine and settings.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import os
 import platform
 import subprocess
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -73,11 +77,13 @@ def world_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, highwa
     return rows
 
 
-def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float]:
-    """(seconds per step, solve seconds per step) of the runner's loop body, after one warm-up step."""
+def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float, float]:
+    """(seconds per step, solve seconds per step, optimizer iterations per environment-step) of
+    the runner's loop body, after one warm-up step (NaN iterations: the driver reports none)."""
     active = list(range(num_envs))
     driver.reset(num_envs)
     total = solve = 0.0
+    iterations: list[float] = []
     for step in range(steps + 1):
         ended = world.done()
         running = [i for i in active if not ended[i]]
@@ -92,30 +98,37 @@ def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float
         if step > 0:
             total += (time.perf_counter() - start) * num_envs / len(running)
             solve += (solved - decided) * num_envs / len(running)
-    return total / steps, solve / steps
+            if decision.iterations is not None:
+                iterations += decision.iterations.tolist()
+    return total / steps, solve / steps, statistics.fmean(iterations) if iterations else math.nan
 
 
-def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int) -> list[dict]:
-    """Table 2: both worlds with the MPC in the loop at each E (same driver, same seeds)."""
+def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, warm: Sequence[int] = (0,)) -> list[dict]:
+    """Table 2: both worlds with the MPC in the loop at each E (same driver, same seeds), for each
+    of ``warm``: the expert's ``mpc.warm_iterations`` (0: every solve cold)."""
     from mmpc.drivers import make_driver
     from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld
 
-    driver = make_driver("mpc", scenario)
+    drivers = {k: make_driver("mpc", scenario.replace(mpc=dataclasses.replace(scenario.mpc, warm_iterations=k)))
+               for k in warm}
     rows = []
     for num_envs in envs:
         seeds = list(range(num_envs))
-        measured = {}
-        for name, build in (("highway-env", HighwayEnvWorld), ("batched", BatchedWorld)):
-            world = build(scenario, seeds)
-            try:
-                measured[name] = _closed_loop(world, driver, num_envs, steps)
-            finally:
-                world.close()
-        reference = num_envs / measured["highway-env"][0]
-        for name, (step_s, solve_s) in measured.items():
-            rate = num_envs / step_s
-            rows.append({"table": "mpc", "world": name, "num_envs": num_envs, "step_s": step_s, "solve_s": solve_s,
-                         "solve_share": solve_s / step_s, "env_steps_per_s": rate, "speedup": rate / reference})
+        for k, driver in drivers.items():
+            measured = {}
+            for name, build in (("highway-env", HighwayEnvWorld), ("batched", BatchedWorld)):
+                world = build(scenario, seeds)
+                try:
+                    measured[name] = _closed_loop(world, driver, num_envs, steps)
+                finally:
+                    world.close()
+            reference = num_envs / measured["highway-env"][0]
+            for name, (step_s, solve_s, iterations) in measured.items():
+                rate = num_envs / step_s
+                rows.append({"table": "mpc", "world": name, "num_envs": num_envs, "warm_iterations": k,
+                             "warm_cold_every": scenario.mpc.warm_cold_every, "iterations_per_step": iterations,
+                             "step_s": step_s, "solve_s": solve_s, "solve_share": solve_s / step_s,
+                             "env_steps_per_s": rate, "speedup": rate / reference})
     return rows
 
 
@@ -230,8 +243,10 @@ TABLES = (
     ("world", "world alone (constant commands): env-steps/s", (
         ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.0f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
-    ("mpc", "MPC in the loop: env-steps/s, the solve's share of the step", (
-        ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),
+    ("mpc", "MPC in the loop: env-steps/s, the solve's share of the step; warm starts (k iterations) or cold", (
+        ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
+        ("solves", -8, lambda r: f"warm {r['warm_iterations']}" if r["warm_iterations"] else "cold"),
+        ("iter/step", 10, lambda r: f"{r['iterations_per_step']:.1f}"), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.1f}"), ("solve share", 12, lambda r: f"{r['solve_share']:.0%}"),
         ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
     ("rl", "safe RL vector environment: agent steps/s (env.decision_frames frames each; one solve for all E when any row solves)", (
@@ -273,7 +288,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--no-rl", action="store_true", help="skip the safe RL table")
     parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
-    parser.add_argument("--mpc-steps", type=int, default=3, help="timed steps per MPC row (default 3)")
+    parser.add_argument("--mpc-steps", type=int, default=10,
+                        help="timed steps per MPC row (default 10: a warm-start cycle of the shipped scenarios)")
+    parser.add_argument("--mpc-warm", type=int_list, default=None,
+                        help="the expert's warm_iterations per MPC row set (0: cold; default: 0 and the scenario's)")
     parser.add_argument("--highway-envs", type=int, default=8, help="highway-env episodes timed for its rate (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-mpc", action="store_true", help="skip the MPC table")
@@ -291,7 +309,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     scenario = load_scenario(args.scenario, {"sim": "batched"})  # refused here if the batched simulator cannot run it
     rows = world_rows(scenario, args.envs, args.steps, args.highway_envs)
     if not args.no_mpc:
-        rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps)
+        warm = args.mpc_warm if args.mpc_warm is not None else tuple(dict.fromkeys((0, scenario.mpc.warm_iterations)))
+        rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps, warm)
     if not args.no_rl:
         rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup, args.rl_config)
     if not args.no_memory:

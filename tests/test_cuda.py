@@ -45,6 +45,24 @@ def test_compiled_cuda_graph_matches_cpu_and_keeps_earlier_results():
         torch.testing.assert_close(result.trajectories.v.cpu(), reference.trajectories.v, atol=2e-2, rtol=1e-3)
 
 
+def test_compiled_cuda_graph_warm_starts_match_cpu():
+    """Warm-started solves replay graphs of their own (one per first iteration), the problems
+    without iterates solved cold beside them: the CPU's answers within float32 tolerance."""
+    cpu = mmpc.BatchOptimizer()
+    gpu = mmpc.BatchOptimizer(device="cuda", compile=True)
+    problem = synthetic_scenes(2, seed=3)[1].problem
+    cold = cpu(problem)
+    position = cold.warm.position.clone()
+    position[0] = float("nan")  # problem 0 restarts cold
+    warm = cold.warm._replace(position=position)
+    expected = cpu(problem, warm=warm, warm_iterations=30)
+    for _ in range(2):  # captured, then replayed
+        result = gpu(mmpc.ProblemBatch(*(t.cuda() for t in problem[:3])), warm=mmpc.WarmStart(*(f.cuda() for f in warm)),
+                     warm_iterations=30)
+    assert torch.equal(result.feasible.cpu(), expected.feasible)
+    torch.testing.assert_close(result.trajectories.x.cpu(), expected.trajectories.x, atol=2e-2, rtol=1e-4)
+
+
 def test_compiled_cuda_graph_history_records_every_iteration():
     """Records of earlier chunks survive the replays of later ones and end at the final residuals."""
     gpu = mmpc.BatchOptimizer(device="cuda", compile=True)

@@ -226,12 +226,16 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     import bench_sim
 
     argv = ["--envs", "1,4", "--mpc-envs", "2", "--rl-envs", "2", "--rl-steps", "1", "--rl-warmup", "1", "--memory-envs", "4", "--steps", "2",
-            "--mpc-steps", "1", "--highway-envs", "1", "--out", str(tmp_path)]
+            "--mpc-steps", "2", "--mpc-warm", "0,10", "--highway-envs", "1", "--out", str(tmp_path)]
     assert bench_sim.main(argv) == 0
     rows = json.loads((tmp_path / "bench_sim.json").read_text())["rows"]
     assert [(r["table"], r["world"], r["num_envs"]) for r in rows if r["table"] not in ("memory", "rl")] == [
         ("world", "highway-env", 1), ("world", "batched", 1), ("world", "batched", 4),
-        ("mpc", "highway-env", 2), ("mpc", "batched", 2)]
+        ("mpc", "highway-env", 2), ("mpc", "batched", 2), ("mpc", "highway-env", 2), ("mpc", "batched", 2)]
+    # after the untimed first step (cold): cold rows run the whole schedule, warm rows 10 iterations
+    # where no environment fell back (or found no feasible goal warm) at the two timed steps
+    iterations = [r["iterations_per_step"] for r in rows if r["table"] == "mpc"]
+    assert iterations[:2] == [100, 100] and all(10 <= i < 100 for i in iterations[2:])
     assert [(r["world"], r["replan"], r["num_envs"]) for r in rows if r["table"] == "rl"] == [
         ("highway-env", "frame", 2), ("highway-env", "decision", 2), ("batched", "frame", 2), ("batched", "decision", 2)]
     # at every frame a solve served every environment when replanning at every frame; at the decision at least with decisions

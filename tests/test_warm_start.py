@@ -23,8 +23,9 @@ def cruise_mpc() -> mmpc.MPC:
 @pytest.fixture(scope="module")
 def solved():
     optimizer = mmpc.BatchOptimizer()
-    scene = synthetic_scenes(2, seed=3)[1]
-    return optimizer, scene.problem, optimizer(scene.problem)
+    scene = synthetic_scenes(2, seed=3)[1].problem
+    problem = mmpc.ProblemBatch(*(torch.cat([t, t]) for t in scene[:3]))  # two problems: one may restart, one not
+    return optimizer, problem, optimizer(problem)
 
 
 def test_a_solve_started_from_its_own_iterates_keeps_its_answer(solved):
@@ -134,6 +135,7 @@ def test_problems_with_iterates_not_finite_solve_cold_with_the_whole_schedule(so
     torch.testing.assert_close(result.trajectories.x[0], cold.trajectories.x[0])
     torch.testing.assert_close(result.trajectories.x[1:], warm_only.trajectories.x[1:])
     assert torch.equal(result.feasible, torch.cat([cold.feasible[:1], warm_only.feasible[1:]]))
+    assert result.iterations[:, 0].tolist() == [optimizer.config.iterations, 30]
     assert result.history.shape == (optimizer.config.iterations, *cold.feasible.shape, 3)
     assert bool(torch.isfinite(result.history[:, 0]).all()) and bool(result.history[:70, 1:].isnan().all())
     assert bool(torch.isfinite(result.history[70:, 1:]).all())
@@ -157,7 +159,7 @@ def test_the_mpc_driver_solves_cold_after_a_fallback_in_that_environment_only(cr
     decisions = [driver.decide(Observation(ego, cars, None, None, torch.tensor([0, 1]))) for _ in range(3)]
     assert [d.fallback.tolist() for d in decisions] == [[True, False]] * 3
     assert calls == [(False, False), (False, True), (False, True)]
-    assert [d.iterations.tolist() for d in decisions] == [[100, 100], [100, 20], [100, 20]]
+    assert [d.iterations.tolist() for d in decisions] == [[100, 100], [100, 20], [100, 20]]  # the first 100 cold
 
 
 def test_a_problem_whose_warm_solve_finds_no_feasible_goal_solves_again_cold(solved):
@@ -168,3 +170,4 @@ def test_a_problem_whose_warm_solve_finds_no_feasible_goal_solves_again_cold(sol
     assert torch.equal(result.feasible, cold.feasible)
     torch.testing.assert_close(result.trajectories.x, cold.trajectories.x)
     assert bool(result.history.isfinite().all())  # the whole schedule ran
+    assert bool((result.iterations == optimizer.config.iterations + 1).all())  # after the warm one

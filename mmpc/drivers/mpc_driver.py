@@ -73,7 +73,7 @@ class MPCDriver(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
-        warm, cold = None, torch.ones(observation.ego.shape[0], dtype=torch.bool, device=observation.ego.device)
+        warm = None
         if self.mpc.config.warm_iterations:
             warm, cold = self._warm(observation)
         plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask, warm=warm)
@@ -97,7 +97,7 @@ class MPCDriver(Driver):
             plan_cost=plan.selection.cost,
             candidates=candidates,
             plan=plan,
-            iterations=torch.where(cold, self.mpc.optimizer.config.iterations, self.mpc.config.warm_iterations),
+            iterations=plan.result.iterations.amax(dim=1),
         )
 
 
