@@ -178,7 +178,7 @@ class MPCConfig:
     max_steering: float = math.pi / 4
     road_margin: float = 1.0
     warm_iterations: int = 0
-    warm_cold_every: int = 5
+    warm_cold_every: int = 10
 
     def __post_init__(self) -> None:
         require_field_types(self)

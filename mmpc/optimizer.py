@@ -68,7 +68,7 @@ _RECOMPILE_LIMIT = 256
 #: Compiling a layout takes 10-60 s, so a run that would not repay it (one ``mmpc drive`` episode:
 #: ~12 s of solving) stays eager, and a long one pays at most this much more than compiling at once.
 AUTO_COMPILE_AFTER_S = 20.0
-#: Eager seconds per call (fixed, per (problem, goal) element): CPU (one thread), CUDA; from
+#: Eager seconds per call (fixed, per (problem, goal) element of the whole schedule): CPU (one thread), CUDA; from
 #: ``scripts/bench_solver.py`` (CPU: 13.6 ms at B = 1, 2.76 s at B = 4096; H100: ~60 ms to B = 4096).
 _EAGER_SECONDS = {False: (0.013, 0.67e-3), True: (0.06, 5e-6)}
 
@@ -430,7 +430,8 @@ class BatchOptimizer(nn.Module):
             counts = mask.sum(dim=1).unique()  # a host synchronisation: the operators differ per obstacle count
             uniform = int(counts[0]) if counts.numel() == 1 else None
             layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, first_iteration)
-            compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1])
+            share = (self.config.iterations - first_iteration) / self.config.iterations
+            compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1] * share)
         if compiled and self.device.type == "cuda":
             return self._replay(ego, goals, obstacles, mask, axes, warm, first_iteration, history, uniform)
         start = time.perf_counter()
@@ -443,10 +444,11 @@ class BatchOptimizer(nn.Module):
                 self._compiled_layouts.add(layout)
         return self._run(prepared, history)
 
-    def _deferred(self, layout: tuple, elements: int) -> bool:
+    def _deferred(self, layout: tuple, elements: float) -> bool:
         """Whether this call of ``layout`` solves eagerly: less than :attr:`compile_after` seconds
         of eager solving of it estimated so far (from call counts and sizes, not clocks, so that a
-        run's episodes are the same however loaded the machine)."""
+        run's episodes are the same however loaded the machine); ``elements``: the call's (problem,
+        goal) elements times the share of the schedule it runs."""
         spent = self._eager_seconds.get(layout, 0.0)
         if spent >= self.compile_after:
             return False

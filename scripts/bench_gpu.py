@@ -110,8 +110,9 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
                 world = BatchedWorld(scenario, list(range(num_envs)), device=device)
                 _closed_loop(world, driver, num_envs, 1)  # compiles (and on CUDA captures) this E
                 world = BatchedWorld(scenario, list(range(num_envs)), device=device)
-                step_s, solve_s = _closed_loop(world, driver, num_envs, steps)
-                row.update(step_ms=step_s * 1e3, solve_share=solve_s / step_s, env_steps_per_s=num_envs / step_s)
+                step_s, solve_s, iterations = _closed_loop(world, driver, num_envs, steps)
+                row.update(step_ms=step_s * 1e3, solve_share=solve_s / step_s, env_steps_per_s=num_envs / step_s,
+                           iterations_per_step=iterations)
                 log(f"mpc {scenario.name} {'compiled' if compiled else 'eager':>8} E={num_envs:>6}: {step_s * 1e3:8.2f} ms per "
                     f"step, {num_envs / step_s:,.0f} env-steps/s (solve {solve_s / step_s:.0%})")
             except RuntimeError as error:

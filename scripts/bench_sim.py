@@ -9,7 +9,7 @@ Four tables, one torch thread unless ``--threads``:
 2. **MPC in the loop**: the runner's world + the multi-modal MPC (one optimizer call for all E
    environments per step) on both worlds at each E: environment-steps per second, their ratio,
    the solve's share of the step and the optimizer iterations per environment-step, cold and
-   with the scenario's warm starts (``--mpc-warm``);
+   warm-started (``--mpc-warm``);
 3. **safe RL**: agent steps per second of the safe vector environment (:mod:`mmpc.rl`) on
    highway-env (``SafeHighwayVecEnv``) and on the batched simulator (``SafeSimVecEnv``), with the
    safety layer replanning at every frame and at the agent's decisions only;
@@ -79,7 +79,9 @@ def world_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, highwa
 
 def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float, float]:
     """(seconds per step, solve seconds per step, optimizer iterations per environment-step) of
-    the runner's loop body, after one warm-up step (NaN iterations: the driver reports none)."""
+    the runner's loop body, after one warm-up step, less the time the driver spent compiling new
+    call layouts (a warm start's first steps compile the layouts of its warm and cold rows); NaN
+    iterations: the driver reports none."""
     active = list(range(num_envs))
     driver.reset(num_envs)
     total = solve = 0.0
@@ -96,8 +98,9 @@ def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float
         solved = time.perf_counter()
         world.apply(running, decision.acceleration, decision.steering)
         if step > 0:
-            total += (time.perf_counter() - start) * num_envs / len(running)
-            solve += (solved - decided) * num_envs / len(running)
+            compiling = 0.0 if decision.plan is None else decision.plan.compile_ms / 1e3
+            total += (time.perf_counter() - start - compiling) * num_envs / len(running)
+            solve += (solved - decided - compiling) * num_envs / len(running)
             if decision.iterations is not None:
                 iterations += decision.iterations.tolist()
     return total / steps, solve / steps, statistics.fmean(iterations) if iterations else math.nan
@@ -289,9 +292,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
     parser.add_argument("--mpc-steps", type=int, default=10,
-                        help="timed steps per MPC row (default 10: a warm-start cycle of the shipped scenarios)")
-    parser.add_argument("--mpc-warm", type=int_list, default=None,
-                        help="the expert's warm_iterations per MPC row set (0: cold; default: 0 and the scenario's)")
+                        help="timed steps per MPC row (default 10: a warm-start cycle at mpc.warm_cold_every 10)")
+    parser.add_argument("--mpc-warm", type=int_list, default=(0, 10),
+                        help="the expert's mpc.warm_iterations per MPC row set (0: cold; default 0,10)")
     parser.add_argument("--highway-envs", type=int, default=8, help="highway-env episodes timed for its rate (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-mpc", action="store_true", help="skip the MPC table")
@@ -309,8 +312,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     scenario = load_scenario(args.scenario, {"sim": "batched"})  # refused here if the batched simulator cannot run it
     rows = world_rows(scenario, args.envs, args.steps, args.highway_envs)
     if not args.no_mpc:
-        warm = args.mpc_warm if args.mpc_warm is not None else tuple(dict.fromkeys((0, scenario.mpc.warm_iterations)))
-        rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps, warm)
+        rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps, args.mpc_warm)
     if not args.no_rl:
         rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup, args.rl_config)
     if not args.no_memory:
