@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from typing import Iterable, NamedTuple, Optional, Sequence
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 
@@ -130,23 +130,7 @@ class SolveResult(NamedTuple):
             raise ValueError(f"need at least one part and dim 0 or 1; got {len(parts)} parts, dim={dim}")
         if len(parts) == 1:
             return parts[0]
-
-        def join(tensors: Iterable[torch.Tensor], offset: int = 0) -> torch.Tensor:
-            return torch.cat(list(tensors), dim=dim + offset)
-
-        first = parts[0]
-        trajectories = Trajectories(
-            first.trajectories.times,
-            *(join(part.trajectories[i] for part in parts) for i in range(1, len(Trajectories._fields))),
-        )
-        per_element = {
-            name: join(getattr(part, name) for part in parts)
-            for name in SolveResult._fields
-            if name not in ("trajectories", "history", "warm")
-        }
-        history = None if first.history is None else join((part.history for part in parts), offset=1)
-        warm = None if first.warm is None else WarmStart(*(join(fields) for fields in zip(*(part.warm for part in parts))))
-        return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
+        return SolveResult._combine(parts, lambda tensors, offset: torch.cat(tensors, dim=dim + offset))
 
     @staticmethod
     def interleave(parts: Sequence["SolveResult"], rows: Sequence[torch.Tensor], num_problems: int) -> "SolveResult":
@@ -155,35 +139,37 @@ class SolveResult(NamedTuple):
         if not parts or len(parts) != len(rows):
             raise ValueError(f"need one row index per part; got {len(parts)} parts and {len(rows)} row indices")
 
-        def join(fields: Sequence[torch.Tensor], dim: int = 0) -> torch.Tensor:
-            out = fields[0].new_empty((*fields[0].shape[:dim], num_problems, *fields[0].shape[dim + 1 :]))
-            for field, index in zip(fields, rows):
-                out.index_copy_(dim, index, field)
+        def join(tensors: list[torch.Tensor], offset: int) -> torch.Tensor:
+            shape = tensors[0].shape
+            out = tensors[0].new_empty((*shape[:offset], num_problems, *shape[offset + 1 :]))
+            for tensor, index in zip(tensors, rows):
+                out.index_copy_(offset, index, tensor)
             return out
 
-        first = parts[0]
-        trajectories = Trajectories(
-            first.trajectories.times, *(join([part.trajectories[i] for part in parts]) for i in range(1, len(Trajectories._fields)))
-        )
-        per_element = {
-            name: join([getattr(part, name) for part in parts])
-            for name in SolveResult._fields
-            if name not in ("trajectories", "history", "warm")
-        }
-        history = None if first.history is None else join([part.history for part in parts], dim=1)
-        warm = None if first.warm is None else WarmStart(*(join(list(fields)) for fields in zip(*(part.warm for part in parts))))
-        return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
+        return SolveResult._combine(parts, join)
 
     def head(self, num_problems: int, num_goals: int) -> "SolveResult":
         """The first ``num_problems`` problems and, of each, the first ``num_goals`` goals."""
+        return SolveResult._combine(
+            [self], lambda tensors, offset: tensors[0][(slice(None),) * offset + (slice(num_problems), slice(num_goals))]
+        )
+
+    @staticmethod
+    def _combine(parts: Sequence["SolveResult"],
+                 combine: Callable[[list[torch.Tensor], int], torch.Tensor]) -> "SolveResult":
+        """A result whose every batched tensor is ``combine(that tensor of each part, offset)``, the
+        problem axis at ``offset`` (1 for ``history``, else 0); the sample times are shared."""
+        first = parts[0]
         trajectories = Trajectories(
-            self.trajectories.times, *(field[:num_problems, :num_goals] for field in self.trajectories[1:])
+            first.trajectories.times,
+            *(combine([part.trajectories[i] for part in parts], 0) for i in range(1, len(Trajectories._fields))),
         )
         per_element = {
-            name: getattr(self, name)[:num_problems, :num_goals]
+            name: combine([getattr(part, name) for part in parts], 0)
             for name in SolveResult._fields
             if name not in ("trajectories", "history", "warm")
         }
-        history = None if self.history is None else self.history[:, :num_problems, :num_goals]
-        warm = None if self.warm is None else WarmStart(*(field[:num_problems, :num_goals] for field in self.warm))
+        history = None if first.history is None else combine([part.history for part in parts], 1)
+        warm = None if first.warm is None else WarmStart(*(combine(list(fields), 0)
+                                                             for fields in zip(*(part.warm for part in parts))))
         return SolveResult(trajectories=trajectories, **per_element, history=history, warm=warm)
