@@ -8,7 +8,7 @@ from typing import NamedTuple, Optional
 import torch
 
 from mmpc.drivers.base import Candidates, Decision, Driver, Observation
-from mmpc.mpc import MPC, Plan
+from mmpc.mpc import MPC
 from mmpc.result import WarmStart
 from mmpc.scenario import ScenarioConfig, build_mpc
 
@@ -42,30 +42,23 @@ class MPCDriver(Driver):
 
     def _warm(self, observation: Observation) -> tuple[Optional[WarmStart], torch.Tensor]:
         """The last step's iterates of every environment of ``observation`` moved to this step,
-        NaN for those that solve cold (``None``: all of them), and the (E,) bool of those."""
-        num_envs = observation.ego.shape[0]
-        cold = torch.ones(num_envs, dtype=torch.bool, device=observation.ego.device)
+        NaN for those that solve cold (``None``: all of them), and (E,) long each environment's
+        warm solves since its last cold one, this step's included (0: it solves cold)."""
+        steps = torch.zeros(observation.ego.shape[0], dtype=torch.long, device=observation.ego.device)
         if self._last is None:
-            return None, cold
+            return None, steps
         last = self._last
         match = observation.ids()[:, None] == last.ids[None, :]  # (E, E_last)
         rows = match.int().argmax(dim=1)
-        cold = ~match.any(dim=1) | last.fell_back[rows] | (last.warm_steps[rows] + 1 >= self.mpc.config.warm_cold_every)
+        steps = last.warm_steps[rows] + 1
+        cold = ~match.any(dim=1) | last.fell_back[rows] | (steps >= self.mpc.config.warm_cold_every)
+        steps = torch.where(cold, 0, steps)
         if bool(cold.all()):
-            return None, cold
+            return None, steps
         warm = self.mpc.optimizer.shifted(last.warm.take(rows), self.period, observation.ego[:, :2] - last.starts[rows])
         restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
         warm = WarmStart(*(torch.where(cold.view(-1, *[1] * (field.dim() - 1)), restart, field) for field in warm))
-        return warm, cold
-
-    def _remember(self, observation: Observation, plan: Plan, cold: torch.Tensor) -> None:
-        """Keep this step's iterates and, per environment, its warm steps since its last cold solve."""
-        warm_steps = torch.zeros_like(cold, dtype=torch.long)
-        if self._last is not None:
-            rows = (observation.ids()[:, None] == self._last.ids[None, :]).int().argmax(dim=1)
-            warm_steps = torch.where(cold, 0, self._last.warm_steps[rows] + 1)
-        self._last = _LastSolve(observation.ids(), observation.ego[:, :2], plan.result.warm, warm_steps,
-                                ~plan.selection.feasible)
+        return warm, steps
 
     @property
     def device(self) -> torch.device:
@@ -75,10 +68,11 @@ class MPCDriver(Driver):
         start = time.perf_counter()
         warm = None
         if self.mpc.config.warm_iterations:
-            warm, cold = self._warm(observation)
+            warm, warm_steps = self._warm(observation)
         plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask, warm=warm)
         if self.mpc.config.warm_iterations:
-            self._remember(observation, plan, cold)
+            self._last = _LastSolve(observation.ids(), observation.ego[:, :2], plan.result.warm, warm_steps,
+                                    ~plan.selection.feasible)
         elapsed_ms = (time.perf_counter() - start) * 1e3 - plan.compile_ms
         trajectories = plan.result.trajectories
         candidates = Candidates(
