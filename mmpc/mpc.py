@@ -151,6 +151,10 @@ class MPCConfig:
             whose warm solve finds no feasible goal is solved again cold.
         warm_cold_every: with warm starts, an environment solves cold every n-th step (and the
             step after its fallback): chains of warm solves drift to costlier plans.
+        warm_keep_share: with warm starts, an environment also solves cold at the step after a
+            warm solve that found fewer feasible goals than this share of its last cold solve's:
+            a goal infeasible at the end of one solve rarely turns feasible in the next one's few
+            high-penalty iterations, so the feasible set of a warm chain only shrinks. 0: never.
     """
 
     num_obstacles: int = 6
@@ -179,6 +183,7 @@ class MPCConfig:
     road_margin: float = 1.0
     warm_iterations: int = 0
     warm_cold_every: int = 10
+    warm_keep_share: float = 0.75
 
     def __post_init__(self) -> None:
         require_field_types(self)
@@ -191,6 +196,8 @@ class MPCConfig:
         require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies,
                     warm_iterations=self.warm_iterations)
         require_int("", low=1, warm_cold_every=self.warm_cold_every)
+        require(0.0 <= self.warm_keep_share <= 1.0,
+                f"`warm_keep_share` must be in [0, 1]; got {self.warm_keep_share!r}")
         require_positive("", contingency_window=self.contingency_window,
                          contingency_lateral_speed=self.contingency_lateral_speed)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")

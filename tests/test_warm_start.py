@@ -162,6 +162,26 @@ def test_the_mpc_driver_solves_cold_after_a_fallback_in_that_environment_only(cr
     assert [d.iterations.tolist() for d in decisions] == [[100, 100], [100, 20], [100, 20]]  # the first 100 cold
 
 
+@pytest.mark.parametrize("share", [0.75, 0.0])
+def test_the_mpc_driver_solves_cold_after_a_warm_solve_lost_feasible_goals(cruise_mpc, share):
+    mpc, calls = _recording_mpc(cruise_mpc, warm_iterations=20, warm_cold_every=100, warm_keep_share=share)
+    driver = MPCDriver(mpc, period=0.1)
+    decisions = []
+    for step, x in enumerate((0.0, 1.4, 2.8, 4.2, 5.6)):
+        far = [[x + 60.0, 8.0, 10.0, 0.0]] * 3
+        boxed_in = [[x + 2.0, 12.0, 14.0, 0.0], [x + 2.0, 4.0, 14.0, 0.0], [x + 15.0, 8.0, 14.0, 0.0]]  # from step 2
+        cars = torch.tensor([far if step < 2 else boxed_in])
+        decisions.append(driver.decide(Observation(torch.tensor([[x, 8.0, 0.0, 14.0, 0.0, 0.0]]), cars)))
+    feasible = [int(d.feasible_goals) for d in decisions]
+    assert feasible[2] < 0.75 * feasible[0] and not any(bool(d.fallback) for d in decisions)
+    if share:  # step 2's warm solve kept under 75 % of step 0's feasible goals: step 3 cold, its count the new reference
+        assert calls == [(False,), (True,), (True,), (False,), (True,)]
+    else:
+        assert calls == [(False,), (True,), (True,), (True,), (True,)]
+    with pytest.raises(ValueError, match="warm_keep_share"):
+        mmpc.MPCConfig(warm_keep_share=1.5)
+
+
 def test_a_problem_whose_warm_solve_finds_no_feasible_goal_solves_again_cold(solved):
     optimizer, problem, cold = solved
     assert bool(cold.feasible.any(dim=1).all())

@@ -18,9 +18,10 @@ class MPCDriver(Driver):
 
     With :attr:`mmpc.MPCConfig.warm_iterations` > 0 it keeps each environment's final iterates
     and starts its next solve from them, moved one control step on. An environment solves cold
-    at its first step (or when it newly joins the batch), at the step after its own fallback and
-    every :attr:`mmpc.MPCConfig.warm_cold_every`-th step since its last cold solve: chains of warm
-    solves drift to costlier plans.
+    at its first step (or when it newly joins the batch), at the step after its own fallback, at
+    the step after a warm solve that kept fewer than :attr:`mmpc.MPCConfig.warm_keep_share` of its
+    last cold solve's feasible goals, and every :attr:`mmpc.MPCConfig.warm_cold_every`-th step
+    since its last cold solve: chains of warm solves drift to costlier plans.
 
     Args:
         mpc: the MPC (its goal sampler, meta cost and optimizer).
@@ -40,25 +41,28 @@ class MPCDriver(Driver):
     def reset(self, num_envs: int) -> None:
         self._last = None
 
-    def _warm(self, observation: Observation) -> tuple[Optional[WarmStart], torch.Tensor]:
+    def _warm(self, observation: Observation) -> tuple[Optional[WarmStart], torch.Tensor, torch.Tensor]:
         """The last step's iterates of every environment of ``observation`` moved to this step,
-        NaN for those that solve cold (``None``: all of them), and (E,) long each environment's
-        warm solves since its last cold one, this step's included (0: it solves cold)."""
+        NaN for those that solve cold (``None``: all of them); (E,) long each environment's warm
+        solves since its last cold one, this step's included (0: it solves cold); (E,) long the
+        feasible goals of its last cold solve (0 where it solves cold)."""
         steps = torch.zeros(observation.ego.shape[0], dtype=torch.long, device=observation.ego.device)
         if self._last is None:
-            return None, steps
-        last = self._last
+            return None, steps, steps
+        last, config = self._last, self.mpc.config
         match = observation.ids()[:, None] == last.ids[None, :]  # (E, E_last)
         rows = match.int().argmax(dim=1)
         steps = last.warm_steps[rows] + 1
-        cold = ~match.any(dim=1) | last.fell_back[rows] | (steps >= self.mpc.config.warm_cold_every)
+        decayed = last.feasible_goals[rows] < config.warm_keep_share * last.cold_feasible_goals[rows]
+        cold = ~match.any(dim=1) | last.fell_back[rows] | decayed | (steps >= config.warm_cold_every)
         steps = torch.where(cold, 0, steps)
+        cold_feasible_goals = torch.where(cold, 0, last.cold_feasible_goals[rows])
         if bool(cold.all()):
-            return None, steps
+            return None, steps, cold_feasible_goals
         warm = self.mpc.optimizer.shifted(last.warm.take(rows), self.period, observation.ego[:, :2] - last.starts[rows])
         restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
         warm = WarmStart(*(torch.where(cold.view(-1, *[1] * (field.dim() - 1)), restart, field) for field in warm))
-        return warm, steps
+        return warm, steps, cold_feasible_goals
 
     @property
     def device(self) -> torch.device:
@@ -68,11 +72,13 @@ class MPCDriver(Driver):
         start = time.perf_counter()
         warm = None
         if self.mpc.config.warm_iterations:
-            warm, warm_steps = self._warm(observation)
+            warm, warm_steps, cold_feasible_goals = self._warm(observation)
         plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask, warm=warm)
+        feasible_goals = plan.result.feasible.sum(dim=1)
         if self.mpc.config.warm_iterations:
             self._last = _LastSolve(observation.ids(), observation.ego[:, :2], plan.result.warm, warm_steps,
-                                    ~plan.selection.feasible)
+                                    ~plan.selection.feasible, feasible_goals,
+                                    torch.where(warm_steps > 0, cold_feasible_goals, feasible_goals))
         elapsed_ms = (time.perf_counter() - start) * 1e3 - plan.compile_ms
         trajectories = plan.result.trajectories
         candidates = Candidates(
@@ -86,7 +92,7 @@ class MPCDriver(Driver):
             steering=plan.steering,
             solve_ms=elapsed_ms,
             goal_index=plan.selection.index,
-            feasible_goals=plan.result.feasible.sum(dim=1),
+            feasible_goals=feasible_goals,
             fallback=~plan.selection.feasible,
             plan_cost=plan.selection.cost,
             candidates=candidates,
@@ -103,6 +109,8 @@ class _LastSolve(NamedTuple):
     warm: WarmStart  # the final iterates, (E, G, ...)
     warm_steps: torch.Tensor  # (E,) long, warm solves since the environment's last cold one
     fell_back: torch.Tensor  # (E,) bool, the decision fell back
+    feasible_goals: torch.Tensor  # (E,) long, goals the solve found feasible
+    cold_feasible_goals: torch.Tensor  # (E,) long, goals the environment's last cold solve found feasible
 
 
 def make_mpc_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:
