@@ -165,6 +165,7 @@ class ProposerDriver(Driver):
         acceleration, steering = plan.acceleration.clone(), plan.steering.clone()
         goal_index = slots.gather(1, selection.index[:, None]).squeeze(1)
         feasible_goals = plan.result.feasible.sum(dim=1)
+        iterations = plan.result.iterations.amax(dim=1)
         fallback = ~selection.feasible
         plan_cost = selection.cost.clone()
         # what was considered, laid out over the full goal set (unsolved goals: NaN paths, infeasible)
@@ -182,6 +183,7 @@ class ProposerDriver(Driver):
             acceleration[rows], steering[rows] = full.acceleration, full.steering
             goal_index[rows] = full.selection.index
             feasible_goals[rows] = full.result.feasible.sum(dim=1)
+            iterations[rows] += full.result.iterations.amax(dim=1)
             fallback[rows] = ~full.selection.feasible
             plan_cost[rows] = full.selection.cost
             paths[rows] = torch.stack([full.result.trajectories.x, full.result.trajectories.y], dim=-1).to(paths.dtype)
@@ -191,7 +193,8 @@ class ProposerDriver(Driver):
         self.escalated_rows += escalated_count
         candidates = Candidates(paths, feasible, goal_index, problem.goals)
         elapsed_ms = (time.perf_counter() - start) * 1e3 - compile_ms
-        return Decision(acceleration, steering, elapsed_ms, goal_index, feasible_goals, fallback, plan_cost, candidates)
+        return Decision(acceleration, steering, elapsed_ms, goal_index, feasible_goals, fallback, plan_cost, candidates,
+                        iterations=iterations)
 
 
 def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:

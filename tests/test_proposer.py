@@ -161,12 +161,14 @@ def test_a_proposal_without_a_feasible_goal_escalates_to_the_full_set(scenario, 
     alone = ProposerDriver(mpc, proposer, keep=1, escalate=False)
     decision = alone.decide(states)
     assert bool(decision.fallback.all()) and alone.escalated_rows == 0
+    assert decision.iterations.tolist() == [100] * 6
     assert decision.goal_index.tolist() == [hopeless] * 6
     unsolved = decision.candidates.xy[:, [g for g in range(proposer.num_goals) if g != hopeless]]
     assert bool(torch.isnan(unsolved).all())  # goals it did not solve are drawn as nothing
     escalating = ProposerDriver(mpc, proposer, keep=1)
     decision = escalating.decide(states)
     assert escalating.escalated_rows == 6 and escalating.decided_rows == 6
+    assert decision.iterations.tolist() == [200] * 6  # the proposal's solve, then the full set's
     assert not bool(decision.fallback.any())
     assert torch.equal(decision.goal_index, expert.goal_index)
     assert torch.allclose(decision.acceleration, expert.acceleration, atol=1e-5)
