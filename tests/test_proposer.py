@@ -19,8 +19,8 @@ from mmpc.imitation.listwise import (
 )
 from mmpc.imitation.proposer import ModeProposer, ProposerConfig, load_proposer, save_proposer
 from mmpc.imitation.proposer_dagger import ProposerDaggerConfig
-from mmpc.imitation.proposer_driver import ProposerDriver, ego_lane_stop_goal
-from mmpc.problem import EGO_Y
+from mmpc.imitation.proposer_driver import ProposerDriver, ego_lane_stop_goal, problem_rows
+from mmpc.problem import EGO_Y, ProblemBatch
 from mmpc.scenario import build_mpc, load_scenario
 
 SMALL = ProposerConfig(hidden=(32,))
@@ -145,6 +145,14 @@ def test_keeping_every_goal_drives_exactly_as_the_mpc(scenario, mpc, states):
     assert torch.allclose(full.acceleration, expert.acceleration, atol=1e-5)
     assert torch.allclose(full.steering, expert.steering, atol=1e-6)
     assert torch.equal(full.fallback, expert.fallback)
+
+
+def test_escalated_rows_keep_their_contingency_slots():
+    problem = ProblemBatch(torch.zeros(3, 6), torch.zeros(3, 5, 2), torch.arange(3 * 4 * 2 * 2.0).view(3, 4, 2, 2),
+                           torch.ones(3, 4, dtype=torch.bool), None, contingencies=2)
+    rows = problem_rows(problem, torch.tensor([2, 0]))
+    assert rows.contingencies == 2 and rows.obstacle_axes is None
+    assert torch.equal(rows.obstacles, problem.obstacles[[2, 0]]) and rows.obstacle_mask.shape == (2, 4)
 
 
 def test_a_proposal_without_a_feasible_goal_escalates_to_the_full_set(scenario, states):
