@@ -403,7 +403,8 @@ def run_dagger(
     expert_scenario = scenario
     if config.label_window is not None:
         expert_scenario = scenario.replace(mpc=dataclasses.replace(scenario.mpc, command_window=config.label_window))
-    expert = MPCDriver(build_mpc(expert_scenario))
+    # cold solves: it labels recorded states off-line, where a warm start from the last call's states would not apply
+    expert = MPCDriver(build_mpc(expert_scenario.replace(mpc=dataclasses.replace(expert_scenario.mpc, warm_iterations=0))))
     road = scenario.road
     policy = load_policy(out / f"round_{rounds[-1]['round']}" / "policy.pt") if rounds else None
     with SummaryWriter(str(out / "tb")) as writer, torch.inference_mode(False):

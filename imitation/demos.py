@@ -99,7 +99,7 @@ def drive_group(task: DemoTask) -> list[int]:
             written.append(rollout.episode.seed)
 
     with torch.inference_mode():
-        rollout_lockstep(task.scenario, task.seeds, MPCDriver(build_mpc(task.scenario)), on_finished=stage)
+        rollout_lockstep(task.scenario, task.seeds, MPCDriver(build_mpc(task.scenario), period=task.scenario.period), on_finished=stage)
     return written
 
 

@@ -486,6 +486,11 @@ class ScenarioConfig:
             f"({self.optimizer.max_obstacles})",
         )
 
+    @property
+    def period(self) -> float:
+        """The control period [s]: ``1 / frequency``."""
+        return 1.0 / self.frequency
+
     def _check_ellipse(self, where: str) -> None:
         """Refuse an obstacle ellipse that does not cover two vehicles over the heading band."""
         axes, band, vehicle = self.optimizer.ellipse, self.optimizer.max_heading_deg, self.vehicle

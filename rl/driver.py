@@ -110,7 +110,7 @@ class SafeAgentDriver(Driver):
         self.continuous = run.continuous
         self.config = run.config.env
         self.layer = SafetyLayer(build_mpc(scenario), self.config)
-        self.period = 1.0 / scenario.frequency
+        self.period = scenario.period
         self.hold = _Hold(self.config.decision_frames)
         self.held: dict[int, "HeldPlan"] = {}  # replan: decision, one-row plans by environment id
 

@@ -103,7 +103,7 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
 
     rows = []
     for compiled in compile_modes:
-        driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device))
+        driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device), period=scenario.period)
         for num_envs in envs:
             row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "num_envs": num_envs}
             try:

@@ -51,7 +51,7 @@ def main() -> None:
     proposer = load_proposer(path if path.is_file() or args.proposer not in shipped_proposers()
                              else SHIPPED_PROPOSERS / f"{args.proposer}.pt")
     mpc = build_mpc(scenario)
-    drivers = {"mpc": lambda: MPCDriver(mpc)}
+    drivers = {"mpc": lambda: MPCDriver(mpc, period=scenario.period)}
     for keep in (int(k) for k in args.keep.split(",")):
         drivers[f"proposer keep {keep}"] = lambda keep=keep: ProposerDriver(mpc, proposer, keep=keep)
     rows = []

@@ -309,7 +309,7 @@ def record(name: str, scenario: ScenarioConfig, spec: CorpusSpec, nlp_times: np.
     subset = None if spec.goals is None else goal_subset(num_goals, spec.goals)
     recorder = DenseStateRecorder(mpc, seeds, spec.min_obstacles, spec.every, subset)
     start = time.perf_counter()
-    results = run_lockstep(scenario, seeds, driver=MPCDriver(mpc), observers=[recorder])
+    results = run_lockstep(scenario, seeds, driver=MPCDriver(mpc, period=scenario.period), observers=[recorder])
     wall = time.perf_counter() - start
     rows = recorder.tensors()
     dense = sum(recorder.dense)

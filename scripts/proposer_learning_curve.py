@@ -82,7 +82,7 @@ def main() -> None:
     held_out = read_labels([run / "held_out"])
     mpc = build_mpc(scenario)
     check_seeds = list(range(args.check_seed_start, args.check_seed_start + args.check_episodes))
-    expert = check_drive(scenario, MPCDriver(mpc), check_seeds, config.lockstep) if check_seeds else None
+    expert = check_drive(scenario, MPCDriver(mpc, period=scenario.period), check_seeds, config.lockstep) if check_seeds else None
     keep = config.train.keep
     rows = []
     print(f"{scenario.name}: {labels.num_states} labelled states in {len(rounds)} rounds; held out: "

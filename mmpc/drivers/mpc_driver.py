@@ -117,4 +117,4 @@ def make_mpc_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver
     """Driver factory of spec ``mpc``: the scenario's multi-modal MPC (takes no argument)."""
     if argument is not None:
         raise ValueError(f"driver 'mpc' takes no argument; got 'mpc:{argument}'")
-    return MPCDriver(build_mpc(scenario), period=1.0 / scenario.frequency)
+    return MPCDriver(build_mpc(scenario), period=scenario.period)

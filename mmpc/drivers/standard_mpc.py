@@ -109,4 +109,4 @@ def make_standard_mpc_driver(scenario, argument: Optional[str]) -> Driver:
     def stage(v, y):
         return objective.stage_cost(v, y, road)
 
-    return StandardMPCDriver(build_mpc(scenario, device="cpu"), stage, 1.0 / scenario.frequency)
+    return StandardMPCDriver(build_mpc(scenario, device="cpu"), stage, scenario.period)

@@ -125,7 +125,7 @@ def _crash_metrics(crash: Optional[Crash], records: list[StepRecord], frequency:
 def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], crash: Optional[Crash]) -> EpisodeResult:
     """The episode's result; ``crash``: its collision's scene (``None``: no collision, or no car found)."""
     v_cruise = scenario.objective.v_cruise if isinstance(scenario.objective, CruiseObjective) else None
-    metrics = episode_metrics(records, dt=1.0 / scenario.frequency, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
+    metrics = episode_metrics(records, dt=scenario.period, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
                               lane_width=scenario.road.lane_width)
     crashed = bool(metrics["collisions"])
     part = crash.part if crashed and crash is not None else None
