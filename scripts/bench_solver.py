@@ -84,8 +84,10 @@ def turned_axes(obstacles: int, config: OptimizerConfig) -> torch.Tensor:
     return covering_semi_axes(headings, config.ellipse, config.max_heading_deg)
 
 
-def bytes_per_solve(batch: int, obstacles: int, config: OptimizerConfig, element_size: int = 4) -> float:
-    """Least memory traffic of one solve [bytes]: what an ideal implementation must move.
+def bytes_per_solve(batch: int, obstacles: int, config: OptimizerConfig, element_size: int = 4,
+                    iterations: Optional[int] = None) -> float:
+    """Least memory traffic of one solve of ``iterations`` (default: the schedule's) [bytes]:
+    what an ideal implementation must move.
 
     Per iteration the samples (3N x 2B) are written by one product and read by the
     elementwise steps, whose residual (3N x 2B) is written and read by the next product; the
@@ -94,7 +96,7 @@ def bytes_per_solve(batch: int, obstacles: int, config: OptimizerConfig, element
     """
     n = config.num_steps
     per_iteration = 4 * 3 * n * 2 * batch + 4 * n * batch + 2 * obstacles * n
-    return float(per_iteration * config.iterations * element_size)
+    return float(per_iteration * (iterations or config.iterations) * element_size)
 
 
 def memory_bandwidth(device: torch.device, megabytes: int = 256) -> float:
@@ -230,19 +232,21 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
     for variant, (wall, cpu) in times.items():
         wall = sorted(wall)
         median = statistics.median(wall)
+        iterations = warm_iterations(variant) or spec.config.iterations
         rows.append({
             "device": device.type,
             "variant": variant,
             "threads": spec.threads if device.type == "cpu" else None,
             "batch": batch,
             "obstacles": obstacles,
-            "iterations": warm_iterations(variant) or spec.config.iterations,
+            "iterations": iterations,
             "ms_median": median,
             "ms_p90": wall[min(len(wall) - 1, int(0.9 * len(wall)))],
             "cpu_ms_median": statistics.median(cpu) if device.type == "cpu" else None,
             "solves": len(wall),
             "load_1min": load,
-            "roofline_fraction": bytes_per_solve(batch, obstacles, spec.config) / (median * 1e-3) / bandwidth,
+            "roofline_fraction": bytes_per_solve(batch, obstacles, spec.config, iterations=iterations) / (median * 1e-3)
+            / bandwidth,
         })
     return rows
 

@@ -4,6 +4,7 @@ import pytest
 
 import bench_solver
 
+import mmpc
 from mmpc.cli.main import main
 
 
@@ -39,6 +40,9 @@ def test_bench_solver_writes_json_rows(tmp_path):
     assert all(r["time_vs_cold"] > 0 for r in rows if r["variant"] == "eager-warm10")
     assert all(r["ms_median"] > 0 and r["ms_p90"] >= r["ms_median"] for r in rows)
     assert all(0 < r["roofline_fraction"] < 1 for r in rows)
+    config = mmpc.OptimizerConfig()
+    ideal = bench_solver.bytes_per_solve(4, 2, config)  # the roofline of a warm row counts its own iterations
+    assert bench_solver.bytes_per_solve(4, 2, config, iterations=10) == pytest.approx(ideal / 10)
     vectorized = report["vectorized"]
     assert vectorized["environments"] == 3 and vectorized["speedup"] > 0
     assert (tmp_path / "bench_solver.png").exists()
