@@ -605,8 +605,10 @@ def test_the_dagger_config_record_of_an_earlier_run_is_unchanged():
     assert to_dict(from_dict(ScenarioConfig, old_scenario)) == to_dict(scenario)
 
 
-def test_demonstrations_on_the_batched_simulator_have_the_highway_env_layout(tmp_path):
+@pytest.mark.parametrize("warm_iterations", [0, 10])  # 10: the expert warm-starts at the scenario's control period
+def test_demonstrations_on_the_batched_simulator_have_the_highway_env_layout(tmp_path, warm_iterations):
     scenario = short_cruise(1.0).replace(sim="batched")
+    scenario = scenario.replace(mpc=dataclasses.replace(scenario.mpc, warm_iterations=warm_iterations))
     report = generate_demonstrations(scenario, SEEDS, tmp_path, lockstep=3)
     assert report.seeds == SEEDS
     for seed in SEEDS:
