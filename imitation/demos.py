@@ -99,7 +99,8 @@ def drive_group(task: DemoTask) -> list[int]:
             written.append(rollout.episode.seed)
 
     with torch.inference_mode():
-        rollout_lockstep(task.scenario, task.seeds, MPCDriver(build_mpc(task.scenario), period=task.scenario.period), on_finished=stage)
+        expert = MPCDriver(build_mpc(task.scenario), period=task.scenario.period)
+        rollout_lockstep(task.scenario, task.seeds, expert, on_finished=stage)
     return written
 
 

@@ -211,7 +211,8 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: ProposerDaggerConfi
                 entry["check"] = check_drive(scenario, driver, check_seeds, config.lockstep)
                 entry["check"]["escalated_share"] = driver.escalated_rows / max(driver.decided_rows, 1)
                 if expert_check is None:
-                    expert_check = check_drive(scenario, MPCDriver(build_mpc(scenario), period=scenario.period), check_seeds, config.lockstep)
+                    expert = MPCDriver(build_mpc(scenario), period=scenario.period)
+                    expert_check = check_drive(scenario, expert, check_seeds, config.lockstep)
                 entry["expert_check"] = expert_check
                 writer.add_scalar("check/collisions", entry["check"]["collisions"], labels.num_states)
                 writer.add_scalar("check/meta_cost_mean", entry["check"]["meta_cost_mean"], labels.num_states)

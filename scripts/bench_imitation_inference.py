@@ -72,7 +72,8 @@ def benchmark_inference(scenario: ScenarioConfig, checkpoint: Path, *, seed: int
     """
     if steps < 1 or warmup < 0 or block < 1:
         raise ValueError(f"`steps` and `block` must be >= 1 and `warmup` >= 0; got {steps}, {block}, {warmup}")
-    drivers: dict[str, Driver] = {"expert": MPCDriver(build_mpc(scenario), period=scenario.period), "policy": PolicyDriver(load_policy(checkpoint))}
+    drivers: dict[str, Driver] = {"expert": MPCDriver(build_mpc(scenario), period=scenario.period),
+                                  "policy": PolicyDriver(load_policy(checkpoint))}
     scenario = scenario.replace(duration=min(scenario.duration, steps / scenario.frequency))
     modes = {}
     with torch.inference_mode():
