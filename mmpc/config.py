@@ -473,7 +473,13 @@ class OptimizerConfig:
         horizon: planning horizon t_f [s].
         num_steps: samples N over the horizon (t = 0 and t = t_f included).
         order: Bernstein polynomial order (K = order + 1 coefficients per axis).
-        iterations: fixed number of alternating-minimisation iterations.
+        iterations: alternating-minimisation iterations of the schedule (every element's, without
+            ``exit_checks``).
+        exit_checks: early exit: iterations after which the elements already feasible stop and
+            keep that iterate, the others run on to the next check and at most ``iterations``;
+            strictly increasing, each in [1, iterations), multiples of 10 on the compiled CPU
+            path (its unit of compiled iterations). Cold-started solves only (a warm start runs
+            the schedule's tail). Empty: every element runs the whole schedule (the paper).
         rho_init: penalty weight of the first iteration [-].
         rho_growth: factor applied to the penalty weight after every iteration [-].
         weight_xy: smoothness weight w of ``w * Pddot^T Pddot`` for x and y [-].
@@ -517,6 +523,7 @@ class OptimizerConfig:
     num_steps: int = 100
     order: int = 10
     iterations: int = 100
+    exit_checks: tuple[int, ...] = ()
     rho_init: float = 1.0
     rho_growth: float = 1.06
     weight_xy: float = 2.5
@@ -549,6 +556,11 @@ class OptimizerConfig:
         require(self.num_steps >= 2, f"`num_steps` must be >= 2; got {self.num_steps}")
         require(3 <= self.order <= 30, f"`order` must be in [3, 30]; got {self.order}")
         require(self.iterations >= 1, f"`iterations` must be >= 1; got {self.iterations}")
+        checks = list(self.exit_checks)
+        require(
+            all(0 < k < self.iterations for k in checks) and checks == sorted(set(checks)),
+            f"`exit_checks` must be strictly increasing iterations in [1, iterations={self.iterations}); got {checks}",
+        )
         require(self.rho_init > 0, f"`rho_init` must be > 0; got {self.rho_init}")
         require(self.rho_growth >= 1, f"`rho_growth` must be >= 1; got {self.rho_growth}")
         require(

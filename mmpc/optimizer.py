@@ -104,6 +104,7 @@ class _Prepared(NamedTuple):
     compiled: bool  # run the compiled functions; False: the eager ones (autograd)
     warm: Optional[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]  # (K, 2B), (K, 2B), (K, B) iterates to start from
     first_iteration: int  # the first iteration of the schedule run: 0 from the cold start
+    last_iteration: int  # the schedule runs up to (not including) this iteration
 
 
 class BatchOptimizer(nn.Module):
@@ -115,7 +116,8 @@ class BatchOptimizer(nn.Module):
         s.t. xdot = v cos psi, ydot = v sin psi, v_min <= v <= v_max, |(xddot, yddot)| <= a_max,
              outside every obstacle ellipse (a, b) at every sample, boundary conditions,
 
-    in ``config.iterations`` alternating-minimisation iterations from a cold start. The
+    in ``config.iterations`` alternating-minimisation iterations from a cold start (with
+    ``config.exit_checks``, an element feasible at a check stops there). The
     projections may aim a margin inside the feasible set (larger ellipses, a smaller
     acceleration disc: ``config.obstacle_backoff``, ``acceleration_backoff``); the checks and the
     status use the constraints themselves, with their tolerances. Internally the batch is the
@@ -318,7 +320,35 @@ class BatchOptimizer(nn.Module):
                 self._fallback_logged = True
         if warm is not None:
             return self._solve_warm(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
-        return self._solve_compiled(ego, goals, obstacles, mask, axes, None, 0, history, compiled)
+        return self._solve_cold(ego, goals, obstacles, mask, axes, history, compiled)
+
+    def _solve_cold(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                    axes: Optional[torch.Tensor], history: bool, compiled: bool) -> SolveResult:
+        """From the cold start. With ``config.exit_checks``, the schedule runs in stretches between
+        the checks: after each, the elements not yet feasible go on from their iterates, as a
+        batch of one goal per problem (host synchronisations), and the others keep the iterate
+        they were feasible at."""
+        bounds = [*self.config.exit_checks, self.config.iterations]
+        result = self._solve_compiled(ego, goals, obstacles, mask, axes, None, 0, bounds[0], history, compiled)
+        if len(bounds) == 1:
+            return result
+        num_goals = goals.shape[1]
+        running = (~result.feasible).flatten().nonzero().squeeze(1)  # flat (problem, goal) indices
+        for first, last in zip(bounds[:-1], bounds[1:]):
+            if running.numel() == 0:
+                break
+            # Whole tiles, then the rest (padded to a power of two): the tiler would pad every tile.
+            pieces = running.split(self.tile_size or running.numel())
+            running = running[:0]
+            for piece in pieces:
+                rows, columns = piece // num_goals, piece % num_goals
+                elements = (ego[rows], goals[rows, columns].unsqueeze(1), obstacles[rows], mask[rows],
+                            None if axes is None else axes[rows])
+                warm = WarmStart(*(field.flatten(0, 1)[piece].unsqueeze(1) for field in result.warm))
+                part = self._solve_compiled(*elements, warm, first, last, history, compiled)
+                result = result.replace_elements(part._replace(iterations=part.iterations + first), piece)
+                running = torch.cat([running, piece[~part.feasible[:, 0]]])
+        return result
 
     def _solve_warm(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                     axes: Optional[torch.Tensor], warm: WarmStart, first_iteration: int, history: bool,
@@ -332,17 +362,14 @@ class BatchOptimizer(nn.Module):
         parts, solved = [], []
         warm_rows = (~cold).nonzero().squeeze(1)
         if warm_rows.numel():
-            part = self._solve_compiled(*_take_rows(inputs, warm_rows), warm.take(warm_rows), first_iteration, history,
-                                        compiled)
-            if history:  # the iterations the warm problems skipped: NaN
-                skipped = part.history.new_full((first_iteration, *part.history.shape[1:]), float("nan"))
-                part = part._replace(history=torch.cat([skipped, part.history]))
+            part = self._solve_compiled(*_take_rows(inputs, warm_rows), warm.take(warm_rows), first_iteration,
+                                        self.config.iterations, history, compiled)
             parts.append(part)
             solved.append(warm_rows)
             again[warm_rows] = ~part.feasible.any(dim=1)
         cold_rows = (cold | again).nonzero().squeeze(1)
         if cold_rows.numel():
-            part = self._solve_compiled(*_take_rows(inputs, cold_rows), None, 0, history, compiled)
+            part = self._solve_cold(*_take_rows(inputs, cold_rows), history, compiled)
             warm_run = again[cold_rows, None].int() * (self.config.iterations - first_iteration)
             parts.append(part._replace(iterations=part.iterations + warm_run))  # replaces the warm answer of those
             solved.append(cold_rows)
@@ -351,30 +378,33 @@ class BatchOptimizer(nn.Module):
         return SolveResult.interleave(parts, solved, ego.shape[0])
 
     def _solve_compiled(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                        axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
-                        compiled: bool) -> SolveResult:
-        """:meth:`_solve_batch` within the compiled path's recompile limit (eager past it)."""
+                        axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int,
+                        last_iteration: int, history: bool, compiled: bool) -> SolveResult:
+        """:meth:`_solve_batch` of the schedule's iterations ``first_iteration`` up to ``last_iteration``
+        within the compiled path's recompile limit (eager past it)."""
+        span = (first_iteration, last_iteration)
         if not compiled:
-            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
         # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
         # functions, shared by every optimizer of the process: one driver mixing goal counts (a
         # proposer and its escalations) or several scenarios in one worker pass torch's default
         # limit of 8, where a fullgraph compile fails hard.
         try:
             with torch._dynamo.config.patch(recompile_limit=_RECOMPILE_LIMIT):
-                return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
+                return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
         except torch._dynamo.exc.FailOnRecompileLimitHit:
             if not self._limit_logged:
                 logger.warning("BatchOptimizer: %d compiled call layouts in this process (the limit); new layouts "
                                "solve eagerly", _RECOMPILE_LIMIT)
                 self._limit_logged = True
             self.last_compile_ms = 0.0
-            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, first_iteration, history, False)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, False)
 
     def _solve_batch(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                     axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
+                     axes: Optional[torch.Tensor], warm: Optional[WarmStart], span: tuple[int, int], history: bool,
                      compiled: bool) -> SolveResult:
-        """:meth:`forward` on validated inputs: one call, or tiles of :attr:`tile_size` elements."""
+        """:meth:`forward` on validated inputs: one call, or tiles of :attr:`tile_size` elements; ``span``:
+        the schedule's iterations run, (first, end)."""
         num_problems, num_goals = goals.shape[:2]
         tiling = _tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:
@@ -383,10 +413,10 @@ class BatchOptimizer(nn.Module):
                 on_cpu = self.device.type == "cpu"
                 bucket = _problem_bucket(num_problems, num_goals, self.tile_size) if on_cpu else _graph_bucket(num_problems)
             if bucket == num_problems:
-                return self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
+                return self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
             ego, goals, obstacles, mask, axes = (_repeat_last(t, 0, bucket) for t in (ego, goals, obstacles, mask, axes))
             warm = _repeat_warm(warm, 0, bucket)
-            result = self._solve(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
+            result = self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
             return result.head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
         # Pad both axes to whole tiles with copies of the last problem / goal.
@@ -403,7 +433,7 @@ class BatchOptimizer(nn.Module):
                 self._solve(
                     ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], tile_axes,
                     None if warm is None else WarmStart(*(field[problems, g : g + tile_goals] for field in warm)),
-                    first_iteration, history, compiled,
+                    span, history, compiled,
                 )
                 for g in range(0, goals.shape[1], tile_goals)
             ]
@@ -418,7 +448,7 @@ class BatchOptimizer(nn.Module):
         mask: torch.Tensor,
         axes: Optional[torch.Tensor],
         warm: Optional[WarmStart],
-        first_iteration: int,
+        span: tuple[int, int],
         history: bool,
         compiled: bool,
     ) -> SolveResult:
@@ -429,14 +459,13 @@ class BatchOptimizer(nn.Module):
         if compiled:
             counts = mask.sum(dim=1).unique()  # a host synchronisation: the operators differ per obstacle count
             uniform = int(counts[0]) if counts.numel() == 1 else None
-            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, first_iteration)
-            share = (self.config.iterations - first_iteration) / self.config.iterations
+            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, span)
+            share = (span[1] - span[0]) / self.config.iterations
             compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1] * share)
         if compiled and self.device.type == "cuda":
-            return self._replay(ego, goals, obstacles, mask, axes, warm, first_iteration, history, uniform)
+            return self._replay(ego, goals, obstacles, mask, axes, warm, span, history, uniform)
         start = time.perf_counter()
-        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm,
-                                 first_iteration=first_iteration)  # compiles the input layout too
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm, span=span)  # compiles the input layout too
         if compiled:
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)
@@ -457,16 +486,16 @@ class BatchOptimizer(nn.Module):
         return True
 
     def _replay(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
-                axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
+                axes: Optional[torch.Tensor], warm: Optional[WarmStart], span: tuple[int, int], history: bool,
                 uniform: Optional[int]) -> SolveResult:
         """Compiled CUDA path: the call layout's whole solve (layout, cold or warm start, iterations,
         outputs) replayed as one CUDA graph, captured at its first call; the result is copied out
         of the graph's memory, so a later solve leaves it intact. A layout whose capture fails
         runs the compiled functions without a graph (warned once); ``uniform``: every problem's
         obstacle count, ``None`` where they differ."""
-        key = (tuple(goals.shape), mask.shape[1], uniform, axes is None, history, first_iteration)
+        key = (tuple(goals.shape), mask.shape[1], uniform, axes is None, history, span)
         inputs = (ego, goals, obstacles, mask, axes, *(warm if warm is not None else (None,) * len(WarmStart._fields)))
-        solve = functools.partial(self._solve_prepared, uniform=uniform, history=history, first_iteration=first_iteration)
+        solve = functools.partial(self._solve_prepared, uniform=uniform, history=history, span=span)
         if key not in self._graphs:
             start = time.perf_counter()
             self._graphs[key] = _GraphSolve.capture(solve, inputs)
@@ -481,13 +510,12 @@ class BatchOptimizer(nn.Module):
 
     def _solve_prepared(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                         axes: Optional[torch.Tensor], *warm: Optional[torch.Tensor], uniform: Optional[int], history: bool,
-                        first_iteration: int) -> SolveResult:
+                        span: tuple[int, int]) -> SolveResult:
         """The compiled functions on one call whose obstacle-count layout (``uniform``) is known,
-        from the cold start or from ``warm``'s fields at ``first_iteration``: no host
+        from the cold start or from ``warm``'s fields at ``span[0]``: no host
         synchronisation, so that a CUDA graph can capture it."""
         start = None if warm[0] is None else WarmStart(*warm)
-        prepared = self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform, warm=start,
-                                 first_iteration=first_iteration)
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, True, uniform=uniform, warm=start, span=span)
         return self._run(prepared, history)
 
 
@@ -504,8 +532,8 @@ class BatchOptimizer(nn.Module):
             gather = self.gather[max(prepared.first_iteration - 1, 0)]
             state = resume(*prepared.warm, prepared.obstacles, prepared.axes, self.samples, gather, limits)
         records: list[torch.Tensor] = []
-        for first in range(prepared.first_iteration, self.config.iterations, self.chunk):
-            last = min(first + self.chunk, self.config.iterations)
+        for first in range(prepared.first_iteration, prepared.last_iteration, self.chunk):
+            last = min(first + self.chunk, prepared.last_iteration)
             if prepared.uniform_count is not None:
                 position = self.position[first:last, prepared.uniform_count]  # (U, 2, K, D)
             else:
@@ -522,8 +550,10 @@ class BatchOptimizer(nn.Module):
             self.heading_basis, self.heading_rate_basis, self.config, limits,
         )
         history_norms = None
-        if history:
-            history_norms = torch.nan_to_num(torch.stack(records)[:, :, :num_goals], nan=float("inf"))
+        if history:  # NaN: the iterations of the schedule this call did not run
+            ran = torch.nan_to_num(torch.stack(records)[:, :, :num_goals], nan=float("inf"))
+            history_norms = ran.new_full((self.config.iterations, *ran.shape[1:]), float("nan"))
+            history_norms[prepared.first_iteration : prepared.last_iteration] = ran
         num_problems, order = prepared.obstacles.shape[3], state.c.shape[0]
         warm = WarmStart(  # views of the final iterates in the batch-first layout, padding goals dropped
             state.c.view(order, 2, num_problems, -1)[..., :num_goals].permute(2, 3, 1, 0),
@@ -542,7 +572,7 @@ class BatchOptimizer(nn.Module):
             max_nonholonomic_error=scalars[3],
             status=status,
             feasible=status == 0,
-            iterations=torch.full_like(status, self.config.iterations - prepared.first_iteration),
+            iterations=torch.full_like(status, prepared.last_iteration - prepared.first_iteration),
             history=history_norms,
             warm=warm,
         )
@@ -552,12 +582,14 @@ class BatchOptimizer(nn.Module):
     def _prepare(
         self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
         axes: Optional[torch.Tensor], compiled: bool, *, uniform: Optional[int] | str = "find",
-        warm: Optional[WarmStart] = None, first_iteration: int = 0,
+        warm: Optional[WarmStart] = None, span: Optional[tuple[int, int]] = None,
     ) -> _Prepared:
         """The solver layout of one call; ``uniform``: the obstacle count every problem has
         (``None``: counts differ), or ``"find"`` to read it from the mask (a host synchronisation);
-        ``warm``: iterates to start from, at iteration ``first_iteration``."""
+        ``warm``: iterates to start from, at iteration ``span[0]``; the schedule runs up to ``span[1]``
+        (``None``: all of it)."""
         cfg = self.config
+        span = (0, cfg.iterations) if span is None else span
         padding = 0
         if compiled and self.device.type == "cpu":
             padding = _goal_padding(goals.shape[0], goals.shape[1], goals.element_size())
@@ -584,7 +616,8 @@ class BatchOptimizer(nn.Module):
             padding=padding,
             compiled=compiled,
             warm=None if warm is None else _solver_layout(warm),
-            first_iteration=first_iteration,
+            first_iteration=span[0],
+            last_iteration=span[1],
         )
 
 

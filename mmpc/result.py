@@ -148,6 +148,26 @@ class SolveResult(NamedTuple):
 
         return SolveResult._combine(parts, join)
 
+    def replace_elements(self, part: "SolveResult", elements: torch.Tensor) -> "SolveResult":
+        """A copy whose (problem, goal) elements ``elements`` (long, indices into the flattened
+        (E, G)) are ``part``'s (R, 1) elements, in order; ``history``: ``part``'s iterations where it
+        ran (not NaN), this result's elsewhere."""
+        if part.status.shape != (elements.numel(), 1):
+            raise ValueError(f"`part` must hold one goal per element replaced, ({elements.numel()}, 1); "
+                             f"got {tuple(part.status.shape)}")
+
+        def join(tensors: list[torch.Tensor], offset: int) -> torch.Tensor:
+            base, new = tensors
+            out = base.clone(memory_format=torch.contiguous_format)
+            flat, new = out.flatten(offset, offset + 1), new.flatten(offset, offset + 1)  # a view of ``out``
+            if offset == 0:
+                flat.index_copy_(0, elements, new)
+            else:  # history (I, E, G, 3)
+                flat[:, elements] = torch.where(new.isnan(), flat[:, elements], new)
+            return out
+
+        return SolveResult._combine([self, part], join)
+
     def head(self, num_problems: int, num_goals: int) -> "SolveResult":
         """The first ``num_problems`` problems and, of each, the first ``num_goals`` goals."""
         return SolveResult._combine(

@@ -16,14 +16,14 @@ import os
 import platform
 import statistics
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 import torch
 
 from mmpc.cli.arguments import int_list
-from mmpc.config import OptimizerConfig
+from mmpc.config import ConfigError, OptimizerConfig
 from mmpc.footprint import covering_semi_axes
 from mmpc.optimizer import BatchOptimizer
 from mmpc.plotting import plot_scaling
@@ -43,7 +43,8 @@ class SolverBenchmark:
             (:attr:`mmpc.ProblemBatch.obstacle_axes` of :func:`turned_axes`), as the expert's
             ``obstacle_shape: heading`` does; with the suffix "-warmK" (e.g. "compiled-warm10") each
             solve starts from the final iterates of a cold solve of the same problem and runs the
-            schedule's last K iterations (the solve of a warm-started MPC step).
+            schedule's last K iterations (the solve of a warm-started MPC step); with the suffix
+            "-exitA.B..." (e.g. "compiled-exit10") the optimizer has ``exit_checks`` (A, B, ...): early exit.
         threads: CPU threads for the CPU rows.
         repeats: timed solves per row.
         warmup: untimed solves per row.
@@ -170,7 +171,8 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
             bandwidths[device_name] = memory_bandwidth(device)
             log(f"{device_name}: copy bandwidth {bandwidths[device_name] / 1e9:.1f} GB/s")
             optimizers = {
-                variant: BatchOptimizer(spec.config, device=device, compile=variant.startswith("compiled"))
+                variant: BatchOptimizer(replace(spec.config, exit_checks=exit_checks(variant)), device=device,
+                                        compile=variant.startswith("compiled"))
                 for variant in spec.variants
             }
             for obstacles in spec.obstacles:
@@ -215,6 +217,7 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
     problem = benchmark_problem(batch, obstacles, first.times.cpu())
     problem = ProblemBatch(*(t.to(device) for t in problem[:3]))
     turned = problem._replace(obstacle_axes=turned_axes(obstacles, first.config).to(device))
+    mean_iterations = {}  # per variant, over the (problem, goal) elements: fewer than the schedule's with early exit
     with torch.inference_mode():
         solves = {}
         for variant, optimizer in optimizers.items():
@@ -226,13 +229,14 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
                 warm = optimizer(p).warm
                 solves[variant] = lambda optimizer=optimizer, p=p, warm=warm, k=iterations: optimizer(p, warm=warm,
                                                                                                      warm_iterations=k)
+            mean_iterations[variant] = float(solves[variant]().iterations.float().mean())
         times = time_interleaved(solves, device, spec.repeats, spec.warmup, spec.max_seconds_per_row)
     load = os.getloadavg()[0]
     rows = []
     for variant, (wall, cpu) in times.items():
         wall = sorted(wall)
         median = statistics.median(wall)
-        iterations = warm_iterations(variant) or spec.config.iterations
+        iterations = mean_iterations[variant]
         least_bytes = bytes_per_solve(batch, obstacles, spec.config, iterations=iterations)
         rows.append({
             "device": device.type,
@@ -251,14 +255,30 @@ def _measure(spec: SolverBenchmark, optimizers: dict[str, BatchOptimizer], devic
     return rows
 
 
+def _suffix(variant: str, name: str) -> Optional[str]:
+    """What follows ``name`` in the variant's suffix that starts with it ("compiled-warm10", "warm" -> "10")."""
+    return next((part[len(name):] for part in variant.split("-")[1:] if part.startswith(name)), None)
+
+
 def warm_iterations(variant: str) -> Optional[int]:
     """K of a "-warmK" variant (:class:`SolverBenchmark`), else ``None``."""
-    _, warm, iterations = variant.partition("-warm")
-    if not warm:
+    iterations = _suffix(variant, "warm")
+    if iterations is None:
         return None
     if not iterations.isdigit() or int(iterations) < 1:
         raise ValueError(f"variant {variant!r}: '-warm' must be followed by the iterations, e.g. 'compiled-warm10'")
     return int(iterations)
+
+
+def exit_checks(variant: str) -> tuple[int, ...]:
+    """The early-exit checks of a "-exitA.B..." variant (:class:`SolverBenchmark`), else ``()``."""
+    checks = _suffix(variant, "exit")
+    if checks is None:
+        return ()
+    if not all(part.isdigit() for part in checks.split(".")):
+        raise ValueError(f"variant {variant!r}: '-exit' must be followed by iterations separated by dots, "
+                         f"e.g. 'compiled-exit10.30'")
+    return tuple(int(part) for part in checks.split("."))
 
 
 def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
@@ -274,9 +294,9 @@ def _log_speedups(rows: list[dict], log: Callable[[str], None]) -> None:
                 text += f" (cpu time {row['cpu_speedup_vs_eager']:.2f}x)"
             log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} compiled is {text} faster than eager")
     plain = {(r["device"], r["batch"], r["obstacles"], r["variant"]): r for r in rows}
-    for row in rows:  # a warm start against the cold solve, same optimizer kind, same rounds
-        cold = plain.get((row["device"], row["batch"], row["obstacles"], row["variant"].partition("-warm")[0]))
-        if warm_iterations(row["variant"]) is not None and cold is not None:
+    for row in rows:  # a warm start or early exit against the whole cold schedule, same optimizer kind, same rounds
+        cold = plain.get((row["device"], row["batch"], row["obstacles"], row["variant"].split("-")[0]))
+        if (warm_iterations(row["variant"]) is not None or exit_checks(row["variant"])) and cold is not None:
             row["time_vs_cold"] = row["ms_median"] / cold["ms_median"]
             log(f"{row['device']:>5} M={row['obstacles']:<3} B={row['batch']:<6} {row['variant']} takes "
                 f"{row['time_vs_cold']:.2f}x the time of {cold['variant']}")
@@ -326,7 +346,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     bench.add_argument("--devices", default="cpu,cuda", help="cpu and/or cuda (cuda skipped without a GPU)")
     bench.add_argument("--variants", default="eager,compiled",
                        help="eager and/or compiled (torch.compile), each optionally with -turned (per-obstacle ellipses) "
-                            "and/or -warmK (K iterations from a cold solve's iterates), e.g. compiled,compiled-warm10")
+                            "and/or -warmK (K iterations from a cold solve's iterates) or -exitA.B... (early exit checks), "
+                            "e.g. compiled,compiled-warm10,compiled-exit10")
     bench.add_argument("--threads", type=int, default=1, help="CPU threads (default 1)")
     bench.add_argument("--repeats", type=int, default=20, help="timed solves per row")
     bench.add_argument("--max-seconds-per-row", type=float, default=20.0, help="time budget per row")
@@ -335,8 +356,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     args = bench.parse_args(argv)
     try:
-        [warm_iterations(variant) for variant in args.variants.split(",")]
-    except ValueError as error:
+        for variant in args.variants.split(","):
+            warm_iterations(variant)
+            OptimizerConfig(exit_checks=exit_checks(variant))
+    except (ValueError, ConfigError) as error:
         bench.error(str(error))
     spec = SolverBenchmark(
         batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),

@@ -31,13 +31,16 @@ def test_solve_high_speed_prefers_the_right_lane(tmp_path, capsys):
 
 def test_bench_solver_writes_json_rows(tmp_path):
     assert bench_solver.main(["--batches", "1,4", "--obstacles", "0,2", "--repeats", "2",
-                 "--devices", "cpu", "--variants", "eager,eager-warm10", "--environments", "3",
+                 "--devices", "cpu", "--variants", "eager,eager-warm10,eager-exit10", "--environments", "3",
                  "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "bench_solver.json").read_text())
     rows = report["rows"]
     assert {(r["batch"], r["obstacles"]) for r in rows} == {(1, 0), (4, 0), (1, 2), (4, 2)}
-    assert {(r["variant"], r["iterations"]) for r in rows} == {("eager", 100), ("eager-warm10", 10)}
-    assert all(r["time_vs_cold"] > 0 for r in rows if r["variant"] == "eager-warm10")
+    iterations = {(r["variant"], r["iterations"]) for r in rows if r["variant"] != "eager-exit10"}
+    assert iterations == {("eager", 100), ("eager-warm10", 10)}
+    # early exit: the mean over the elements, between the first check and the schedule
+    assert all(10 <= r["iterations"] <= 100 for r in rows if r["variant"] == "eager-exit10")
+    assert all(r["time_vs_cold"] > 0 for r in rows if r["variant"] in ("eager-warm10", "eager-exit10"))
     assert all(r["ms_median"] > 0 and r["ms_p90"] >= r["ms_median"] for r in rows)
     assert all(0 < r["roofline_fraction"] < 1 for r in rows)
     config = mmpc.OptimizerConfig()
@@ -53,6 +56,9 @@ def test_bad_arguments_exit_with_usage_error():
         bench_solver.main(["--batches", "a,b"])
     with pytest.raises(SystemExit):
         bench_solver.main(["--variants", "compiled-warm"])
+    for variant in ("compiled-exit", "compiled-exit10.x", "compiled-exit100"):
+        with pytest.raises(SystemExit):
+            bench_solver.main(["--variants", variant])
 
 
 def test_drive_on_the_batched_simulator_writes_the_episode_without_a_video(tmp_path, capsys):
