@@ -166,7 +166,7 @@ class ProposerDriver(Driver):
         acceleration, steering = plan.acceleration.clone(), plan.steering.clone()
         goal_index = slots.gather(1, selection.index[:, None]).squeeze(1)
         feasible_goals = plan.result.feasible.sum(dim=1)
-        iterations = plan.result.iterations.amax(dim=1)
+        iterations = plan.result.problem_iterations()
         fallback = ~selection.feasible
         plan_cost = selection.cost.clone()
         # what was considered, laid out over the full goal set (unsolved goals: NaN paths, infeasible)
@@ -184,7 +184,7 @@ class ProposerDriver(Driver):
             acceleration[rows], steering[rows] = full.acceleration, full.steering
             goal_index[rows] = full.selection.index
             feasible_goals[rows] = full.result.feasible.sum(dim=1)
-            iterations[rows] += full.result.iterations.amax(dim=1)
+            iterations[rows] += full.result.problem_iterations()
             fallback[rows] = ~full.selection.feasible
             plan_cost[rows] = full.selection.cost
             paths[rows] = torch.stack([full.result.trajectories.x, full.result.trajectories.y], dim=-1).to(paths.dtype)

@@ -334,20 +334,25 @@ class BatchOptimizer(nn.Module):
             return result
         num_goals = goals.shape[1]
         running = (~result.feasible).flatten().nonzero().squeeze(1)  # flat (problem, goal) indices
+        warm = WarmStart(*(field.flatten(0, 1)[running].unsqueeze(1) for field in result.warm))
+        stretches = []  # (R, 1) results of the elements ``running`` had then, in its order, and those indices
         for first, last in zip(bounds[:-1], bounds[1:]):
             if running.numel() == 0:
                 break
             # Whole tiles, then the rest (padded to a power of two): the tiler would pad every tile.
-            pieces = running.split(self.tile_size or running.numel())
-            running = running[:0]
-            for piece in pieces:
-                rows, columns = piece // num_goals, piece % num_goals
+            parts = []
+            for piece in torch.arange(running.numel(), device=running.device).split(self.tile_size or running.numel()):
+                rows, columns = running[piece] // num_goals, running[piece] % num_goals
                 elements = (ego[rows], goals[rows, columns].unsqueeze(1), obstacles[rows], mask[rows],
                             None if axes is None else axes[rows])
-                warm = WarmStart(*(field.flatten(0, 1)[piece].unsqueeze(1) for field in result.warm))
-                part = self._solve_compiled(*elements, warm, first, last, history, compiled)
-                result = result.replace_elements(part._replace(iterations=part.iterations + first), piece)
-                running = torch.cat([running, piece[~part.feasible[:, 0]]])
+                parts.append(self._solve_compiled(*elements, WarmStart(*(field[piece] for field in warm)), first, last,
+                                                  history, compiled))
+            stretch = SolveResult.concatenate(parts, dim=0)
+            stretches.append((stretch._replace(iterations=stretch.iterations + first), running))
+            going_on = ~stretch.feasible[:, 0]
+            running, warm = running[going_on], WarmStart(*(field[going_on] for field in stretch.warm))
+        for stretch, elements in stretches:  # later stretches overwrite the elements they ran on
+            result = result.replace_elements(stretch, elements)
         return result
 
     def _solve_warm(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,

@@ -148,6 +148,11 @@ class SolveResult(NamedTuple):
 
         return SolveResult._combine(parts, join)
 
+    def problem_iterations(self) -> torch.Tensor:
+        """(E,) long, the iterations each problem's goals ran, averaged over its goals (rounded):
+        the schedule's, fewer after a warm start or an early exit (``OptimizerConfig.exit_checks``)."""
+        return self.iterations.float().mean(dim=1).round().long()
+
     def replace_elements(self, part: "SolveResult", elements: torch.Tensor) -> "SolveResult":
         """A copy whose (problem, goal) elements ``elements`` (long, indices into the flattened
         (E, G)) are ``part``'s (R, 1) elements, in order; ``history``: ``part``'s iterations where it

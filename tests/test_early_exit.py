@@ -50,6 +50,9 @@ def test_an_element_feasible_at_a_check_stops_there_with_that_iterate(solves):
         torch.testing.assert_close(early.trajectories.y[stopped], solves[k].trajectories.y[stopped], **tolerance)
     first = iterations == CHECKS[0]
     assert torch.equal(first, solves[CHECKS[0]].feasible)  # every element feasible at the first check stops
+    # What drivers report per environment (Decision.iterations): the mean over its goals.
+    assert torch.equal(early.problem_iterations(), iterations.double().mean(dim=1).round().long())
+    assert bool((early.problem_iterations() < 100).all())
 
 
 def test_the_elements_that_run_on_end_as_the_whole_schedule_does(solves):

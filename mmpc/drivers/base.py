@@ -83,8 +83,8 @@ class Decision(NamedTuple):
         plan_cost: (E,) the chosen plan's meta cost as the driver ranked it (NaN: not applicable).
         candidates: what was considered, for videos; ``None`` when the driver plans nothing.
         plan: the MPC's full :class:`mmpc.Plan` (MPC drivers only).
-        iterations: (E,) long, optimizer iterations run for each environment's solve (warm
-            starts run fewer); ``None``: not reported.
+        iterations: (E,) long, optimizer iterations run for each environment's solve, the mean over
+            its candidates (warm starts and early exit run fewer); ``None``: not reported.
     """
 
     acceleration: torch.Tensor

@@ -97,7 +97,7 @@ class MPCDriver(Driver):
             plan_cost=plan.selection.cost,
             candidates=candidates,
             plan=plan,
-            iterations=plan.result.iterations.amax(dim=1),
+            iterations=plan.result.problem_iterations(),
         )
 
 
