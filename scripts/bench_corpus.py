@@ -18,6 +18,7 @@ Per scenario and setting it reports:
   ``max_heading_deviation - band`` [deg]
   (negative values: margin to spare); the optimizer's own tolerances allow up to
   ``obstacle_tolerance`` and ``acceleration_tolerance``;
+* the optimizer iterations per goal, mean (fewer than the schedule's with early exit, ``exit_checks``);
 * ms per state: the median over states of :attr:`mmpc.Scored.solve_ms` (the optimizer call),
   and, in a second row per setting (batch ``all``), one call over all states of the scenario
   (median of ``--repeats`` calls) divided by their count (its verdicts are counted again from
@@ -65,7 +66,7 @@ COLUMNS = (
     ("ours_feasible", "ours feas."), ("ipopt_feasible", "IPOPT feas."), ("both", "both"), ("ours_only", "ours only"),
     ("ipopt_only", "IPOPT only"), ("neither", "neither"), ("agreement", "agree"),
     ("max_obstacle_violation", "max obst. viol."), ("max_obstacle_violation_at_start", "… at t = 0"), ("max_acceleration_excess", "max acc. excess [m/s²]"),
-    ("max_heading_excess_deg", "max heading excess [deg]"), ("ms_per_state", "ms / state"),
+    ("max_heading_excess_deg", "max heading excess [deg]"), ("iterations_mean", "iter. / goal"), ("ms_per_state", "ms / state"),
 )
 
 
@@ -133,8 +134,8 @@ def obstacle_distance(scored: Scored, problem: ProblemBatch, ellipse: tuple[floa
 
 
 def verdicts(scored: Scored, problem: ProblemBatch, scenario: ScenarioConfig) -> dict[str, torch.Tensor]:
-    """(E, G) ours-feasible, the three constraint margins, the reported obstacle distance and the
-    status bits of every candidate."""
+    """(E, G) ours-feasible, the three constraint margins, the reported obstacle distance, the
+    status bits and the iterations of every candidate."""
     opt = scenario.optimizer
     result = scored.result
     distance = obstacle_distance(scored, problem, (opt.ellipse_a, opt.ellipse_b))  # (E, G, N)
@@ -146,6 +147,7 @@ def verdicts(scored: Scored, problem: ProblemBatch, scenario: ScenarioConfig) ->
         "heading_deg": torch.rad2deg(result.max_heading_deviation.to(torch.float64)) - opt.max_heading_deg,
         "reported_distance": result.min_obstacle_distance.to(torch.float64),
         "status": result.status,
+        "iterations": result.iterations,
     }
 
 
@@ -159,6 +161,7 @@ def tally(ours: torch.Tensor, ipopt: torch.Tensor, margins: dict[str, torch.Tens
         "ipopt_only": int((~ours & ipopt).sum()), "neither": int((~ours & ~ipopt).sum()),
     }
     counts["agreement"] = (counts["both"] + counts["neither"]) / max(counts["goals"], 1)
+    counts["iterations_mean"] = float(margins["iterations"].double().mean())  # per goal: fewer with early exit
 
     def largest(name: str) -> Optional[float]:
         values = margins[name].flatten()[ours]
