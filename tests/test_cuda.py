@@ -74,3 +74,18 @@ def test_compiled_cuda_graph_history_records_every_iteration():
     torch.testing.assert_close(history[-1, ..., 2], result.residual_nonholonomic)
     expected = mmpc.BatchOptimizer()(scene.problem, history=True).history
     torch.testing.assert_close(history[0].cpu(), expected[0], atol=1e-3, rtol=1e-3)  # first chunk kept
+
+
+def test_compiled_cuda_graph_early_exit_matches_cpu():
+    """Early exit on the graph path: the stretches after a check replay graphs of one goal per
+    problem (E rounded up to a captured size); the CPU's iterations and verdicts."""
+    config = mmpc.OptimizerConfig(exit_checks=(10, 30))
+    cpu = mmpc.BatchOptimizer(config)
+    gpu = mmpc.BatchOptimizer(config, device="cuda", compile=True)
+    for scene in synthetic_scenes(4, seed=5):
+        expected = cpu(scene.problem)
+        for _ in range(2):  # captured, then replayed
+            result = gpu(mmpc.ProblemBatch(*(t.cuda() for t in scene.problem[:3])))
+        assert torch.equal(result.iterations.cpu(), expected.iterations)
+        assert torch.equal(result.feasible.cpu(), expected.feasible)
+        torch.testing.assert_close(result.trajectories.x.cpu(), expected.trajectories.x, atol=2e-2, rtol=1e-4)
