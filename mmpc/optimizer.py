@@ -470,7 +470,8 @@ class BatchOptimizer(nn.Module):
         if compiled and self.device.type == "cuda":
             return self._replay(ego, goals, obstacles, mask, axes, warm, span, history, uniform)
         start = time.perf_counter()
-        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm, span=span)  # compiles the input layout too
+        # compiles the input layout too
+        prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm, span=span)
         if compiled:
             if layout not in self._compiled_layouts:
                 self._run(prepared, history)
