@@ -475,8 +475,9 @@ class OptimizerConfig:
         order: Bernstein polynomial order (K = order + 1 coefficients per axis).
         iterations: alternating-minimisation iterations of the schedule (every element's, without
             ``exit_checks``).
-        exit_checks: early exit: iterations after which the elements already feasible stop and
-            keep that iterate, the others run on to the next check and at most ``iterations``;
+        exit_checks: early exit: iterations after which the elements already feasible, and inside
+            the backed-off sets the iterations project onto (up to the tolerances), stop and keep
+            that iterate; the others run on to the next check and at most ``iterations``;
             strictly increasing, each in [1, iterations), multiples of 10 on the compiled CPU
             path (its unit of compiled iterations). Cold-started solves only (a warm start runs
             the schedule's tail). Empty: every element runs the whole schedule (the paper).

@@ -325,15 +325,14 @@ class BatchOptimizer(nn.Module):
     def _solve_cold(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                     axes: Optional[torch.Tensor], history: bool, compiled: bool) -> SolveResult:
         """From the cold start. With ``config.exit_checks``, the schedule runs in stretches between
-        the checks: after each, the elements not yet feasible go on from their iterates, as a
-        batch of one goal per problem (host synchronisations), and the others keep the iterate
-        they were feasible at."""
+        the checks: after each, the elements not yet :meth:`_settled` go on from their iterates, as
+        a batch of one goal per problem (host synchronisations), and the others keep that iterate."""
         bounds = [*self.config.exit_checks, self.config.iterations]
         result = self._solve_compiled(ego, goals, obstacles, mask, axes, None, 0, bounds[0], history, compiled)
         if len(bounds) == 1:
             return result
         num_goals = goals.shape[1]
-        running = (~result.feasible).flatten().nonzero().squeeze(1)  # flat (problem, goal) indices
+        running = (~self._settled(result)).flatten().nonzero().squeeze(1)  # flat (problem, goal) indices
         warm = WarmStart(*(field.flatten(0, 1)[running].unsqueeze(1) for field in result.warm))
         stretches = []  # (R, 1) results of the elements ``running`` had then, in its order, and those indices
         for first, last in zip(bounds[:-1], bounds[1:]):
@@ -349,11 +348,20 @@ class BatchOptimizer(nn.Module):
                                                   history, compiled))
             stretch = SolveResult.concatenate(parts, dim=0)
             stretches.append((stretch._replace(iterations=stretch.iterations + first), running))
-            going_on = ~stretch.feasible[:, 0]
+            going_on = ~self._settled(stretch)[:, 0]
             running, warm = running[going_on], WarmStart(*(field[going_on] for field in stretch.warm))
         for stretch, elements in stretches:  # later stretches overwrite the elements they ran on
             result = result.replace_elements(stretch, elements)
         return result
+
+    def _settled(self, result: SolveResult) -> torch.Tensor:
+        """(E, G) bool: feasible, and inside the sets the iterations project onto (the back-offs)
+        up to the tolerances, where the rest of the schedule would aim: an early exit stops only
+        these (a plan merely feasible early hugs the true constraints)."""
+        cfg = self.config
+        return (result.feasible
+                & (result.min_obstacle_distance >= 1.0 + cfg.obstacle_backoff - cfg.obstacle_tolerance)
+                & (result.max_acceleration <= cfg.a_max - cfg.acceleration_backoff + cfg.acceleration_tolerance))
 
     def _solve_warm(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                     axes: Optional[torch.Tensor], warm: WarmStart, first_iteration: int, history: bool,

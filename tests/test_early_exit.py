@@ -127,3 +127,16 @@ def test_replace_elements_keeps_the_history_where_the_part_did_not_run(solves):
     joined = early.replace_elements(part._replace(history=later), torch.tensor([0]))
     torch.testing.assert_close(joined.history[:50, 0, 0], early.history[:50, 0, 0], equal_nan=True)
     torch.testing.assert_close(joined.history[50:, 0, 0], later[50:, 0, 0], equal_nan=True)
+
+
+def test_with_back_offs_an_element_stops_only_inside_the_sets_the_iterations_aim_at(problem):
+    """A plan feasible at a check may still hug the true ellipses; with back-offs it runs on until
+    it also clears the larger ellipses and the smaller disc (up to the tolerances)."""
+    config = mmpc.OptimizerConfig(obstacle_backoff=0.05, acceleration_backoff=0.16)
+    check = 30
+    early = mmpc.BatchOptimizer(dataclasses.replace(config, exit_checks=(check,)))(problem)
+    at_check = mmpc.BatchOptimizer(dataclasses.replace(config, iterations=check))(problem)  # the same iterate
+    settled = (at_check.feasible & (at_check.min_obstacle_distance >= 1.05 - config.obstacle_tolerance)
+               & (at_check.max_acceleration <= config.a_max - 0.16 + config.acceleration_tolerance))
+    assert bool(settled.any()) and bool((at_check.feasible & ~settled).any())  # the problem exercises both
+    assert torch.equal(early.iterations == check, settled)
