@@ -28,10 +28,10 @@ import torch
 
 from mmpc.drivers import Candidates, Decision, Driver, Observation
 from mmpc.problem import EGO_PSI, EGO_PSIDOT, EGO_V, EGO_Y
-from mmpc.result import Trajectories
 
 if TYPE_CHECKING:
-    from mmpc.rl.safety import DecisionSolve, HeldPlan, SafePlan
+    from mmpc.rl.agent_step import AgentStep
+    from mmpc.rl.safety import DecisionSolve, SafePlan
     from mmpc.rl.train import TrainedRun
     from mmpc.scenario import ScenarioConfig
 
@@ -90,10 +90,11 @@ class SafeAgentDriver(Driver):
       the solve behind the observation's features) and the plan tracked over the agent step's
       other frames, solved again only where it is no longer safe (:meth:`SafetyLayer.frame`).
 
+    Both run the agent step of training (:class:`mmpc.rl.agent_step.AgentStep`), one frame per call.
     In decision mode a row that tracked its plan (or was solved again inside the layer) has no
     candidates to report: its decision row carries ``goal_index`` -1 and ``plan_cost`` NaN, with
     the layer's ``fallback`` and the ``feasible_goals`` of the solve behind the plan executed;
-    ``candidates`` and ``plan`` are given only when every row was decided at this frame.
+    ``candidates`` and ``plan`` are given only when every row executes one fresh plan.
 
     Args:
         run: the trained run (model, environment settings).
@@ -111,8 +112,7 @@ class SafeAgentDriver(Driver):
         self.config = run.config.env
         self.layer = SafetyLayer(build_mpc(scenario), self.config)
         self.period = scenario.period
-        self.hold = _Hold(self.config.decision_frames)
-        self.held: dict[int, "HeldPlan"] = {}  # replan: decision, one-row plans by environment id
+        self.steps: dict[int, tuple["AgentStep", int]] = {}  # environment id -> its agent step, its row in it
 
     @property
     def device(self) -> torch.device:
@@ -120,8 +120,7 @@ class SafeAgentDriver(Driver):
         return self.layer.device
 
     def reset(self, num_envs: int) -> None:
-        self.hold.clear()
-        self.held.clear()
+        self.steps.clear()
 
     def _choose(self, observation: Observation, due: list[int]) -> tuple[Observation, Optional["DecisionSolve"], torch.Tensor]:
         """The agent's new choice for the rows ``due``: their road-frame state, the decision solve
@@ -141,79 +140,51 @@ class SafeAgentDriver(Driver):
             return sub, solve, torch.as_tensor(np.asarray(actions, dtype=np.float32))
         return sub, solve, torch.as_tensor(np.asarray(actions).reshape(-1), dtype=torch.long)
 
-    def _commands(self, ego: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """(R, 2) goal commands of actions chosen at the egos ``ego`` (R, 6)."""
-        if self.continuous:
-            return self.layer.continuous_commands(ego, actions)
-        return self.layer.discrete_commands(ego, actions)
-
-    def _new_commands(self, observation: Observation, due: list[int]) -> torch.Tensor:
-        """``replan: frame``: the agent's new goal commands (len(due), 2) for the rows ``due``."""
-        sub, _, actions = self._choose(observation, due)
-        return self._commands(sub.ego, actions)
-
     def decide(self, observation: Observation) -> Decision:
-        if self.config.replan == "decision":
-            return self._decide_tracking(observation)
-        start = time.perf_counter()
-        ids = observation.ids().tolist()
-        commands = torch.stack(self.hold.refresh(ids, lambda due: self._new_commands(observation, due)))
-        safe = self.layer.plan(observation, commands)
-        return _plan_decision(safe, (time.perf_counter() - start) * 1e3 - safe.plan.compile_ms)
-
-    def _decide_tracking(self, observation: Observation) -> Decision:
-        """``replan: decision``: rows due for a decision get the agent's new plan, the others
-        track their held plans through :meth:`SafetyLayer.frame` at their frame of the agent step
-        (``now = frame / frequency``, as the environments). Rows run in step (they start
-        together), so each frame makes one layer call for all of them: at a decision the agent's
-        plan (discrete goals: picked from the features solve, no other), between decisions at
-        most one optimizer call for the rows solved again."""
+        """Rows whose agent step is over (or that have none) get the agent's new choice, one
+        :class:`mmpc.rl.agent_step.AgentStep` for all of them; then every row executes the next
+        frame of its step, one safety-layer call per step (rows start together, so normally one)."""
+        from mmpc.rl.agent_step import AgentStep
         from mmpc.rl.safety import observation_rows
 
         start = time.perf_counter()
         ids = observation.ids().tolist()
-        due = self.hold.due(ids)
-        decided: Optional["SafePlan"] = None
+        due = [row for row, env in enumerate(ids) if env not in self.steps or self.steps[env][0].over]
         compile_ms = 0.0
         if due:
             sub, solve, actions = self._choose(observation, due)
-            decided = self.layer.plan(sub, self._commands(sub.ego, actions)) if self.continuous else self.layer.decide(solve, actions)
-            compile_ms += decided.plan.compile_ms
-            for row, command in zip(due, decided.commands):
-                self.hold.set(ids[row], command)
-        frames = [self.hold.frames - self.hold.left[env] for env in ids]  # 0 for the rows just decided
-        self.hold.tick(ids)
-        commands = torch.stack([self.hold.values[env] for env in ids])
+            step = AgentStep.begin(self.layer, sub, actions, continuous=self.continuous, period=self.period, solve=solve)
+            if step.decided is not None:
+                compile_ms += step.decided.plan.compile_ms
+            for member, row in enumerate(due):
+                self.steps[ids[row]] = (step, member)
+        groups: dict[int, tuple["AgentStep", list[int], list[int]]] = {}  # id(step) -> step, rows, its members
+        for row, env in enumerate(ids):
+            step, member = self.steps[env]
+            group = groups.setdefault(id(step), (step, [], []))
+            group[1].append(row)
+            group[2].append(member)
         count, device = len(ids), self.device
-        dtype = self.layer.mpc.optimizer.dtype
-        acceleration = torch.zeros(count, dtype=dtype, device=device)
-        steering = torch.zeros(count, dtype=dtype, device=device)
-        fallback = torch.zeros(count, dtype=torch.bool, device=device)
-        feasible_goals = torch.full((count,), -1, dtype=torch.long, device=device)
-        for frame in sorted(set(frames)):
-            members = [row for row, f in enumerate(frames) if f == frame]
-            rows = torch.as_tensor(members, dtype=torch.long, device=device)
-            held = None if frame == 0 else _cat_held([self.held[ids[row]] for row in members])
-            control = self.layer.frame(observation_rows(observation, rows), commands[rows], frame * self.period, held,
-                                       decided if frame == 0 else None)
-            if frame > 0 and bool(control.solved.any()):
+        decision = Decision.command_only(torch.zeros(count, dtype=self.layer.mpc.optimizer.dtype, device=device),
+                                         torch.zeros(count, dtype=self.layer.mpc.optimizer.dtype, device=device), 0.0)
+        plans = []
+        for step, rows, members in groups.values():
+            index = torch.as_tensor(rows, dtype=torch.long, device=device)
+            control = step.frame(observation_rows(observation, index), torch.as_tensor(members, dtype=torch.long))
+            if step.frame_solved:
                 compile_ms += self.layer.mpc.optimizer.last_compile_ms
-            order = torch.arange(len(members), device=device)
-            for i, row in enumerate(members):
-                self.held[ids[row]] = control.held.take(order[i:i + 1])
-            acceleration[rows] = control.acceleration.to(acceleration.dtype)
-            steering[rows] = control.steering.to(steering.dtype)
-            fallback[rows] = control.fallback
-            feasible_goals[rows] = control.feasible_goals
+            decision.acceleration[index] = control.acceleration.to(decision.acceleration.dtype)
+            decision.steering[index] = control.steering.to(decision.steering.dtype)
+            decision.fallback[index] = control.fallback
+            decision.feasible_goals[index] = control.feasible_goals
+            if control.plan is not None:
+                decision.goal_index[index] = control.plan.plan.selection.index
+                decision.plan_cost[index] = control.plan.plan.selection.cost.to(decision.plan_cost.dtype)
+            plans.append(control.plan)
         solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
-        if decided is not None and len(due) == count:  # every row decided now: the whole plan
-            return _plan_decision(decided, solve_ms)
-        decision = Decision.command_only(acceleration, steering, solve_ms)._replace(fallback=fallback,
-                                                                                    feasible_goals=feasible_goals)
-        if decided is not None:
-            decision.goal_index[due] = decided.plan.selection.index
-            decision.plan_cost[due] = decided.plan.selection.cost.to(decision.plan_cost.dtype)
-        return decision
+        if len(plans) == 1 and plans[0] is not None:  # every row executes one fresh plan: the whole of it
+            return _plan_decision(plans[0], solve_ms)
+        return decision._replace(solve_ms=solve_ms)
 
 
 def _plan_decision(safe: "SafePlan", solve_ms: float) -> Decision:
@@ -232,15 +203,6 @@ def _plan_decision(safe: "SafePlan", solve_ms: float) -> Decision:
                               plan.selection.index, plan.problem.goals),
         plan=plan,
     )
-
-
-def _cat_held(plans: list["HeldPlan"]) -> "HeldPlan":
-    """Held plans of a few rows each -> one batch, in order (the inverse of :meth:`HeldPlan.take`)."""
-    from mmpc.rl.safety import HeldPlan
-
-    first = plans[0]
-    trajectory = Trajectories(first.trajectory.times, *(torch.cat(fields) for fields in zip(*(p.trajectory[1:] for p in plans))))
-    return HeldPlan(trajectory, *(torch.cat(fields) for fields in zip(*(p[1:] for p in plans))))
 
 
 class ContinuousActionDriver(Driver):

@@ -38,6 +38,7 @@ from mmpc.highway import HighwayEpisode, road_state
 from mmpc.config import from_dict
 from mmpc.rl.config import RL_SCENARIO, RewardConfig, SafeEnvConfig
 from mmpc.highway.kinematics import DeferredKinematics
+from mmpc.rl.agent_step import AgentStep, StepTally, run_agent_step
 from mmpc.rl.safety import FEATURES_PER_GOAL, SafetyLayer
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 
@@ -153,12 +154,11 @@ def check_action(action: Any, config: SafeEnvConfig, continuous: bool) -> Any:
     return int(action)
 
 
-def goal_commands(layer: SafetyLayer, ego: torch.Tensor, actions: Sequence[Any], continuous: bool) -> torch.Tensor:
-    """Checked actions (:func:`check_action`) -> (E, 2) goal commands (y [m], v [m/s]) at the egos ``ego`` (E, 6)."""
+def action_tensor(checked: Sequence[Any], continuous: bool) -> torch.Tensor:
+    """Checked actions (:func:`check_action`) -> (E, 2) float32 continuous goals or (E,) long goal indices."""
     if continuous:
-        return layer.continuous_commands(ego, torch.as_tensor(np.asarray(actions, dtype=np.float32)))
-    indices = [int(np.asarray(a).reshape(-1)[0]) for a in actions]
-    return layer.discrete_commands(ego, torch.as_tensor(indices, dtype=torch.long))
+        return torch.as_tensor(np.asarray(checked, dtype=np.float32))
+    return torch.as_tensor(checked, dtype=torch.long)
 
 
 class StepOutcome(NamedTuple):
@@ -276,10 +276,6 @@ class SafeHighwayEnv(gym.Env):
         """``action`` checked against the action space (:func:`check_action`)."""
         return check_action(action, self.config, self.continuous)
 
-    def commands(self, ego: torch.Tensor, actions: Sequence[Any]) -> torch.Tensor:
-        """Actions of this environment type -> (E, 2) goal commands at the egos ``ego`` (E, 6)."""
-        return goal_commands(self.layer, ego, actions, self.continuous)
-
     @staticmethod
     def _features(envs: Sequence["SafeHighwayEnv"]) -> tuple[list[Optional[np.ndarray]], float]:
         """Solver features of each environment's current state (one solve for all); ms of it."""
@@ -345,73 +341,49 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
             raise RuntimeError(f"environment {index}'s episode is over: call reset()")
     count = len(envs)
     config = envs[0].config
-    rewards = np.zeros(count)
-    speeds: list[list[float]] = [[] for _ in envs]
-    interventions = np.zeros(count, dtype=int)
-    fallbacks = np.zeros(count, dtype=int)
-    solved = np.zeros(count, dtype=int)
-    last: list[dict] = [{} for _ in envs]
-    solve_ms: list[float] = []
     observation = stack_observations([env.road_state() for env in envs], range(count))
-    decided = None
+    solve = None
     if config.replan == "decision" and not envs[0].continuous:  # the grid solve the observation's features came from
-        decided = layer.decide(layer.decision_solve(observation), torch.as_tensor(actions, dtype=torch.long))
-        commands = decided.commands
-        solve_ms.append(decided.plan.solve_ms)
-    else:
-        commands = envs[0].commands(observation.ego, actions)
-    period = 1.0 / envs[0].scenario.frequency
-    held, held_rows = None, list(range(count))
-    for frame in range(config.decision_frames):
-        active = [i for i, env in enumerate(envs) if not env.episode.done]
-        if not active:
-            break
-        if frame > 0:
-            observation = stack_observations([envs[i].road_state() for i in active], active)
-        if held is not None and len(active) < len(held_rows):
-            held = held.take(torch.as_tensor([i in active for i in held_rows]))
-        control = layer.frame(observation, commands[active], frame * period, held, decided if frame == 0 else None)
-        held, held_rows = control.held, active
-        control = control.host()  # highway-env steps one environment at a time: read the host copies
-        if bool(control.solved.any()) and not (frame == 0 and decided is not None):
-            solve_ms.append(control.solve_ms)
-        for row, i in enumerate(active):
-            env = envs[i]
-            env.episode.apply(float(control.acceleration[row]), float(control.steering[row]))
-            intervened = bool(control.intervention[row])
-            rewards[i] += frame_reward(env.episode, env.reward_config) - env.config.intervention_penalty * intervened
-            interventions[i] += intervened
-            fallbacks[i] += bool(control.fallback[row])
-            solved[i] += bool(control.solved[row])
-            speeds[i].append(float(env.episode.ego.speed))
-            residual = control.residuals[row].tolist()
-            last[i] = {
-                "feasible_goals": int(control.feasible_goals[row]),
-                "agent_feasible": bool(control.agent_feasible[row]),
-                "residuals": {"obstacle": residual[0], "acceleration": residual[1], "nonholonomic": residual[2]},
-            }
+        solve = layer.decision_solve(observation)
+    step = AgentStep.begin(layer, observation, action_tensor(actions, envs[0].continuous), continuous=envs[0].continuous,
+                           period=1.0 / envs[0].scenario.frequency, solve=solve)
+    tally = StepTally(count, layer.device, config.intervention_penalty)
+    if solve is not None:
+        tally.solve_ms.append(solve.scored.solve_ms)
+    run_agent_step(step, _EpisodesStepWorld(envs, layer.device), tally)
     features, features_ms = SafeHighwayEnv._features(envs)
-    if envs[0].config.solver_features:
-        solve_ms.append(features_ms)
-    mean_ms = float(np.mean(solve_ms)) if solve_ms else 0.0
-    goals = commands.tolist()  # one copy to the host
-    outcomes = []
-    for i, env in enumerate(envs):
-        episode = env.episode
-        crashed = bool(episode.ego.crashed)
-        info = {
-            "intervention": bool(interventions[i] > 0),
-            "intervention_frames": int(interventions[i]),
-            "fallback_frames": int(fallbacks[i]),
-            "solved_frames": int(solved[i]),
-            "frames": len(speeds[i]),
-            "solve_ms": WallTime(mean_ms),
-            "speed": float(episode.ego.speed),
-            "mean_speed": float(np.mean(speeds[i])),
-            "crashed": crashed,
-            "goal": tuple(goals[i]),
-            **last[i],
-        }
-        truncated = not crashed and episode.done
-        outcomes.append(StepOutcome(env.observation(features[i]), float(rewards[i]), crashed, truncated, info))
-    return outcomes
+    if config.solver_features:
+        tally.solve_ms.append(features_ms)
+    speed = torch.tensor([float(env.episode.ego.speed) for env in envs], dtype=torch.float64)
+    crashed = torch.tensor([bool(env.episode.ego.crashed) for env in envs])
+    rewards, infos = tally.infos(step.commands, speed, crashed, WallTime(float(np.mean(tally.solve_ms)) if tally.solve_ms else 0.0))
+    return [StepOutcome(env.observation(features[i]), float(rewards[i]), info["crashed"], not info["crashed"] and env.episode.done, info)
+            for i, (env, info) in enumerate(zip(envs, infos))]
+
+
+class _EpisodesStepWorld:
+    """highway-env episodes advanced together as the world of an agent step
+    (:class:`mmpc.rl.agent_step.StepWorld`); each steps on its own, from host copies of the commands."""
+
+    def __init__(self, envs: Sequence[SafeHighwayEnv], device: torch.device) -> None:
+        self.envs = envs
+        self.device = device
+
+    def running(self) -> torch.Tensor:
+        return torch.tensor([not env.episode.done for env in self.envs], device=self.device)
+
+    def observe(self, rows: torch.Tensor) -> Observation:
+        active = rows.tolist()
+        return stack_observations([self.envs[i].road_state() for i in active], active)
+
+    def apply(self, rows: torch.Tensor, acceleration: torch.Tensor, steering: torch.Tensor) -> None:
+        for i, a, s in zip(rows.tolist(), acceleration.tolist(), steering.tolist()):
+            self.envs[i].episode.apply(a, s)
+
+    def rewards(self, rows: torch.Tensor) -> torch.Tensor:
+        return torch.tensor([frame_reward(self.envs[i].episode, self.envs[i].reward_config) for i in rows.tolist()],
+                            dtype=torch.float64, device=self.device)
+
+    def speeds(self, rows: torch.Tensor) -> torch.Tensor:
+        return torch.tensor([float(self.envs[i].episode.ego.speed) for i in rows.tolist()], dtype=torch.float64,
+                            device=self.device)

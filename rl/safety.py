@@ -161,6 +161,8 @@ class FrameControl(NamedTuple):
         solved: (E,) bool, rows a solve served at this frame (the others tracked a held plan).
         solve_ms: wall time of this frame's optimizer call [ms] (0 without one).
         held: the plans to hold for the next frame.
+        plan: the plan every row executes when all of them execute a fresh one (``None`` where
+            some tracked a held plan).
     """
 
     acceleration: torch.Tensor
@@ -173,6 +175,7 @@ class FrameControl(NamedTuple):
     solved: torch.Tensor
     solve_ms: float
     held: HeldPlan
+    plan: Optional[SafePlan] = None
 
     def host(self) -> "FrameControl":
         """The per-environment fields (commands, flags, counts, residuals) on the CPU, one copy
@@ -440,7 +443,8 @@ class SafetyLayer:
                         plan.selection.feasible,
                         safe.intervention, safe.agent_feasible, safe.feasible_goals, residuals)
         return FrameControl(plan.acceleration, plan.steering, safe.intervention, safe.fallback, safe.agent_feasible,
-                            safe.feasible_goals, residuals, torch.ones(count, dtype=torch.bool, device=device), plan.solve_ms, held)
+                            safe.feasible_goals, residuals, torch.ones(count, dtype=torch.bool, device=device), plan.solve_ms, held,
+                            safe)
 
     def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan) -> FrameControl:
         """Track the held plans; solve again (one call) where they are no longer safe to follow."""

@@ -27,7 +27,8 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, Vec
 from mmpc.config import require_int
 from mmpc.drivers import Observation
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
-from mmpc.rl.envs import WallTime, action_space, check_action, goal_commands, observation_space, observation_vectors
+from mmpc.rl.agent_step import AgentStep, StepTally, run_agent_step
+from mmpc.rl.envs import WallTime, action_space, action_tensor, check_action, observation_space, observation_vectors
 from mmpc.rl.safety import DecisionSolve, SafetyLayer
 from mmpc.scenario import ScenarioConfig, batched_unsupported, build_mpc
 from mmpc.sim import SimEpisodes
@@ -162,57 +163,15 @@ class SafeSimBatch:
                 raise ValueError(f"environment {index}: {error}") from None
         if bool(self.sim.done.any()):
             raise RuntimeError(f"environments {self.sim.done.nonzero()[:, 0].tolist()} are over: reset them first")
-        count, device = self.num_envs, self.device
-        everyone = torch.arange(count, device=device)
-        decided = None
-        if self._decides_from_features_solve:
-            decided = self.layer.decide(self._decision, torch.as_tensor(checked, dtype=torch.long))
-            commands = decided.commands
-        else:
-            commands = goal_commands(self.layer, self._road_observation(everyone).ego, checked, self.continuous)
-        rewards = torch.zeros(count, dtype=torch.float64, device=device)
-        interventions = torch.zeros(count, dtype=torch.long, device=device)
-        fallbacks = torch.zeros(count, dtype=torch.long, device=device)
-        solved = torch.zeros(count, dtype=torch.long, device=device)
-        frames = torch.zeros(count, dtype=torch.long, device=device)
-        speed_sum = torch.zeros(count, dtype=torch.float64, device=device)
-        feasible_goals = torch.zeros(count, dtype=torch.long, device=device)
-        agent_feasible = torch.zeros(count, dtype=torch.bool, device=device)
-        residuals = torch.zeros(count, 3, dtype=torch.float64, device=device)
-        solve_ms: list[float] = []  # the decision's solve was timed at the end of the step before
-        period = 1.0 / self.scenario.frequency
-        held, held_rows = None, everyone
-        for frame in range(self.config.decision_frames):
-            running = ~self.sim.done
-            rows = running.nonzero()[:, 0]
-            if rows.numel() == 0:
-                break
-            if held is not None and rows.numel() < held_rows.numel():
-                held = held.take(torch.isin(held_rows, rows))
-            control = self.layer.frame(self._road_observation(rows), commands[rows], frame * period, held,
-                                       decided if frame == 0 else None)
-            held, held_rows = control.held, rows
-            if bool(control.solved.any()) and not (frame == 0 and decided is not None):
-                solve_ms.append(control.solve_ms)
-            command = torch.zeros(count, 2, dtype=self.sim.state.x.dtype, device=device)
-            command[rows] = torch.stack([control.acceleration, control.steering], dim=1).to(command.dtype)
-            self.sim.step(command, running)
-            rewards[rows] += self._frame_rewards()[rows] - self.config.intervention_penalty * control.intervention.double()
-            interventions[rows] += control.intervention.long()
-            fallbacks[rows] += control.fallback.long()
-            solved[rows] += control.solved.long()
-            frames[rows] += 1
-            speed_sum[rows] += self.sim.state.speed[rows, 0].double()
-            feasible_goals[rows] = control.feasible_goals
-            agent_feasible[rows] = control.agent_feasible
-            residuals[rows] = control.residuals.double()
-        # the step's tallies to the host: one copy of the counts and flags, one of the reals (exact in float64)
-        ended_crashed = self.sim.crashed
-        counts = torch.stack([interventions, fallbacks, solved, frames, feasible_goals, agent_feasible.long(),
-                              ended_crashed.long(), (self.sim.done & ~ended_crashed).long()], dim=1).cpu().numpy()
-        reals = torch.cat([rewards[:, None], self.sim.state.speed[:, :1].double(), (speed_sum / frames.clamp(min=1))[:, None],
-                           commands.double(), residuals], dim=1).cpu().numpy()
-        crashed, truncated = counts[:, 6].astype(np.bool_), counts[:, 7].astype(np.bool_)
+        everyone = torch.arange(self.num_envs, device=self.device)
+        step = AgentStep.begin(self.layer, self._road_observation(everyone), action_tensor(checked, self.continuous),
+                               continuous=self.continuous, period=1.0 / self.scenario.frequency,
+                               solve=self._decision if self._decides_from_features_solve else None)
+        tally = StepTally(self.num_envs, self.device, self.config.intervention_penalty)
+        run_agent_step(step, _SimStepWorld(self), tally)  # the decision's solve was timed at the end of the step before
+        solve_ms = tally.solve_ms
+        ended_crashed, speed = self.sim.crashed.clone(), self.sim.state.speed[:, 0].clone()  # before the resets
+        truncated = (self.sim.done & ~ended_crashed).cpu().numpy()
         finished = self.sim.done.nonzero()[:, 0]
         final: dict[int, np.ndarray] = {}
         reset_infos: dict[int, dict] = {}
@@ -229,18 +188,37 @@ class SafeSimBatch:
             solve_ms.append(self._decision.scored.solve_ms)
         for info in reset_infos.values():
             info["solve_ms"] = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
-        mean_ms = WallTime(float(np.mean(solve_ms)) if solve_ms else 0.0)
-        columns = zip(counts[:, 0].tolist(), counts[:, 1].tolist(), counts[:, 2].tolist(), counts[:, 3].tolist(),
-                      reals[:, 1].tolist(), reals[:, 2].tolist(), crashed.tolist(), reals[:, 3:5].tolist(),
-                      counts[:, 4].tolist(), counts[:, 5].astype(np.bool_).tolist(), reals[:, 5:].tolist())
-        infos = [{
-            "intervention": intervened > 0, "intervention_frames": intervened, "fallback_frames": fallback,
-            "solved_frames": solves, "frames": frame, "solve_ms": mean_ms, "speed": speed, "mean_speed": mean_speed,
-            "crashed": crash,
-            "goal": tuple(goal), "feasible_goals": feasible, "agent_feasible": own,
-            "residuals": {"obstacle": residual[0], "acceleration": residual[1], "nonholonomic": residual[2]},
-        } for intervened, fallback, solves, frame, speed, mean_speed, crash, goal, feasible, own, residual in columns]
-        return BatchStep(observations, reals[:, 0].copy(), crashed, truncated, infos, final, reset_infos)
+        rewards, infos = tally.infos(step.commands, speed, ended_crashed,
+                                     WallTime(float(np.mean(solve_ms)) if solve_ms else 0.0))
+        crashed = np.array([info["crashed"] for info in infos], dtype=np.bool_)
+        return BatchStep(observations, rewards, crashed, truncated, infos, final, reset_infos)
+
+
+class _SimStepWorld:
+    """A :class:`SafeSimBatch`'s simulator as the world of its agent steps (:class:`mmpc.rl.agent_step.StepWorld`)."""
+
+    def __init__(self, batch: SafeSimBatch) -> None:
+        self.batch = batch
+        self.sim = batch.sim
+
+    def running(self) -> torch.Tensor:
+        return ~self.sim.done
+
+    def observe(self, rows: torch.Tensor) -> Observation:
+        return self.batch._road_observation(rows)
+
+    def apply(self, rows: torch.Tensor, acceleration: torch.Tensor, steering: torch.Tensor) -> None:
+        running = torch.zeros(self.sim.num_envs, dtype=torch.bool, device=rows.device)
+        running[rows] = True
+        command = torch.zeros(self.sim.num_envs, 2, dtype=self.sim.state.x.dtype, device=rows.device)
+        command[rows] = torch.stack([acceleration, steering], dim=1).to(command.dtype)
+        self.sim.step(command, running)
+
+    def rewards(self, rows: torch.Tensor) -> torch.Tensor:
+        return self.batch._frame_rewards()[rows]
+
+    def speeds(self, rows: torch.Tensor) -> torch.Tensor:
+        return self.sim.state.speed[rows, 0].double()
 
 
 class SafeSimVecEnv(VecEnv):
