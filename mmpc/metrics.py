@@ -39,6 +39,9 @@ class StepRecord(NamedTuple):
             ego to another vehicle (inf without vehicles); < 1 is inside the safety ellipse.
         crashed: the ego had collided after this step's frame.
         on_road: the ego was on the road after this step's frame.
+        task_reward: highway-env's reward after this step's frame (``HighwayEnv``'s defaults:
+            collision -1, right lane 0.1, 0.4 over 20-30 m/s forward speed, normalised onto [0, 1]),
+            a task reward no driver's meta cost encodes (:func:`mmpc.sim.reward.highway_reward`).
     """
 
     step: int
@@ -64,6 +67,7 @@ class StepRecord(NamedTuple):
     clearance: float
     crashed: bool
     on_road: bool
+    task_reward: float
 
 
 #: Lane discipline: an ego farther than OFF_CENTRE from its nearest lane's centre is off-centre
@@ -112,7 +116,8 @@ def episode_metrics(
         ``collisions`` (0 or 1: an episode ends at the first one), ``offroad`` (steps off the
         road), ``steps``, ``duration`` [s], ``mean_speed`` [m/s], ``meta_cost_mean`` / ``_max``
         (over the driven states' meta cost terms),
-        ``plan_cost_mean`` (over the steps with a plan), ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
+        ``plan_cost_mean`` (over the steps with a plan), ``task_return`` (the sum of the steps'
+        ``task_reward``: an episode a collision ends earns no more), ``speed_residual_mean`` (mean (v - v_cruise)^2 [m^2/s^2], cruise only),
         ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
         [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``, ``iterations_mean`` (optimizer
         iterations per step; ``None`` where the driver reports none),
@@ -135,6 +140,7 @@ def episode_metrics(
         "meta_cost_mean": _mean([r.meta_cost for r in records]),
         "meta_cost_max": max(r.meta_cost for r in records),
         "plan_cost_mean": _mean([r.plan_cost for r in records if not math.isnan(r.plan_cost)]),  # steps with a plan
+        "task_return": sum(r.task_reward for r in records),
     }
     if v_cruise is not None:
         metrics["speed_residual_mean"] = _mean([(v - v_cruise) ** 2 for v in speeds])

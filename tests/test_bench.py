@@ -11,7 +11,7 @@ from mmpc.metrics import StepRecord
 
 def record(step, *, v, y, a, rate, solve_ms, meta_cost):
     return StepRecord(step, step * 0.1, 10.0 * step, y, 0.0, v, a, rate, 2, a, 0.0, 0, 0.0, 0.0, 5, False,
-                      meta_cost, meta_cost, solve_ms, -1, 2.0, False, True)
+                      meta_cost, meta_cost, solve_ms, -1, 2.0, False, True, 0.8)
 
 
 def test_summaries_are_mean_min_max_over_every_step_of_every_episode():

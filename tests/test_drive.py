@@ -1,6 +1,7 @@
 """Episode outputs, metrics and ``mmpc drive``."""
 
 import argparse
+import dataclasses
 import csv
 import json
 import math
@@ -23,7 +24,7 @@ REQUIRED_METRICS = {
 
 def record(step, *, y=8.0, v=15.0, a=0.0, rate=0.0, lane=2, crashed=False, on_road=True, fallback=False, iterations=100):
     return StepRecord(step, step * 0.1, 10.0 * step, y, 0.0, v, a, rate, lane, a, 0.0, 0, 0.0, 0.0, 5, fallback,
-                      float(step), float("nan"), 20.0 + step, iterations, 2.0, crashed, on_road)
+                      float(step), float("nan"), 20.0 + step, iterations, 2.0, crashed, on_road, 0.8)
 
 
 def test_episode_metrics_follow_their_definitions():
@@ -38,6 +39,7 @@ def test_episode_metrics_follow_their_definitions():
     assert metrics["lane_changes"] == 1 and metrics["offroad"] == 1 and metrics["fallback_steps"] == 1
     assert metrics["meta_cost_max"] == 2.0 and metrics["solve_ms_max"] == 22.0 and metrics["collisions"] == 0
     assert metrics["iterations_mean"] == 100
+    assert metrics["task_return"] == pytest.approx(3 * 0.8)
     assert "speed_residual_mean" not in episode_metrics(records, dt=0.1, right_lane_y=20.0)
     warm = [record(0), record(1, iterations=20), record(2, iterations=20)]
     assert episode_metrics(warm, dt=0.1, right_lane_y=20.0)["iterations_mean"] == pytest.approx(140 / 3)
@@ -52,6 +54,24 @@ def test_plan_cost_mean_is_over_the_steps_with_a_plan():
     records = [record(0)._replace(plan_cost=3.0), record(1), record(2)._replace(plan_cost=5.0)]
     assert episode_metrics(records, dt=0.1, right_lane_y=20.0)["plan_cost_mean"] == pytest.approx(4.0)
     assert math.isnan(episode_metrics([record(0)], dt=0.1, right_lane_y=20.0)["plan_cost_mean"])
+
+
+@pytest.mark.usefixtures("one_thread")
+@pytest.mark.parametrize("sim", ["highway-env", "batched"])
+def test_the_task_reward_is_highway_envs_reward_of_the_driven_states(sim):
+    """Each step's task reward is HighwayEnv's default reward of the state after its frame (the
+    next record's state), recomputed here: (1 + 0.1 lane / 5 + 0.4 clip((v cos(heading) - 20) / 10))
+    / 1.5 on the road without a collision (the body heading differs from the record's direction of
+    motion by the slip angle: cos of either within 1e-3 in lane keeping)."""
+    base = load_scenario("high_speed")
+    scenario = base.replace(duration=3.0, sim=sim, ego=dataclasses.replace(base.ego, speed=24.0))
+    result = run_episode(scenario, seed=3)
+    rewards = [r.task_reward for r in result.records]
+    after = [(1.0 + 0.1 * r.lane / 5 + 0.4 * min(max((r.v * math.cos(r.psi) - 20.0) / 10.0, 0.0), 1.0)) / 1.5
+             for r in result.records[1:]]
+    assert not any(r.crashed for r in result.records) and len(rewards) == 30
+    assert rewards[:-1] == pytest.approx(after, abs=1e-3)
+    assert result.metrics["task_return"] == pytest.approx(sum(rewards))
 
 
 @pytest.mark.usefixtures("one_thread")

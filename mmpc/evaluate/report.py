@@ -25,7 +25,7 @@ from mmpc.metrics import OFF_CENTRE
 
 #: Metrics averaged over episodes, with a confidence interval (``<key>_ci``).
 MEAN_METRICS = (
-    "mean_speed", "meta_cost_mean", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean",
+    "mean_speed", "meta_cost_mean", "task_return", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean",
     "lane_changes", "fallback_steps", "plan_cost_mean", "solve_ms_mean", "solve_ms_per_episode_mean",
     "iterations_mean", "off_centre_share", "lane_change_s_mean",
 )
@@ -40,6 +40,7 @@ TABLE = (
     ("offroad", "offroad steps", "{:d}"),
     ("mean_speed", "mean v [m/s]", "{:.2f}"),
     ("meta_cost_mean", "meta cost", "{:.3f}"),
+    ("task_return", "task return", "{:.1f}"),
     ("speed_residual_mean", "(v-v_c)^2 [m2/s2]", "{:.3f}"),
     ("right_lane_distance_mean", "right-lane dist [m]", "{:.2f}"),
     ("lin_acc_mean", "|a| [m/s2]", "{:.2f}"),

@@ -37,7 +37,7 @@ RUN_COLUMNS = ("status", "error", "group", "group_size", "worker", "wall_s")
 #: crash's scene (:data:`mmpc.collisions.CRASH_COLUMNS`; empty without a collision).
 METRIC_COLUMNS = (
     "steps", "duration", "collisions", "collision_part", "ego_fault_collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
-    "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
+    "task_return", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "iterations_mean", "lane_changes", "fallback_steps", "min_clearance",
     "off_centre_share", "lane_change_s_mean", *CRASH_COLUMNS,
 )

@@ -94,7 +94,7 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
             command_acceleration=command_a, command_steering=command_steering, goal_index=goal_index, goal_x=xy[0],
             goal_y=xy[1], feasible_goals=feasible, fallback=fallback, meta_cost=meta, plan_cost=plan_cost,
             solve_ms=decision.solve_ms, iterations=iterations, clearance=clearance, crashed=bool(episode.ego.crashed),
-            on_road=bool(episode.ego.on_road),
+            on_road=bool(episode.ego.on_road), task_reward=float(episode.reward),
         )
         for step, episode, (x, y, psi, v, a, psidot, lane, command_a, command_steering, goal_index, xy, feasible, fallback,
                             iterations, meta, plan_cost, clearance) in zip(steps, episodes, columns)
