@@ -13,6 +13,7 @@ import torch
 
 from mmpc.result import Trajectories
 from mmpc.road import Road
+from mmpc.task_reward import HighwayReward
 
 
 class MetaCost(Protocol):
@@ -77,3 +78,31 @@ class LaneChangeCost:
     def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
         lanes = road.lane_index(trajectories.y[..., -1]) - road.lane_index(trajectories.y[..., 0])
         return self.base(trajectories, road) + self.per_lane * lanes.abs().to(trajectories.y.dtype)
+
+
+@dataclass(frozen=True)
+class TaskRewardCost:
+    """``base`` re-weighted by highway-env's reward: ``base + weight * sum_t (1 - r_t)``, with
+    ``r_t`` :class:`mmpc.task_reward.HighwayReward` of the trajectory's state at t (forward speed
+    ``v cos(psi)``, its nearest lane, on the road, no collision), in [0, 1] per sample.
+
+    Attributes:
+        base: the driving objective.
+        weight: what a sample's lost task reward costs, in ``base``'s units per sample.
+        reward: the reward's terms (highway-env's defaults).
+    """
+
+    base: MetaCost
+    weight: float
+    reward: HighwayReward = HighwayReward()
+
+    def __post_init__(self) -> None:
+        if not self.weight >= 0:
+            raise ValueError(f"`weight` must be >= 0 (meta-cost units per sample); got {self.weight}")
+
+    def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
+        forward_speed = trajectories.v * torch.cos(trajectories.psi)
+        lane_share = road.lane_index(trajectories.y).to(forward_speed.dtype) / max(road.num_lanes - 1, 1)
+        no = torch.zeros((), dtype=torch.bool, device=forward_speed.device)
+        reward = self.reward(forward_speed, lane_share, no, ~no)
+        return self.base(trajectories, road) + self.weight * (1.0 - reward).sum(dim=-1)

@@ -28,7 +28,7 @@ from mmpc.configs import shipped_config_dir
 from mmpc.device import run_device
 from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
-from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost, MetaCost
+from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost, MetaCost, TaskRewardCost
 from mmpc.mpc import MPC, MPCConfig
 from mmpc.optimizer import COMPILE_ENV, BatchOptimizer
 from mmpc.road import Road
@@ -89,6 +89,8 @@ class CruiseObjective:
         lane_change_cost: added to a candidate's meta cost per lane it changes
             (:class:`mmpc.meta_costs.LaneChangeCost`, hysteresis on the lane) [(m/s)^2 summed
             over the horizon]; 0: the paper's meta cost.
+        task_reward_weight: re-weights the ranking by highway-env's reward
+            (:class:`mmpc.meta_costs.TaskRewardCost`) [(m/s)^2 per sample of lost reward]; 0: the paper's.
     """
 
     kind: ClassVar[str] = "cruise"
@@ -96,12 +98,13 @@ class CruiseObjective:
     near_lane_speeds: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0)
     near_lanes: Optional[int] = 2
     lane_change_cost: float = 0.0
+    task_reward_weight: float = 0.0
 
     def __post_init__(self) -> None:
         require_field_types(self)
         require_positive("objective cruise", v_cruise=self.v_cruise)
         _near_lane_goals("objective cruise", self.near_lane_speeds, self.near_lanes)
-        require_non_negative("objective cruise", lane_change_cost=self.lane_change_cost)
+        require_non_negative("objective cruise", lane_change_cost=self.lane_change_cost, task_reward_weight=self.task_reward_weight)
 
     @property
     def reference_speed(self) -> float:
@@ -120,7 +123,7 @@ class CruiseObjective:
         return NearLaneGoals(lanes, speeds=self.near_lane_speeds, horizon=horizon, lanes_around=self.near_lanes)
 
     def meta_cost(self) -> MetaCost:
-        return _with_lane_changes(CruiseCost(self.v_cruise), self.lane_change_cost)
+        return _ranked(CruiseCost(self.v_cruise), self.lane_change_cost, self.task_reward_weight)
 
     def stage_cost(self, v: float, y: float, road: Road) -> float:
         """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""
@@ -148,6 +151,8 @@ class HighSpeedObjective:
             ``None``: on every lane.
         lane_change_cost: added to a candidate's meta cost per lane it changes
             (:class:`mmpc.meta_costs.LaneChangeCost`); 0: the paper's meta cost.
+        task_reward_weight: re-weights the ranking by highway-env's reward
+            (:class:`mmpc.meta_costs.TaskRewardCost`) [meta-cost units per sample of lost reward]; 0: the paper's.
     """
 
     kind: ClassVar[str] = "high_speed"
@@ -161,12 +166,14 @@ class HighSpeedObjective:
     near_lane_speeds: tuple[float, ...] = (4.0, 8.0, 12.0, 16.0, 20.0, 22.0, 24.0)
     near_lanes: Optional[int] = 1
     lane_change_cost: float = 0.0
+    task_reward_weight: float = 0.0
 
     def __post_init__(self) -> None:
         require_field_types(self)
         require_positive("objective high_speed", v_max=self.v_max, w_speed=self.w_speed, w_lane=self.w_lane)
         _near_lane_goals("objective high_speed", self.near_lane_speeds, self.near_lanes)
-        require_non_negative("objective high_speed", lane_change_cost=self.lane_change_cost)
+        require_non_negative("objective high_speed", lane_change_cost=self.lane_change_cost,
+                             task_reward_weight=self.task_reward_weight)
         self._layout()  # validates the layout fields
 
     @property
@@ -189,16 +196,18 @@ class HighSpeedObjective:
         return NearLaneGoals(self._layout(), speeds=self.near_lane_speeds, horizon=horizon, lanes_around=self.near_lanes)
 
     def meta_cost(self) -> MetaCost:
-        return _with_lane_changes(HighSpeedCost(self.v_max, self.w_speed, self.w_lane), self.lane_change_cost)
+        return _ranked(HighSpeedCost(self.v_max, self.w_speed, self.w_lane), self.lane_change_cost, self.task_reward_weight)
 
     def stage_cost(self, v: float, y: float, road: Road) -> float:
         """The meta cost's term at one driven state (speed ``v`` [m/s], lateral ``y`` [m])."""
         return self.w_speed * (v - self.v_max) ** 2 + self.w_lane * (y - road.right_lane_y) ** 2
 
 
-def _with_lane_changes(cost: MetaCost, per_lane: float) -> MetaCost:
-    """``cost`` with :class:`mmpc.meta_costs.LaneChangeCost` where ``per_lane`` > 0."""
-    return LaneChangeCost(cost, per_lane) if per_lane > 0 else cost
+def _ranked(cost: MetaCost, per_lane: float, task_reward_weight: float) -> MetaCost:
+    """``cost`` with :class:`mmpc.meta_costs.LaneChangeCost` where ``per_lane`` > 0, then
+    :class:`mmpc.meta_costs.TaskRewardCost` where ``task_reward_weight`` > 0."""
+    cost = LaneChangeCost(cost, per_lane) if per_lane > 0 else cost
+    return TaskRewardCost(cost, task_reward_weight) if task_reward_weight > 0 else cost
 
 
 Objective = Union[CruiseObjective, HighSpeedObjective]

@@ -22,6 +22,7 @@ from typing import Any, ClassVar, Mapping, Optional
 
 from mmpc.config import is_finite_number, require, require_int, require_non_negative, require_positive
 from mmpc.scenario import ScenarioConfig, load_scenario
+from mmpc.task_reward import HighwayReward
 from mmpc.tracking import TrackingConfig
 
 #: When the safety layer solves: at every simulation frame, or at the agent's decisions (tracking between).
@@ -70,10 +71,7 @@ REWARD_SOURCES = ("highway", "meta_cost")
 class RewardConfig:
     """The reward, computed at every simulation frame and summed over an agent step.
 
-    ``source: highway`` is highway-env's: ``r = collision_reward * crashed + right_lane_reward *
-    lane / (lanes - 1) + high_speed_reward * clip((v cos(heading) - low) / (high - low), 0, 1)``,
-    mapped from ``[collision_reward, high_speed_reward + right_lane_reward]`` onto [0, 1] when
-    ``normalize``, times 0 off the road.
+    ``source: highway`` is highway-env's (:class:`mmpc.task_reward.HighwayReward` with these terms).
 
     ``source: meta_cost`` is what the MPC expert ranks by: ``r = 1 - c / meta_cost_scale`` with
     ``c`` the scenario's meta cost term at the ego's state (``objective.stage_cost``, e.g. high
@@ -119,6 +117,11 @@ class RewardConfig:
         """``source: meta_cost``'s reward of states with meta cost terms ``cost``: floats, or tensors
         of one shape with ``crashed`` and ``on_road`` as 0/1 of the same dtype."""
         return (self.collision_reward * crashed + (1 - crashed) * (1 - cost / self.meta_cost_scale)) * on_road
+
+    def highway_terms(self) -> HighwayReward:
+        """``source: highway``'s reward terms (:class:`mmpc.task_reward.HighwayReward`)."""
+        return HighwayReward(self.collision_reward, self.right_lane_reward, self.high_speed_reward, self.reward_speed_range,
+                             self.normalize)
 
     def highway_env_config(self) -> dict:
         """highway-env's reward (``source: highway``) as highway-env configuration keys."""

@@ -52,16 +52,10 @@ def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
     ego = episode.ego
     if reward.source == "meta_cost":
         return vehicle_meta_cost_reward(ego, episode.scenario, reward)
-    lanes = max(episode.scenario.lanes - 1, 1)
     lane = int(ego.lane_index[2]) if ego.lane_index is not None else 0
-    low, high = reward.reward_speed_range
-    forward = float(ego.speed * np.cos(ego.heading))
-    scaled = float(np.clip((forward - low) / (high - low), 0.0, 1.0))
-    value = reward.collision_reward * float(ego.crashed) + reward.right_lane_reward * lane / lanes + reward.high_speed_reward * scaled
-    if reward.normalize:
-        best = reward.high_speed_reward + reward.right_lane_reward
-        value = (value - reward.collision_reward) / (best - reward.collision_reward)
-    return value * float(ego.on_road)
+    state = torch.tensor([ego.speed * np.cos(ego.heading), lane / max(episode.scenario.lanes - 1, 1), ego.crashed, ego.on_road],
+                         dtype=torch.float64)
+    return float(reward.highway_terms()(*state))
 
 
 def vehicle_meta_cost_reward(ego: Any, scenario: ScenarioConfig, reward: RewardConfig) -> float:

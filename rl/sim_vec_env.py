@@ -127,9 +127,7 @@ class SafeSimBatch:
             ego_speed, ego_y = state.speed[:, 0].double(), state.y[:, 0].double()
             cost = self.scenario.objective.stage_cost(ego_speed, ego_y, self.scenario.road)
             return reward.meta_cost_reward(cost, state.crashed[:, 0].double(), on_road(state.y[:, 0], self.sim.config).double())
-        return highway_reward(state, self.sim.config, collision_reward=reward.collision_reward,
-                              right_lane_reward=reward.right_lane_reward, high_speed_reward=reward.high_speed_reward,
-                              reward_speed_range=reward.reward_speed_range, normalize=reward.normalize).double()
+        return highway_reward(state, self.sim.config, reward.highway_terms()).double()
 
     def reset(self, seeds: Sequence[Optional[int]]) -> tuple[np.ndarray, list[dict]]:
         """Start every environment (``None`` seeds drawn); ``(observations (E, size), infos)``."""
