@@ -113,6 +113,9 @@ class SafeAgentDriver(Driver):
         self.layer = SafetyLayer(build_mpc(scenario), self.config)
         self.period = scenario.period
         self.steps: dict[int, tuple["AgentStep", int]] = {}  # environment id -> its agent step, its row in it
+        #: frames the layer overrode the agent (another candidate or the fallback drove), per
+        #: environment id since the last reset
+        self.intervention_frames: dict[int, int] = {}
 
     @property
     def device(self) -> torch.device:
@@ -121,6 +124,7 @@ class SafeAgentDriver(Driver):
 
     def reset(self, num_envs: int) -> None:
         self.steps.clear()
+        self.intervention_frames = dict.fromkeys(range(num_envs), 0)
 
     def _choose(self, observation: Observation, due: list[int]) -> tuple[Observation, Optional["DecisionSolve"], torch.Tensor]:
         """The agent's new choice for the rows ``due``: their road-frame state, the decision solve
@@ -177,6 +181,8 @@ class SafeAgentDriver(Driver):
             decision.steering[index] = control.steering.to(decision.steering.dtype)
             decision.fallback[index] = control.fallback
             decision.feasible_goals[index] = control.feasible_goals
+            for row, intervened in zip(rows, control.intervention.tolist()):
+                self.intervention_frames[ids[row]] = self.intervention_frames.get(ids[row], 0) + intervened
             if control.plan is not None:
                 decision.goal_index[index] = control.plan.plan.selection.index
                 decision.plan_cost[index] = control.plan.plan.selection.cost.to(decision.plan_cost.dtype)

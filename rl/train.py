@@ -35,8 +35,9 @@ import yaml
 
 from mmpc.config import from_dict, require_int, to_dict
 from mmpc.files import OutputFolderError, exclusive
+from mmpc.highway.runner import Observer, Step
 from mmpc.rl.config import ALGORITHMS, RLConfig
-from mmpc.rl.envs import vehicle_meta_cost_reward
+from mmpc.rl.envs import frame_reward, vehicle_meta_cost_reward
 
 logger = logging.getLogger(__name__)
 
@@ -152,6 +153,9 @@ def evaluate(
 ) -> dict:
     """Run one episode per seed with a policy and summarize them (:func:`summarize`), in
     highway-env, the reference world, whichever world the agent trained in (``scenario.sim``).
+    A safe agent drives through mmpc's one episode loop (:func:`mmpc.highway.runner.run_lockstep`)
+    as :class:`mmpc.rl.driver.SafeAgentDriver`, its reward and speed counted after every frame
+    as in training; a plain agent drives highway-env's own environment with its own actions.
 
     Args:
         policy: ``observations (B, obs) -> actions (B, ...)`` (e.g. a model's deterministic
@@ -173,34 +177,22 @@ def evaluate(
     rows: list[EpisodeRow] = []
     if env_kind == "safe":
         from mmpc.evaluate.tasks import lockstep_groups
-        from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
-        from mmpc.rl.safety import SafetyLayer
-        from mmpc.scenario import build_mpc
+        from mmpc.highway.runner import run_lockstep
+        from mmpc.rl.driver import SafeAgentDriver
 
-        layer = SafetyLayer(build_mpc(config.scenario), config.env)
-        envs = [SafeHighwayEnv(config.scenario, config.env, config.reward, continuous=continuous, layer=layer)
-                for _ in range(min(lockstep, len(seeds)))]
-        try:
-            for chunk in lockstep_groups(seeds, lockstep).values():
-                running = envs[:len(chunk)]
-                observations = [obs for obs, _ in reset_many(running, chunk)]
-                stats = [_EpisodeStats(seed) for seed in chunk]
-                active = list(range(len(chunk)))
-                while active:
-                    actions = policy(np.stack([observations[i] for i in active]))
-                    outcomes = advance([running[i] for i in active], list(actions))
-                    for i, outcome in zip(active, outcomes):
-                        observations[i] = outcome.observation
-                        stats[i].add(outcome.reward, outcome.info)
-                    finished = [i for i, o in zip(active, outcomes) if o.terminated or o.truncated]
-                    for i in finished:
-                        rows.append(stats[i].row())
-                        if on_episode is not None:
-                            on_episode(rows[-1])
-                    active = [i for i in active if i not in finished]
-        finally:
-            for env in envs:
-                env.close()
+        scenario = config.scenario.replace(sim="highway-env")
+        driver = SafeAgentDriver(TrainedRun(_PolicyModel(policy), "policy", "safe", continuous, config), scenario)
+        tally = _FrameTally(config)
+        for chunk in lockstep_groups(seeds, lockstep).values():
+            for index, (seed, result) in enumerate(zip(chunk, run_lockstep(scenario, chunk, driver=driver, observers=[tally]))):
+                frames = len(result.records)
+                intervened = driver.intervention_frames[index]
+                rows.append(EpisodeRow(seed, bool(result.metrics["collisions"]),
+                                       tally.rewards[index] - config.env.intervention_penalty * intervened,
+                                       tally.speeds[index] / frames, math.ceil(frames / config.env.decision_frames), frames,
+                                       intervened))
+                if on_episode is not None:
+                    on_episode(rows[-1])
     else:
         env = make_highway_env(config, continuous=continuous)
         try:
@@ -220,6 +212,34 @@ def evaluate(
             env.close()
     rows.sort(key=lambda r: seeds.index(r.seed))
     return summarize(rows, safe=env_kind == "safe")
+
+
+class _PolicyModel:
+    """A policy ``observations -> actions`` as the ``predict`` of a stable-baselines3 model."""
+
+    def __init__(self, policy: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.policy = policy
+
+    def predict(self, observations: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return self.policy(observations), None
+
+
+class _FrameTally(Observer):
+    """Sums, per environment, the RL reward (:func:`mmpc.rl.envs.frame_reward`) and the ego's
+    speed after every frame, as the safe environments count them."""
+
+    def __init__(self, config: RLConfig) -> None:
+        self.reward = config.reward
+        self.rewards: list[float] = []
+        self.speeds: list[float] = []
+
+    def start(self, episodes: Sequence[Any]) -> None:
+        self.rewards = [0.0] * len(episodes)
+        self.speeds = [0.0] * len(episodes)
+
+    def applied(self, step: Step) -> None:
+        self.rewards[step.index] += frame_reward(step.episode, self.reward)
+        self.speeds[step.index] += float(step.episode.ego.speed)
 
 
 class _EpisodeStats:

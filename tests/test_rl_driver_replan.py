@@ -155,15 +155,18 @@ def test_the_driver_drives_two_agent_steps_as_the_training_environment(replan, c
     world = BatchedWorld(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
     active = list(range(len(SEEDS)))
+    interventions = [0] * len(SEEDS)
     for _ in range(2):
         step = batch.advance(actions)
         assert not step.terminated.any() and not step.truncated.any()
+        interventions = [total + info["intervention_frames"] for total, info in zip(interventions, step.infos)]
         for _ in range(smoke.env.decision_frames):
             observation, _ = world.observe(active)
             decision = driver.decide(observation)
             world.apply(active, decision.acceleration, decision.steering)
         for name in ("x", "y", "heading", "speed"):
             assert torch.equal(getattr(world.sim.state, name)[:, 0], getattr(batch.sim.state, name)[:, 0]), name
+    assert [driver.intervention_frames[i] for i in active] == interventions
 
 
 def test_the_runner_records_a_decision_mode_episode(smoke):
