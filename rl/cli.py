@@ -91,7 +91,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from mmpc.cli.arguments import apply_compile
     from mmpc.config import with_overrides
     from mmpc.rl.config import require_same_agent_inputs
-    from mmpc.rl.train import evaluate_run, load_run
+    from mmpc.rl.runs import load_run
+    from mmpc.rl.train import evaluate_run
 
     apply_compile(args.compile)
     run = load_run(args.model)

@@ -32,7 +32,7 @@ from mmpc.problem import EGO_PSI, EGO_PSIDOT, EGO_V, EGO_Y
 if TYPE_CHECKING:
     from mmpc.rl.agent_step import AgentStep
     from mmpc.rl.safety import DecisionSolve, SafePlan
-    from mmpc.rl.train import TrainedRun
+    from mmpc.rl.runs import TrainedRun
     from mmpc.scenario import ScenarioConfig
 
 
@@ -380,7 +380,7 @@ def _stand_in_run(scenario: "ScenarioConfig", config: Optional[str], **env_setti
 
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
-    from mmpc.rl.train import TrainedRun, recorded_config
+    from mmpc.rl.runs import TrainedRun, recorded_config
 
     run_config = (recorded_config(config) if config else None) or load_config(RLConfig, config or None)
     run_config = dataclasses.replace(run_config, scenario=scenario, env=dataclasses.replace(run_config.env, **env_settings))
@@ -415,9 +415,9 @@ def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:
     Args:
         scenario: the scenario to drive.
         path: ``model.zip`` (or a checkpoint) of a run written by ``mmpc rl train``, or the name
-            of a shipped agent (:func:`mmpc.rl.train.shipped_models`).
+            of a shipped agent (:func:`mmpc.rl.runs.shipped_models`).
     """
-    from mmpc.rl.train import load_run
+    from mmpc.rl.runs import load_run
 
     if not path:
         raise ValueError("driver 'sb3' needs a model: sb3:RUN/model.zip or a shipped agent's name")

@@ -19,7 +19,6 @@ one holding anything (an earlier run's files would be replaced or mixed with the
 from __future__ import annotations
 
 import contextlib
-import importlib
 import inspect
 import json
 import logging
@@ -33,11 +32,12 @@ import numpy as np
 import torch
 import yaml
 
-from mmpc.config import from_dict, require_int, to_dict
+from mmpc.config import require_int, to_dict
 from mmpc.files import OutputFolderError, exclusive
 from mmpc.highway.runner import Observer, Step
 from mmpc.rl.config import ALGORITHMS, RLConfig
 from mmpc.rl.envs import frame_reward, vehicle_meta_cost_reward
+from mmpc.rl.runs import ALGORITHM_CLASSES, TrainedRun, algorithm_class
 
 logger = logging.getLogger(__name__)
 
@@ -45,15 +45,6 @@ logger = logging.getLogger(__name__)
 ENV_KINDS = ("safe", "highway")
 #: The lock file a training run holds in its folder (:func:`mmpc.files.exclusive`).
 RUN_LOCK = ".train.lock"
-#: stable-baselines3 classes by algorithm name.
-ALGORITHM_CLASSES = {"dqn": "DQN", "ppo": "PPO", "sac": "SAC"}
-
-
-def algorithm_class(algo: str) -> type:
-    """The stable-baselines3 class of ``algo`` (``dqn``, ``ppo``, ``sac``)."""
-    if algo not in ALGORITHM_CLASSES:
-        raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHM_CLASSES)}")
-    return getattr(importlib.import_module("stable_baselines3"), ALGORITHM_CLASSES[algo])
 
 
 # ----------------------------------------------------------------------------------- plain baseline
@@ -435,58 +426,3 @@ def evaluate_run(model: Any, config: RLConfig, *, env_kind: str, continuous: boo
 
     return evaluate(policy, config, env_kind=env_kind, continuous=continuous, seeds=seeds,
                     lockstep=config.train.eval_envs, on_episode=on_episode)
-
-
-class TrainedRun(NamedTuple):
-    """A trained run read back: the model and how it was trained."""
-
-    model: Any
-    algo: str
-    env_kind: str
-    continuous: bool
-    config: RLConfig
-
-
-#: Trained agents shipped with mmpc: ``models/<name>/`` beside this module (model.zip, config.yaml).
-SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
-
-
-def shipped_models() -> list[str]:
-    """Names of the shipped agents (``sb3:NAME`` drives one)."""
-    return sorted(p.parent.name for p in SHIPPED_MODELS.glob("*/model.zip"))
-
-
-def recorded_config(path: str | Path) -> Optional[RLConfig]:
-    """The RL config a training run recorded, given its folder or its ``config.yaml``; ``None``
-    where ``path`` is neither (e.g. a plain RL config file)."""
-    path = Path(path)
-    path = path / "config.yaml" if path.is_dir() else path
-    if not path.is_file():
-        return None
-    try:
-        record = yaml.safe_load(path.read_text())
-    except yaml.YAMLError:
-        return None
-    if not (isinstance(record, dict) and {"algo", "config"} <= set(record)):
-        return None
-    return from_dict(RLConfig, record["config"], where=f"{path}: config")
-
-
-def load_run(path: str | Path) -> TrainedRun:
-    """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
-    (the model's folder or the one above, for checkpoints); or a shipped agent by name
-    (:func:`shipped_models`) where no such file exists."""
-    path = Path(path)
-    if not path.is_file() and str(path) in shipped_models():
-        path = SHIPPED_MODELS / str(path) / "model.zip"
-    if not path.is_file():
-        raise FileNotFoundError(f"no model file {path} (shipped agents: {', '.join(shipped_models()) or 'none'})")
-    for folder in (path.parent, path.parent.parent):
-        if (folder / "config.yaml").is_file():
-            run = yaml.safe_load((folder / "config.yaml").read_text())
-            break
-    else:
-        raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc rl train`?")
-    config = from_dict(RLConfig, run["config"], where=f"{folder / 'config.yaml'}: config")
-    model = algorithm_class(run["algo"]).load(str(path), device="cpu")
-    return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)

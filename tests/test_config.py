@@ -238,7 +238,7 @@ def test_no_shipped_file_restates_the_defaults():
     assert not (ROOT / "configs" / "optimizer").exists() and not (ROOT / "configs" / "imitation").exists()
     defaults = to_dict(RLConfig())
     shipped = sorted(shipped_config_dir("rl").glob("*.yaml"))
-    assert [p.stem for p in shipped] == ["high_speed", "smoke"]
+    assert [p.stem for p in shipped] == ["cruise_task", "high_speed", "high_speed_task", "smoke"]
     for path in shipped:  # every value a recipe sets (the scenario aside) differs from the default
         for section, values in yaml.safe_load(path.read_text()).items():
             if section in ("scenario", "algorithms"):

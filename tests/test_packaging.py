@@ -67,7 +67,7 @@ def test_wheel_ships_every_config(installed_wheel):
 
 
 def test_wheel_ships_the_trained_agents(installed_wheel):
-    from mmpc.rl.train import SHIPPED_MODELS, shipped_models
+    from mmpc.rl.runs import SHIPPED_MODELS, shipped_models
 
     assert shipped_models()
     for name in shipped_models():

@@ -14,7 +14,7 @@ import torch
 import yaml
 
 import mmpc.rl
-import mmpc.rl.train
+import mmpc.rl.runs
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
 from mmpc.highway import HighwayEpisode
@@ -218,7 +218,8 @@ def test_rl_command_lines_reject_bad_arguments(capsys, tmp_path):
 def test_ppo_and_sac_train_on_their_action_spaces(algo, smoke, tmp_path, one_thread):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from mmpc.rl.train import load_run, train
+    from mmpc.rl.runs import load_run
+    from mmpc.rl.train import train
 
     out = tmp_path / algo
     assert train(smoke, algo, 16, out, seed=0, evaluate_after=False) == {}
@@ -294,7 +295,7 @@ def test_an_old_rl_yaml_with_an_inline_scenario_still_loads(tmp_path):
 def test_the_config_an_old_trained_run_recorded_still_loads(tmp_path, caplog):
     """rl/train.py wrote config.yaml with RLConfig.to_dict(): the scenario inline, with the
     mpc.compile and mpc.wheelbase keys of then; load_run reads it (warning about the retired keys)."""
-    from mmpc.rl.train import load_run
+    from mmpc.rl.runs import load_run
 
     old = yaml.safe_load(OLD_SAFE_HIGHWAY)
     old["scenario"]["mpc"].update(wheelbase=5.0, compile="auto", obstacle_lookahead=3.0, prediction="lanes")
@@ -364,12 +365,12 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_elsewhe
     assert not (tmp_path / "run").exists()
     # the shipped recipe starts PPO at the expert; it reproduces the shipped agent's settings
     recipe = load_config(RLConfig, "high_speed")
-    shipped = yaml.safe_load((mmpc.rl.train.SHIPPED_MODELS / "high_speed_ppo" / "config.yaml").read_text())
+    shipped = yaml.safe_load((mmpc.rl.runs.SHIPPED_MODELS / "high_speed_ppo" / "config.yaml").read_text())
     assert recipe.train.expert_prior == 0.9 and to_dict(recipe) == shipped["config"]
 
 
 def test_the_shipped_agent_drives_by_name():
-    from mmpc.rl.train import load_run, shipped_models
+    from mmpc.rl.runs import load_run, shipped_models
 
     assert "high_speed_ppo" in shipped_models()
     run = load_run("high_speed_ppo")

@@ -37,7 +37,7 @@ class _Stop(Exception):
 
 def test_rl_train_refuses_a_folder_holding_a_finished_run(tmp_path, capsys, monkeypatch, one_thread):
     import mmpc.rl.train as rl_train
-    from mmpc.rl.train import load_run
+    from mmpc.rl.runs import load_run
 
     out = tmp_path / "R"
     held = []

@@ -1,0 +1,78 @@
+"""Trained runs read back: the model of a run folder written by ``mmpc rl train`` (or a shipped
+agent, ``models/<name>/``) with the configuration it was trained with."""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any, NamedTuple, Optional
+
+import yaml
+
+from mmpc.config import from_dict
+from mmpc.rl.config import RLConfig
+
+#: stable-baselines3 classes by algorithm name.
+ALGORITHM_CLASSES = {"dqn": "DQN", "ppo": "PPO", "sac": "SAC"}
+
+
+def algorithm_class(algo: str) -> type:
+    """The stable-baselines3 class of ``algo`` (``dqn``, ``ppo``, ``sac``)."""
+    if algo not in ALGORITHM_CLASSES:
+        raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHM_CLASSES)}")
+    return getattr(importlib.import_module("stable_baselines3"), ALGORITHM_CLASSES[algo])
+
+
+class TrainedRun(NamedTuple):
+    """A trained run read back: the model and how it was trained."""
+
+    model: Any
+    algo: str
+    env_kind: str
+    continuous: bool
+    config: RLConfig
+
+
+#: Trained agents shipped with mmpc: ``models/<name>/`` beside this module (model.zip, config.yaml).
+SHIPPED_MODELS = Path(__file__).resolve().parent / "models"
+
+
+def shipped_models() -> list[str]:
+    """Names of the shipped agents (``sb3:NAME`` drives one)."""
+    return sorted(p.parent.name for p in SHIPPED_MODELS.glob("*/model.zip"))
+
+
+def recorded_config(path: str | Path) -> Optional[RLConfig]:
+    """The RL config a training run recorded, given its folder or its ``config.yaml``; ``None``
+    where ``path`` is neither (e.g. a plain RL config file)."""
+    path = Path(path)
+    path = path / "config.yaml" if path.is_dir() else path
+    if not path.is_file():
+        return None
+    try:
+        record = yaml.safe_load(path.read_text())
+    except yaml.YAMLError:
+        return None
+    if not (isinstance(record, dict) and {"algo", "config"} <= set(record)):
+        return None
+    return from_dict(RLConfig, record["config"], where=f"{path}: config")
+
+
+def load_run(path: str | Path) -> TrainedRun:
+    """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
+    (the model's folder or the one above, for checkpoints); or a shipped agent by name
+    (:func:`shipped_models`) where no such file exists."""
+    path = Path(path)
+    if not path.is_file() and str(path) in shipped_models():
+        path = SHIPPED_MODELS / str(path) / "model.zip"
+    if not path.is_file():
+        raise FileNotFoundError(f"no model file {path} (shipped agents: {', '.join(shipped_models()) or 'none'})")
+    for folder in (path.parent, path.parent.parent):
+        if (folder / "config.yaml").is_file():
+            run = yaml.safe_load((folder / "config.yaml").read_text())
+            break
+    else:
+        raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc rl train`?")
+    config = from_dict(RLConfig, run["config"], where=f"{folder / 'config.yaml'}: config")
+    model = algorithm_class(run["algo"]).load(str(path), device="cpu")
+    return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)
