@@ -102,7 +102,6 @@ class TaskRewardCost:
 
     def __call__(self, trajectories: Trajectories, road: Road) -> torch.Tensor:
         forward_speed = trajectories.v * torch.cos(trajectories.psi)
-        lane_share = road.lane_index(trajectories.y).to(forward_speed.dtype) / max(road.num_lanes - 1, 1)
         no = torch.zeros((), dtype=torch.bool, device=forward_speed.device)
-        reward = self.reward(forward_speed, lane_share, no, ~no)
+        reward = self.reward(forward_speed, road.lane_index(trajectories.y), road.num_lanes, no, ~no)
         return self.base(trajectories, road) + self.weight * (1.0 - reward).sum(dim=-1)

@@ -49,13 +49,16 @@ KINEMATICS_FEATURES = ("presence", "x", "y", "vx", "vy")
 def frame_reward(episode: HighwayEpisode, reward: RewardConfig) -> float:
     """The reward of the current state (see :class:`mmpc.rl.config.RewardConfig`): highway-env's,
     or the scenario's meta cost term made a reward."""
-    ego = episode.ego
+    return float(frame_rewards([episode], reward)[0])
+
+
+def frame_rewards(episodes: Sequence[HighwayEpisode], reward: RewardConfig) -> torch.Tensor:
+    """(R,) float64 :func:`frame_reward` of R episodes on one road, in one call of the reward's formula."""
     if reward.source == "meta_cost":
-        return vehicle_meta_cost_reward(ego, episode.scenario, reward)
-    lane = int(ego.lane_index[2]) if ego.lane_index is not None else 0
-    state = torch.tensor([ego.speed * np.cos(ego.heading), lane / max(episode.scenario.lanes - 1, 1), ego.crashed, ego.on_road],
-                         dtype=torch.float64)
-    return float(reward.highway_terms()(*state))
+        return torch.tensor([vehicle_meta_cost_reward(e.ego, e.scenario, reward) for e in episodes], dtype=torch.float64)
+    states = torch.tensor([[e.ego.speed * np.cos(e.ego.heading), e.ego.lane_index[2] if e.ego.lane_index is not None else 0,
+                            e.ego.crashed, e.ego.on_road] for e in episodes], dtype=torch.float64)
+    return reward.highway_terms()(states[:, 0], states[:, 1], episodes[0].scenario.lanes, states[:, 2], states[:, 3])
 
 
 def vehicle_meta_cost_reward(ego: Any, scenario: ScenarioConfig, reward: RewardConfig) -> float:
@@ -375,8 +378,7 @@ class _EpisodesStepWorld:
             self.envs[i].episode.apply(a, s)
 
     def rewards(self, rows: torch.Tensor) -> torch.Tensor:
-        return torch.tensor([frame_reward(self.envs[i].episode, self.envs[i].reward_config) for i in rows.tolist()],
-                            dtype=torch.float64, device=self.device)
+        return frame_rewards([self.envs[i].episode for i in rows.tolist()], self.envs[0].reward_config).to(self.device)
 
     def speeds(self, rows: torch.Tensor) -> torch.Tensor:
         return torch.tensor([float(self.envs[i].episode.ego.speed) for i in rows.tolist()], dtype=torch.float64,

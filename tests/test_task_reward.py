@@ -15,14 +15,14 @@ from mmpc.task_reward import HighwayReward
 def test_the_reward_has_highway_envs_values_at_its_corners():
     reward = HighwayReward()
     speed = torch.tensor([30.0, 20.0, 25.0, 35.0, 30.0, 30.0])
-    lane = torch.tensor([1.0, 0.0, 0.4, 1.0, 1.0, 1.0])
+    lane = torch.tensor([5, 0, 2, 5, 5, 5])  # of 6 lanes: shares 1, 0, 0.4, 1, 1, 1
     crashed = torch.tensor([False, False, False, False, True, False])
     on_road = torch.tensor([True, True, True, True, True, False])
-    values = reward(speed, lane, crashed, on_road)
+    values = reward(speed, lane, 6, crashed, on_road)
     # normalised from [-1, 0.5] onto [0, 1]: best 1, slowest left lane 2/3, a crash 0 even at best
     expected = [1.0, 1.0 / 1.5, (1.0 + 0.04 + 0.2) / 1.5, 1.0, (0.5 - 1.0 + 1.0) / 1.5, 0.0]
     torch.testing.assert_close(values, torch.tensor(expected))
-    raw = HighwayReward(normalize=False)(speed[:1], lane[:1], crashed[:1], on_road[:1])
+    raw = HighwayReward(normalize=False)(speed[:1], lane[:1], 6, crashed[:1], on_road[:1])
     assert float(raw) == pytest.approx(0.5)
 
 

@@ -13,5 +13,4 @@ from mmpc.task_reward import HighwayReward
 def highway_reward(state: VehicleState, config: SimConfig, terms: HighwayReward = HighwayReward()) -> torch.Tensor:
     """(E,) the reward ``terms`` give each environment's current state (slot 0, the ego), in the state's dtype."""
     forward_speed = state.speed[:, 0] * torch.cos(state.heading[:, 0])
-    lane_share = state.lane[:, 0].to(state.x.dtype) / max(config.lanes - 1, 1)
-    return terms(forward_speed, lane_share, state.crashed[:, 0], on_road(state.y[:, 0], config))
+    return terms(forward_speed, state.lane[:, 0], config.lanes, state.crashed[:, 0], on_road(state.y[:, 0], config))
