@@ -7,6 +7,8 @@ same event files as SB3's ``rollout/`` and ``train/`` scalars):
 - ``solver/solve_ms``: mean wall time of an optimizer call (one call serves all environments);
 - ``safety/intervention_rate``: share of simulation frames on which the layer overrode the agent;
 - ``safety/collision_rate``: share of the last 100 finished episodes that ended in a collision;
+- ``safety/crashes``, ``safety/episodes``: collisions and finished episodes since the start of the
+  run (crashes per 10^5 training steps = ``crashes`` / step x 10^5);
 - ``driving/mean_speed``: mean ego speed over the frames since the last write [m/s].
 
 Environments without a safety layer (plain highway-env) give no ``solve_ms`` or intervention
@@ -21,7 +23,8 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 #: The custom scalar tags.
-SCALAR_TAGS = ("solver/solve_ms", "safety/intervention_rate", "safety/collision_rate", "driving/mean_speed")
+SCALAR_TAGS = ("solver/solve_ms", "safety/intervention_rate", "safety/collision_rate", "safety/crashes",
+               "safety/episodes", "driving/mean_speed")
 
 
 class SafetyTensorboardCallback(BaseCallback):
@@ -38,6 +41,8 @@ class SafetyTensorboardCallback(BaseCallback):
             raise ValueError(f"`log_every` and `window` must be >= 1; got {log_every}, {window}")
         self.log_every = log_every
         self.crashes: deque[bool] = deque(maxlen=window)
+        self.total_crashes = 0
+        self.total_episodes = 0
         self._reset_window()
         self._last_write = 0
 
@@ -63,7 +68,10 @@ class SafetyTensorboardCallback(BaseCallback):
                 self.speed_sum += float(speed) * frames
                 self.speed_count += frames
             if done:
-                self.crashes.append(bool(info.get("crashed", False)))
+                crashed = bool(info.get("crashed", False))
+                self.crashes.append(crashed)
+                self.total_crashes += crashed
+                self.total_episodes += 1
         if self.num_timesteps - self._last_write >= self.log_every:
             self.write()
         return True
@@ -79,6 +87,8 @@ class SafetyTensorboardCallback(BaseCallback):
             self.logger.record("safety/intervention_rate", self.intervened / self.frames)
         if self.crashes:
             self.logger.record("safety/collision_rate", float(np.mean(self.crashes)))
+        self.logger.record("safety/crashes", self.total_crashes)
+        self.logger.record("safety/episodes", self.total_episodes)
         if self.speed_count:
             self.logger.record("driving/mean_speed", self.speed_sum / self.speed_count)
         self.logger.dump(self.num_timesteps)

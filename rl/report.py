@@ -32,6 +32,16 @@ def read_scalars(run: str | Path) -> dict[str, list[tuple[int, float]]]:
     return scalars
 
 
+def training_crashes_per_1e5_steps(run: str | Path) -> float | None:
+    """Collisions while training per 10^5 agent steps, from the run's last ``safety/crashes`` scalar
+    (None for runs written before the count was logged)."""
+    points = read_scalars(run).get("safety/crashes")
+    if not points:
+        return None
+    step, crashes = max(points)
+    return crashes / step * 1e5 if step > 0 else None
+
+
 def plot_curves(runs: Mapping[str, str | Path], path: str | Path) -> Path:
     """One panel per :data:`CURVES` tag, one line per run (label -> run directory)."""
     import matplotlib.pyplot as plt
@@ -56,8 +66,9 @@ def plot_curves(runs: Mapping[str, str | Path], path: str | Path) -> Path:
 
 def results_table(runs: Mapping[str, str | Path]) -> tuple[str, dict]:
     """A markdown table of the runs' ``eval.json`` and the figures as a dict (label -> summary)."""
-    rows = ["| agent | algorithm | env | train steps | train time [min] | episodes | collision rate | mean speed [m/s] | mean return | intervention rate |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| agent | algorithm | env | train steps | train time [min] | training crashes per 10^5 steps | episodes | "
+            "collision rate | mean speed [m/s] | mean return | intervention rate |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     figures = {}
     for label, run in runs.items():
         path = Path(run) / "eval.json"
@@ -66,9 +77,11 @@ def results_table(runs: Mapping[str, str | Path]) -> tuple[str, dict]:
         summary = json.loads(path.read_text())
         figures[label] = {key: summary.get(key) for key in ("algo", "env", "timesteps", "train_seconds", "episodes",
                                                             "collision_rate", "mean_speed", "mean_return", "intervention_rate")}
+        figures[label]["training_crashes_per_1e5_steps"] = crashes = training_crashes_per_1e5_steps(run)
         rate = summary.get("intervention_rate")
         minutes = summary.get("train_seconds", float("nan")) / 60
         rows.append(f"| {label} | {summary.get('algo')} | {summary.get('env')} | {summary.get('timesteps')} | {minutes:.0f} | "
+                    f"{'n/a' if crashes is None else f'{crashes:.1f}'} | "
                     f"{summary['episodes']} | {summary['collision_rate']:.0%} | {summary['mean_speed']:.2f} | "
                     f"{summary['mean_return']:.1f} | {'n/a' if rate is None else f'{rate:.1%}'} |")
     return "\n".join(rows), figures

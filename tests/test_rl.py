@@ -180,6 +180,7 @@ def test_smoke_training_writes_tensorboard_scalars_eval_and_drives(smoke, tmp_pa
 
     table, figures = results_table({"safe": out})
     assert figures["safe"]["collision_rate"] == summary["collision_rate"] and "| safe | dqn | safe | 24 |" in table
+    assert figures["safe"]["training_crashes_per_1e5_steps"] == events.Scalars("safety/crashes")[-1].value / 24 * 1e5
     assert plot_curves({"safe": out}, tmp_path / "curves.png").stat().st_size > 10_000
 
     # the trained agent drives through the driver registry, its goals through the safety layer
@@ -187,6 +188,18 @@ def test_smoke_training_writes_tensorboard_scalars_eval_and_drives(smoke, tmp_pa
     result = run_episode(smoke.scenario, seed=2, driver=driver)
     assert len(result.records) == round(smoke.scenario.duration * smoke.scenario.frequency)
     assert all(record.goal_index >= 0 and record.feasible_goals >= 1 for record in result.records)
+
+
+def test_the_callback_counts_every_finished_episode_and_its_collisions():
+    from mmpc.rl.callbacks import SafetyTensorboardCallback
+
+    callback = SafetyTensorboardCallback(log_every=10**9, window=2)
+    for crashed in ([True, False, None], [True, None, True], [False, False, False]):
+        callback.locals = {"infos": [{} if c is None else {"crashed": c} for c in crashed],
+                           "dones": np.array([c is not None for c in crashed])}
+        callback._on_step()
+    assert (callback.total_crashes, callback.total_episodes) == (3, 7)
+    assert list(callback.crashes) == [False, False]  # the rate's window keeps only the last two
 
 
 def test_plain_highway_baseline_trains_and_its_meta_actions_drive(smoke, tmp_path, one_thread):
