@@ -8,12 +8,12 @@ the folder's files (:mod:`~mmpc.evaluate.store`) and writes the report
 
 from mmpc.evaluate.backends import Backend, run_tasks
 from mmpc.evaluate.evaluation import Evaluation, evaluate
-from mmpc.evaluate.report import format_table, summarize, write_report
+from mmpc.evaluate.report import format_table, paired_differences, summarize, write_report
 from mmpc.evaluate.store import COLUMNS, METRIC_COLUMNS, EvaluationFolderError, read_episodes, scenario_fingerprint
 from mmpc.evaluate.tasks import EvaluationConfig, GroupTask, run_group
 
 __all__ = [
     "COLUMNS", "METRIC_COLUMNS", "Backend", "Evaluation", "EvaluationConfig", "EvaluationFolderError", "GroupTask",
-    "evaluate", "format_table", "read_episodes", "run_group", "run_tasks", "scenario_fingerprint", "summarize",
+    "evaluate", "format_table", "paired_differences", "read_episodes", "run_group", "run_tasks", "scenario_fingerprint", "summarize",
     "write_report",
 ]

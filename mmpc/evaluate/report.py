@@ -169,6 +169,56 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
     return summary
 
 
+#: Metrics :func:`paired_differences` compares by default.
+PAIRED_METRICS = ("task_return", "mean_speed", "meta_cost_mean", "fallback_steps", "right_lane_distance_mean", "min_clearance")
+
+
+def paired_differences(reference: Sequence[dict], rows: Sequence[dict],
+                       keys: Sequence[str] = PAIRED_METRICS) -> dict:
+    """Per-seed differences ``rows - reference`` over the seeds both finished: one driver on one
+    scenario each (the same traffic per seed), e.g. an agent against always-defer.
+
+    Pairing by seed takes the traffic's variance out of the comparison: the interval of the mean
+    difference is much narrower than the two means' own intervals.
+
+    Args:
+        reference, rows: episode rows (:data:`mmpc.evaluate.store.COLUMNS`) of one driver each;
+            seeds must not repeat within either.
+        keys: metric columns to compare.
+
+    Returns:
+        ``episodes`` (paired seeds), ``unpaired_seeds`` (finished in one only), ``collisions`` and
+        ``reference_collisions`` over the paired seeds, and per key ``{"reference", "mean",
+        "difference", "difference_ci" (95 % t interval), "relative"}`` (difference / reference
+        mean; ``None`` where undefined).
+    """
+    def by_seed(group: Sequence[dict], name: str) -> dict[int, dict]:
+        done = [row for row in group if row.get("status", "ok") == "ok"]
+        seeds = [row["seed"] for row in done]
+        if len(set(seeds)) != len(seeds):
+            raise ValueError(f"{name}: a seed repeats ({len(seeds)} rows, {len(set(seeds))} seeds); "
+                             "pass the rows of one driver on one scenario")
+        return {row["seed"]: row for row in done}
+
+    ours, theirs = by_seed(rows, "rows"), by_seed(reference, "reference")
+    paired = sorted(ours.keys() & theirs.keys())
+    result: dict = {
+        "episodes": len(paired),
+        "unpaired_seeds": sorted(ours.keys() ^ theirs.keys()),
+        "collisions": sum(int(ours[seed]["collisions"]) for seed in paired),
+        "reference_collisions": sum(int(theirs[seed]["collisions"]) for seed in paired),
+    }
+    for key in keys:
+        pairs = [(ours[seed].get(key), theirs[seed].get(key)) for seed in paired]
+        pairs = [(a, b) for a, b in pairs if _finite(a) is not None and _finite(b) is not None]
+        mean, _ = mean_ci([a for a, _ in pairs])
+        base, _ = mean_ci([b for _, b in pairs])
+        difference, interval = mean_ci([a - b for a, b in pairs])
+        result[key] = {"reference": base, "mean": mean, "difference": difference, "difference_ci": interval,
+                       "relative": difference / abs(base) if difference is not None and base else None}
+    return result
+
+
 def _labels(summary: Sequence[dict]) -> list[tuple[str, str]]:
     """(driver line, scenario line) per column; the driver line is empty for a single driver."""
     several = len({entry["driver"] for entry in summary}) > 1
