@@ -246,7 +246,8 @@ class TrainConfig:
         expert_prior: with ``env.expert_action`` and PPO: the probability the untrained policy
             gives the expert action (the rest shared evenly), so that training starts from the
             expert and learns where to deviate; 0 keeps stable-baselines3's initialisation. DQN
-            and SAC ignore it (as they ignore ``algorithms.ppo``).
+            and SAC ignore it (as they ignore ``algorithms.ppo``), and so does the plain
+            highway-env baseline (``--env highway``), which has no expert action.
     """
 
     n_envs: int = 8

@@ -342,11 +342,13 @@ def train(
         raise ValueError(f"`env_kind` must be one of {ENV_KINDS}; got {env_kind!r}")
     require_int("", low=1, timesteps=timesteps)
     continuous = config.action_for(algo) == "continuous"
-    expert_prior = config.train.expert_prior if algo == "ppo" else 0.0  # other algorithms ignore it, as algorithms.ppo
-    if expert_prior > 0 and (continuous or env_kind != "safe" or not config.env.expert_action):
+    # Other algorithms ignore the prior (as algorithms.ppo), and so does the plain baseline of a recipe:
+    # highway-env's own actions hold no expert to start at.
+    expert_prior = config.train.expert_prior if algo == "ppo" and env_kind == "safe" else 0.0
+    if expert_prior > 0 and (continuous or not config.env.expert_action):
         raise ValueError(f"train: `expert_prior` sets PPO's discrete policy towards the expert action, so it needs "
-                         f"the safe environments, discrete actions and env.expert_action: true; got env {env_kind}, "
-                         f"{'continuous' if continuous else 'discrete'} actions, expert_action {config.env.expert_action}")
+                         f"discrete actions and env.expert_action: true; got {'continuous' if continuous else 'discrete'} "
+                         f"actions, expert_action {config.env.expert_action}")
     kwargs = algorithm_kwargs(config, algo)
     torch.set_num_threads(config.train.torch_threads)
     out = Path(out)

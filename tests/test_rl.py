@@ -359,7 +359,7 @@ def test_meta_action_driver_reads_the_scenarios_vehicle_length():
     assert MetaActionDriver(run, load_scenario("cruise")).length == 5.0
 
 
-def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_elsewhere(smoke, tmp_path):
+def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_ignored_elsewhere(smoke, tmp_path):
     from stable_baselines3 import PPO
 
     from mmpc.rl.train import prefer_expert_action, train
@@ -376,6 +376,9 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_elsewhe
     with pytest.raises(ValueError, match="expert_action: true"):  # the smoke grid has no expert action
         train(config, "ppo", 64, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+    # a recipe's plain highway-env baseline trains without it: highway-env's actions hold no expert
+    train(config, "ppo", 16, tmp_path / "plain", env_kind="highway", evaluate_after=False)
+    assert yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())["env"] == "highway"
     # the shipped recipe starts PPO at the expert; it reproduces the shipped agent's settings
     recipe = load_config(RLConfig, "high_speed")
     shipped = yaml.safe_load((mmpc.rl.runs.SHIPPED_MODELS / "high_speed_ppo" / "config.yaml").read_text())
