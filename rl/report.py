@@ -10,7 +10,7 @@ from typing import Mapping
 #: Curves drawn, by TensorBoard tag, with their axis labels.
 CURVES = {
     "rollout/ep_rew_mean": "episode return",
-    "safety/collision_rate": "collision rate (last 100 episodes)",
+    "safety/crashes": "collisions since the start",
     "driving/mean_speed": "mean speed [m/s]",
     "safety/intervention_rate": "intervention rate (frames)",
 }

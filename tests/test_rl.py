@@ -383,16 +383,18 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_igno
     recipe = load_config(RLConfig, "high_speed")
     shipped = yaml.safe_load((mmpc.rl.runs.SHIPPED_MODELS / "high_speed_ppo" / "config.yaml").read_text())
     assert recipe.train.expert_prior == 0.9 and to_dict(recipe) == shipped["config"]
+    shipped = yaml.safe_load((mmpc.rl.runs.SHIPPED_MODELS / "cruise_task_ppo" / "config.yaml").read_text())
+    assert to_dict(load_config(RLConfig, "cruise_task")) == shipped["config"]  # the task-reward agent too
 
 
 def test_the_shipped_agent_drives_by_name():
     from mmpc.rl.runs import load_run, shipped_models
 
-    assert "high_speed_ppo" in shipped_models()
+    assert {"cruise_task_ppo", "high_speed_ppo"} <= set(shipped_models())
     run = load_run("high_speed_ppo")
     assert run.algo == "ppo" and run.env_kind == "safe" and run.config.env.expert_action
     scenario = dataclasses.replace(load_scenario("high_speed"), duration=1.0)
     result = run_episode(scenario, seed=1, driver=make_driver("sb3:high_speed_ppo", scenario))
     assert result.metrics["collisions"] == 0 and result.metrics["steps"] == 10
-    with pytest.raises(FileNotFoundError, match="shipped agents: high_speed_ppo"):
+    with pytest.raises(FileNotFoundError, match="shipped agents: .*high_speed_ppo"):
         load_run("no_such_agent")
