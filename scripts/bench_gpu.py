@@ -42,6 +42,31 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+#: Profiler events that make the host wait for the device (a read of a device value, a blocking copy).
+HOST_WAITS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+
+
+def device_profile(run: Callable[[], None], steps: int, device: torch.device) -> dict:
+    """Per step of ``run`` (``steps`` steps), under torch's profiler: kernels launched, the
+    device's busy time [ms] (the sum of its kernels and copies) and the host's waits for it;
+    against the step's wall time these say whether it is bound by launches or by work. On
+    the CPU: the operators called and the host's reads of tensor values."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as profiler:
+        run()
+        _sync(device)
+    events = profiler.key_averages()
+    if device.type != "cuda":
+        return {"operators_per_step": sum(e.count for e in events if e.key.startswith("aten::")) / steps,
+                "value_reads_per_step": sum(e.count for e in events if e.key == "aten::_local_scalar_dense") / steps}
+    on_device = [e for e in events if e.device_type == torch.autograd.DeviceType.CUDA]
+    return {"kernels_per_step": sum(e.count for e in on_device) / steps,
+            "device_busy_ms_per_step": sum(e.self_device_time_total for e in on_device) / 1e3 / steps,
+            "host_waits_per_step": sum(e.count for e in events if e.key in HOST_WAITS) / steps}
+
+
 def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int,
                 log: Callable[[str], None]) -> list[dict]:
     """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's replay)."""
@@ -73,9 +98,10 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
     return rows
 
 
-def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int,
+def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, profiled: bool,
              log: Callable[[str], None]) -> list[dict]:
-    """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command."""
+    """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command
+    (``profiled``: and :func:`device_profile` of 3 more steps)."""
     from mmpc.sim import SimEpisodes
 
     rows = []
@@ -90,14 +116,19 @@ def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
             sim.step(command)
         _sync(device)
         seconds = (time.perf_counter() - start) / steps
-        rows.append({"table": "sim", "num_envs": num_envs, "step_ms": seconds * 1e3, "env_steps_per_s": num_envs / seconds})
-        log(f"sim E={num_envs:>6}: {seconds * 1e3:7.2f} ms per step, {num_envs / seconds:,.0f} env-steps/s")
+        row = {"table": "sim", "num_envs": num_envs, "step_ms": seconds * 1e3, "env_steps_per_s": num_envs / seconds}
+        if profiled:
+            row.update(device_profile(lambda: [sim.step(command) for _ in range(3)], 3, device))
+        rows.append(row)
+        log(f"sim E={num_envs:>6}: {seconds * 1e3:7.2f} ms per step, {num_envs / seconds:,.0f} env-steps/s"
+            + _profile_text(row))
     return rows
 
 
 def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, compile_modes: Sequence[bool],
-             log: Callable[[str], None]) -> list[dict]:
-    """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as bench_sim)."""
+             profiled: bool, log: Callable[[str], None]) -> list[dict]:
+    """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as
+    bench_sim; ``profiled``: and :func:`device_profile` of 3 more steps)."""
     from mmpc.drivers.mpc_driver import MPCDriver
     from mmpc.highway.worlds import BatchedWorld
 
@@ -113,8 +144,10 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
                 step_s, solve_s, iterations = _closed_loop(world, driver, num_envs, steps)
                 row.update(step_ms=step_s * 1e3, solve_share=solve_s / step_s, env_steps_per_s=num_envs / step_s,
                            iterations_per_step=iterations)
+                if profiled:
+                    row.update(device_profile(lambda: _closed_loop(world, driver, num_envs, 2), 3, device))
                 log(f"mpc {scenario.name} {'compiled' if compiled else 'eager':>8} E={num_envs:>6}: {step_s * 1e3:8.2f} ms per "
-                    f"step, {num_envs / step_s:,.0f} env-steps/s (solve {solve_s / step_s:.0%})")
+                    f"step, {num_envs / step_s:,.0f} env-steps/s (solve {solve_s / step_s:.0%})" + _profile_text(row))
             except RuntimeError as error:
                 row["error"] = f"{type(error).__name__}: {str(error)[:200]}"
                 log(f"mpc {scenario.name} E={num_envs}: {row['error']}")
@@ -122,6 +155,13 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
                     torch.cuda.empty_cache()
             rows.append(row)
     return rows
+
+
+def _profile_text(row: dict) -> str:
+    if "kernels_per_step" not in row:
+        return ""
+    return (f"; per step {row['kernels_per_step']:,.0f} kernels, device busy {row['device_busy_ms_per_step']:.1f} ms, "
+            f"{row['host_waits_per_step']:.0f} host waits")
 
 
 def evaluate_rows(scenarios: Sequence[ScenarioConfig], seeds: Sequence[int], out: Path, log: Callable[[str], None]) -> list[dict]:
@@ -160,6 +200,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--sim-envs", type=int_list, default=(1024, 4096, 16384, 65536), help="simulator E")
     parser.add_argument("--mpc-envs", type=int_list, default=(256, 1024, 4096, 16384), help="MPC in the loop E")
     parser.add_argument("--mpc-eager", action="store_true", help="also time the eager MPC in the loop")
+    parser.add_argument("--profile", action="store_true", help="profile the simulator and MPC rows: kernels, "
+                        "device busy time and host waits per step")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per simulator / MPC row")
     parser.add_argument("--repeats", type=int, default=20, help="timed solves per solver row")
     parser.add_argument("--scenarios", default="cruise,high_speed", help="scenarios of the MPC and evaluation rows")
@@ -197,10 +239,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if section == "solver":
             save(solver_rows(device, args.batches, 10, args.repeats, log))
         elif section == "sim":
-            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, log))
+            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, args.profile, log))
         elif section == "mpc":
             for scenario in scenarios:
-                save(mpc_rows(device, scenario, args.mpc_envs, args.steps, (True, False) if args.mpc_eager else (True,), log))
+                save(mpc_rows(device, scenario, args.mpc_envs, args.steps, (True, False) if args.mpc_eager else (True,),
+                               args.profile, log))
         else:
             for scenario in scenarios:
                 save(evaluate_rows([scenario], args.seeds, out, log))

@@ -129,6 +129,39 @@ def test_an_environment_runs_the_same_episode_alone_or_in_a_batch():
     assert all(torch.equal(a[1], b[0]) for a, b in zip(batch.state, alone.state))
 
 
+def test_a_step_reads_two_values_on_the_host():
+    """The command's finiteness and the window's rounds; the state, made by the simulator, is
+    not checked again (each read stalls a GPU's queue)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class ValueReads(TorchDispatchMode):
+        count = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.count += func is torch.ops.aten._local_scalar_dense.default
+            return func(*args, **(kwargs or {}))
+
+    episodes = SimEpisodes(CRUISE, [0, 1, 2])
+    with ValueReads() as reads:
+        episodes.step(torch.zeros(3, 2))
+    assert reads.count == 2
+
+
+def test_a_batched_world_s_single_rows_are_the_batch_s_rows_on_the_host():
+    world = BatchedWorld(CRUISE, [0, 1, 2])
+    world.apply([0, 1, 2], torch.tensor([1.0, 0.0, -1.0]), torch.zeros(3))
+    batch, rows = world.observe([2, 0])
+    assert len(rows) == 2
+    for row, single in ((0, rows[0]), (1, rows[1]), (1, rows[-1])):
+        assert single.ego.shape == (1, 6) and torch.equal(single.ego, batch.ego[row:row + 1])
+        assert torch.equal(single.vehicles, batch.vehicles[row:row + 1])
+        assert torch.equal(single.vehicle_mask, batch.vehicle_mask[row:row + 1])
+        assert np.array_equal(single.kinematics, batch.kinematics[row:row + 1]) and single.env_ids is None
+    assert torch.equal(world.episodes[0].observe().ego, rows[1].ego)
+    with pytest.raises(IndexError):
+        rows[2]
+
+
 def test_road_state_is_the_mpc_s_frame():
     episodes = SimEpisodes(CRUISE, [0, 1])
     episodes.step(torch.tensor([[1.0, 0.05], [0.0, 0.0]]))
@@ -300,13 +333,14 @@ def test_the_gpu_benchmark_runs_its_sections_on_the_cpu(tmp_path, capsys):
     import bench_gpu
 
     argv = ["--device", "cpu", "--sections", "sim,mpc,evaluate", "--sim-envs", "2", "--mpc-envs", "2", "--steps", "1",
-            "--scenarios", "high_speed", "--seeds", "0-1", "--duration", "0.3", "--out", str(tmp_path)]
+            "--scenarios", "high_speed", "--seeds", "0-1", "--duration", "0.3", "--profile", "--out", str(tmp_path)]
     assert bench_gpu.main(argv) == 0
     report = json.loads((tmp_path / "bench_gpu.json").read_text())
     assert report["device"] == "cpu" and report["args"] == " ".join(argv)
     rows = report["rows"]
     assert [(r["table"], r["num_envs"]) for r in rows if r["table"] in ("sim", "mpc")] == [("sim", 2), ("mpc", 2)]
     assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] in ("sim", "mpc"))
+    assert all(r["operators_per_step"] > 100 and r["value_reads_per_step"] >= 1 for r in rows if r["table"] in ("sim", "mpc"))
     (evaluation,) = [r for r in rows if r["table"] == "evaluate"]
     assert evaluation["episodes"] == 2 and evaluation["errors"] == 0 and evaluation["collisions"] == 0
     assert evaluation["mean_speed"] > 0 and evaluation["wall_s"] > 0

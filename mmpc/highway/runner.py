@@ -146,8 +146,8 @@ class Step(NamedTuple):
         episode: its episode, after the command was applied (a :class:`HighwayEpisode`, or on
             the batched simulator a view of its environment with the same ``scenario``, ``seed``,
             ``ego.crashed``, ``ego.on_road``, ``done`` and ``observe()``).
-        observation: what it observed before the command (E = 1).
         batch: the lockstep observation the driver decided from (one row per running environment).
+        rows: each row of ``batch`` alone (E = 1), as the world made them (made when read).
         decision: the driver's decision for ``batch``.
         row: this environment's row in ``batch`` and ``decision``.
         record: the step's :class:`mmpc.metrics.StepRecord`.
@@ -155,11 +155,16 @@ class Step(NamedTuple):
 
     index: int
     episode: HighwayEpisode
-    observation: Observation
     batch: Observation
+    rows: Sequence[Observation]
     decision: Decision
     row: int
     record: StepRecord
+
+    @property
+    def observation(self) -> Observation:
+        """What this environment observed before the command (E = 1)."""
+        return self.rows[self.row]
 
 
 class Observer:
@@ -295,9 +300,10 @@ def run_lockstep(
                                          decision, scenario)
             for row, (i, record) in enumerate(zip(active, step_records)):
                 records[i].append(record)
-                step = Step(i, episodes[i], singles[row], observation, decision, row, record)
-                for observer in observers:
-                    observer.applied(step)
+                if observers:
+                    step = Step(i, episodes[i], observation, singles, decision, row, record)
+                    for observer in observers:
+                        observer.applied(step)
                 if ended[i]:
                     if episodes[i].ego.crashed:
                         crashes[i] = _crash_scene(world.observe([i])[1][0], scenario)

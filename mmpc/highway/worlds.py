@@ -26,7 +26,7 @@ class World(Protocol):
 
     episodes: Sequence  # one view per environment: scenario, seed, ego.crashed, ego.on_road, done, observe()
 
-    def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
+    def observe(self, active: Sequence[int]) -> tuple[Observation, Sequence[Observation]]:
         """The batch the driver decides from (one row per ``active`` environment) and each row alone (E = 1)."""
 
     def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
@@ -115,6 +115,27 @@ class SimEpisodeView:
         return self.world.observe([self.index])[0].kinematics[0]
 
 
+class ObservationRows(Sequence[Observation]):
+    """Each row of a batch :class:`Observation` as its own (E = 1) observation on the host, made
+    when it is read: a lockstep step of thousands of environments often reads none of them."""
+
+    def __init__(self, batch: Observation) -> None:
+        self._batch = batch
+        self._host: Optional[Observation] = None
+
+    def __len__(self) -> int:
+        return self._batch.num_envs
+
+    def __getitem__(self, row: int) -> Observation:
+        row = range(len(self))[row]  # negative rows counted from the end; IndexError past it
+        if self._host is None:
+            self._host = self._batch.to("cpu")
+        host, rows = self._host, slice(row, row + 1)
+        kinematics = None if host.kinematics is None else host.kinematics[rows]
+        mask = None if host.vehicle_mask is None else host.vehicle_mask[rows]
+        return Observation(host.ego[rows], host.vehicles[rows], mask, kinematics)
+
+
 class BatchedWorld:
     """One batched-simulator environment per seed (:class:`mmpc.sim.SimEpisodes`), all stepped
     by one simulator call; finished episodes stay as they ended. The batch it observes is on the
@@ -129,21 +150,21 @@ class BatchedWorld:
         self._read_status()
 
     def _read_status(self) -> None:
-        self.ended: list[bool] = self.sim.done.tolist()
-        self.crashed: list[bool] = self.sim.crashed.tolist()
-        self.on_road: list[bool] = self.sim.on_road.tolist()
-        self.rewards: list[float] = highway_reward(self.sim.state, self.sim.config).tolist()
+        rewards = highway_reward(self.sim.state, self.sim.config)
+        flags = torch.stack([self.sim.done, self.sim.crashed, self.sim.on_road]).to(rewards.dtype)
+        ended, crashed, on_road, rewards = torch.cat([flags, rewards[None]]).tolist()  # one copy to the host
+        self.ended: list[bool] = [flag == 1 for flag in ended]
+        self.crashed: list[bool] = [flag == 1 for flag in crashed]
+        self.on_road: list[bool] = [flag == 1 for flag in on_road]
+        self.rewards: list[float] = rewards
 
-    def observe(self, active: Sequence[int]) -> tuple[Observation, list[Observation]]:
+    def observe(self, active: Sequence[int]) -> tuple[Observation, ObservationRows]:
         device = self.sim.device
         rows = torch.as_tensor(list(active), dtype=torch.long, device=device)
         ego, vehicles, mask = self.sim.road_state()
         kinematics = kinematics_observation(self.sim.state, self.sim.config)[rows].float().cpu().numpy()
         batch = Observation(ego[rows], vehicles[rows], mask[rows], kinematics, rows)
-        host = batch.to("cpu")
-        singles = [Observation(e, v, m, k[None]) for e, v, m, k in
-                   zip(host.ego.split(1), host.vehicles.split(1), host.vehicle_mask.split(1), kinematics)]
-        return batch, singles
+        return batch, ObservationRows(batch)
 
     def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
         device, dtype = self.sim.device, self.sim.state.x.dtype

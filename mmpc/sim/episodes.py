@@ -19,8 +19,8 @@ import torch
 from mmpc.problem import require_on_device, usable_device
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim.ego import ego_action
-from mmpc.sim.simulator import HighwaySimulator
-from mmpc.sim.state import VehicleState, on_road
+from mmpc.sim.simulator import HighwaySimulator, check_command
+from mmpc.sim.state import VehicleState, check_state, on_road
 from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim_config
 
 Seeds = Union[Sequence[int], torch.Tensor]
@@ -60,6 +60,7 @@ class SimEpisodes:
         if self.seeds.numel() == 0:
             raise ValueError("`seeds` must hold at least one seed (E >= 1)")
         self.state: VehicleState = initial_state(scenario, self.seeds, dtype=dtype)
+        check_state(self.state, self.config)
         self.steps = torch.zeros_like(self.seeds)
         #: (E, 2) the ego's applied acceleration [m/s^2] and steering [rad] (zero before the first command).
         self.applied = torch.zeros(self.num_envs, 2, dtype=dtype, device=self.seeds.device)
@@ -110,7 +111,8 @@ class SimEpisodes:
                 raise ValueError(f"`running` must have shape ({self.num_envs},); got {tuple(running.shape)}")
             require_on_device(self.seeds.device, "the episodes' state", running=running)
         before = self.state
-        after = self.simulator.step(before, command)
+        check_command(command, before)  # the state is the simulator's own, checked when it was made
+        after = self.simulator.advance(before, command.to(before.x.dtype))
         window = self.scenario.traffic.window
         if window is not None:
             after = keep_in_window(after, window, self.seeds, self.steps, self.config)
@@ -146,6 +148,7 @@ class SimEpisodes:
         if seeds.shape != envs.shape:
             raise ValueError(f"`seeds` must hold one seed per environment reset ({envs.numel()}); got {seeds.numel()}")
         fresh = initial_state(self.scenario, seeds, dtype=self.state.x.dtype)
+        check_state(fresh, self.config)
         self.state = VehicleState(*(field.index_copy(0, envs, new) for field, new in zip(self.state, fresh)))
         self.seeds = self.seeds.index_copy(0, envs, seeds)
         self.steps = self.steps.index_fill(0, envs, 0)

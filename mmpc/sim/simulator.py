@@ -52,23 +52,11 @@ class HighwaySimulator:
             The state after the command's frames.
         """
         check_state(state, self.config)
-        num_envs = state.x.shape[0]
-        if not isinstance(command, torch.Tensor) or not command.is_floating_point():
-            got = command.dtype if isinstance(command, torch.Tensor) else type(command).__name__
-            raise ValueError(f"`command` must be a floating-point tensor of shape (E, 2); got {got}")
-        if command.dim() != 2 or command.shape[1] != 2:
-            raise ValueError(f"`command` must have shape (E, 2) (acceleration, steering); got {tuple(command.shape)}")
-        if command.shape[0] != num_envs:
-            raise ValueError(f"`command` has {command.shape[0]} environments; the state has E = {num_envs}")
-        if command.device != state.x.device:
-            raise ValueError(f"`command` is on {command.device}; the state is on {state.x.device}")
-        if not bool(torch.isfinite(command).all()):
-            bad = torch.nonzero(~torch.isfinite(command).all(dim=1))[:5, 0].tolist()
-            raise ValueError(f"`command` must be finite; NaN or inf in environments {bad}")
+        check_command(command, state)
         return self.advance(state, command.to(state.x.dtype))
 
     def advance(self, state: VehicleState, command: torch.Tensor) -> VehicleState:
-        """:meth:`step` without the checks (no host synchronisation: capturable)."""
+        """:meth:`step` without the checks (a frame still asks the host how many vehicles change lane or meet)."""
         acceleration, steering = ego_action(command[:, 0], command[:, 1], state.speed[:, 0], self.config)
         moving_forward = state.speed[:, 0] >= 0
         for _ in range(self.config.frames_per_command):
@@ -84,3 +72,21 @@ class HighwaySimulator:
         steering = torch.cat([ego_steering[:, None], steering[:, 1:]], dim=1)
         state = advance_timers(bicycle_step(state, acceleration, steering, self.config), self.config)
         return handle_collisions(state, self.config.dt)
+
+
+def check_command(command: torch.Tensor, state: VehicleState) -> None:
+    """Refuse (``ValueError`` saying what came) an ego command that is not a finite floating
+    (E, 2) tensor on the state's device, E as the state's."""
+    num_envs = state.x.shape[0]
+    if not isinstance(command, torch.Tensor) or not command.is_floating_point():
+        got = command.dtype if isinstance(command, torch.Tensor) else type(command).__name__
+        raise ValueError(f"`command` must be a floating-point tensor of shape (E, 2); got {got}")
+    if command.dim() != 2 or command.shape[1] != 2:
+        raise ValueError(f"`command` must have shape (E, 2) (acceleration, steering); got {tuple(command.shape)}")
+    if command.shape[0] != num_envs:
+        raise ValueError(f"`command` has {command.shape[0]} environments; the state has E = {num_envs}")
+    if command.device != state.x.device:
+        raise ValueError(f"`command` is on {command.device}; the state is on {state.x.device}")
+    if not bool(torch.isfinite(command).all()):
+        bad = torch.nonzero(~torch.isfinite(command).all(dim=1))[:5, 0].tolist()
+        raise ValueError(f"`command` must be finite; NaN or inf in environments {bad}")
