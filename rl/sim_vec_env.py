@@ -117,7 +117,8 @@ class SafeSimBatch:
         if self.config.solver_features or self._decides_from_features_solve:
             solve = self.layer.decision_solve(self._road_observation(rows))
         features = self.layer.features(solve) if self.config.solver_features else None
-        kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles)
+        kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles,
+                                            check=False)
         return observation_vectors(kinematics[rows].float().cpu().numpy(), features, self.config), solve
 
     def _frame_rewards(self) -> torch.Tensor:

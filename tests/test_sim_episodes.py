@@ -11,13 +11,14 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from mmpc.config import to_dict
 from mmpc.evaluate.store import scenario_fingerprint
 from mmpc.highway import HighwayEpisode, run_lockstep
 from mmpc.highway.worlds import BatchedWorld, make_world
 from mmpc.scenario import IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle, load_scenario
-from mmpc.sim import SimConfig, SimEpisodes, lane_keeping_steering, pair_collisions, vehicle_state
+from mmpc.sim import SimConfig, SimEpisodes, kinematics_observation, lane_keeping_steering, pair_collisions, vehicle_state
 from mmpc.sim.random import integers, uniform
 from mmpc.sim.traffic import PLACEMENT_GAP, initial_state, keep_in_window, sim_config
 
@@ -129,22 +130,33 @@ def test_an_environment_runs_the_same_episode_alone_or_in_a_batch():
     assert all(torch.equal(a[1], b[0]) for a, b in zip(batch.state, alone.state))
 
 
+class ValueReads(TorchDispatchMode):
+    """Counts the tensor values read on the host (each one stalls a GPU's queue)."""
+
+    count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += func is torch.ops.aten._local_scalar_dense.default
+        return func(*args, **(kwargs or {}))
+
+
 def test_a_step_reads_two_values_on_the_host():
     """The command's finiteness and the window's rounds; the state, made by the simulator, is
-    not checked again (each read stalls a GPU's queue)."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    class ValueReads(TorchDispatchMode):
-        count = 0
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            self.count += func is torch.ops.aten._local_scalar_dense.default
-            return func(*args, **(kwargs or {}))
-
+    not checked again."""
     episodes = SimEpisodes(CRUISE, [0, 1, 2])
     with ValueReads() as reads:
         episodes.step(torch.zeros(3, 2))
     assert reads.count == 2
+
+
+def test_a_batched_world_observes_without_reading_values_on_the_host():
+    world = BatchedWorld(CRUISE, [0, 1, 2])
+    world.apply([0, 1, 2], torch.tensor([1.0, 0.0, -1.0]), torch.zeros(3))
+    with ValueReads() as reads:
+        batch, _ = world.observe([0, 1, 2])
+    assert reads.count == 0
+    checked = kinematics_observation(world.sim.state, world.sim.config)
+    assert np.array_equal(batch.kinematics, checked.float().numpy())
 
 
 def test_a_batched_world_s_single_rows_are_the_batch_s_rows_on_the_host():

@@ -44,7 +44,8 @@ SPEED_RANGE = 2.0 * MAX_SPEED
 LANE_RANGE_WIDTH = 4.0
 
 
-def kinematics_observation(state: VehicleState, config: SimConfig, *, vehicles_count: int = 5) -> torch.Tensor:
+def kinematics_observation(state: VehicleState, config: SimConfig, *, vehicles_count: int = 5,
+                           check: bool = True) -> torch.Tensor:
     """The egos' ``Kinematics`` observations, equal to highway-env's ``KinematicObservation.observe()``.
 
     Args:
@@ -54,6 +55,8 @@ def kinematics_observation(state: VehicleState, config: SimConfig, *, vehicles_c
         vehicles_count: rows per observation, the ego's included (int >= 1). With 1, the ego's
             row only: highway-env then returns every perceived vehicle too (its ``count=0``
             means "no limit"), more rows than its own observation space.
+        check: False where the state is a simulator's own (:class:`mmpc.sim.SimEpisodes`): its
+            values are not read back to be checked (a host synchronisation on a GPU).
 
     Returns:
         (E, vehicles_count, 5) in the state's dtype and device: :data:`FEATURES` per row,
@@ -65,7 +68,8 @@ def kinematics_observation(state: VehicleState, config: SimConfig, *, vehicles_c
         >>> kinematics_observation(state, SimConfig(lanes=3), vehicles_count=3)[0].tolist()
         [[1.0, 0.5, 0.3333333432674408, 0.25, 0.0], [1.0, 0.25, 0.3333333432674408, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0]]
     """
-    _check_inputs(state, config, vehicles_count)
+    if check:
+        _check_inputs(state, config, vehicles_count)
     x, y, heading, speed = (value.double() for value in (state.x, state.y, state.heading, state.speed))
     absolute = torch.stack([torch.ones_like(x), x, y, speed * torch.cos(heading), speed * torch.sin(heading)], dim=2)
     ego = absolute[:, :1]  # (E, 1, 5)
