@@ -67,9 +67,10 @@ def device_profile(run: Callable[[], None], steps: int, device: torch.device) ->
             "host_waits_per_step": sum(e.count for e in events if e.key in HOST_WAITS) / steps}
 
 
-def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int,
+def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int, profiled: bool,
                 log: Callable[[str], None]) -> list[dict]:
-    """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's replay)."""
+    """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's
+    replay); ``profiled``: and :func:`device_profile` of one compiled solve."""
     eager = BatchOptimizer(device=device)
     compiled = BatchOptimizer(device=device, compile=True)
     rows = []
@@ -91,8 +92,11 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
                     torch.cuda.empty_cache()
         if "eager_ms" in row and "compiled_ms" in row:
             row["speedup"] = row["eager_ms"] / row["compiled_ms"]
+        if profiled and "compiled_ms" in row:
+            row.update(device_profile(lambda: compiled(problem), 1, device))
         log(f"solver B={batch:>6}: eager {row.get('eager_ms', float('nan')):8.2f} ms, compiled "
             f"{row.get('compiled_ms', float('nan')):8.2f} ms (first call {row.get('compiled_first_s', float('nan')):.1f} s)"
+            + _profile_text(row).replace("per step", "per solve")
             + "".join(f"  {k}: {v}" for k, v in row.items() if k.endswith("_error")))
         rows.append(row)
     return rows
@@ -197,11 +201,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--device", default="cuda", help="cuda (default) or cpu (a dry run of the script at small sizes)")
     parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated, of {', '.join(SECTIONS)}")
     parser.add_argument("--batches", type=int_list, default=(1, 16, 256, 1024, 4096, 16384, 65536), help="solver B")
+    parser.add_argument("--obstacles", type=int, default=10, help="solver rows: obstacles M per goal (the MPC's scenarios use 6)")
     parser.add_argument("--sim-envs", type=int_list, default=(1024, 4096, 16384, 65536), help="simulator E")
     parser.add_argument("--mpc-envs", type=int_list, default=(256, 1024, 4096, 16384), help="MPC in the loop E")
     parser.add_argument("--mpc-eager", action="store_true", help="also time the eager MPC in the loop")
-    parser.add_argument("--profile", action="store_true", help="profile the simulator and MPC rows: kernels, "
-                        "device busy time and host waits per step")
+    parser.add_argument("--profile", action="store_true", help="profile the rows: kernels, device busy time "
+                        "and host waits per solve / step")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per simulator / MPC row")
     parser.add_argument("--repeats", type=int, default=20, help="timed solves per solver row")
     parser.add_argument("--scenarios", default="cruise,high_speed", help="scenarios of the MPC and evaluation rows")
@@ -237,7 +242,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for section in sections:
         start = time.perf_counter()
         if section == "solver":
-            save(solver_rows(device, args.batches, 10, args.repeats, log))
+            save(solver_rows(device, args.batches, args.obstacles, args.repeats, args.profile, log))
         elif section == "sim":
             save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, args.profile, log))
         elif section == "mpc":
