@@ -96,7 +96,7 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
             row.update(device_profile(lambda: compiled(problem), 1, device))
         log(f"solver B={batch:>6}: eager {row.get('eager_ms', float('nan')):8.2f} ms, compiled "
             f"{row.get('compiled_ms', float('nan')):8.2f} ms (first call {row.get('compiled_first_s', float('nan')):.1f} s)"
-            + _profile_text(row).replace("per step", "per solve")
+            + _profile_text(row, "solve")
             + "".join(f"  {k}: {v}" for k, v in row.items() if k.endswith("_error")))
         rows.append(row)
     return rows
@@ -161,10 +161,11 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
     return rows
 
 
-def _profile_text(row: dict) -> str:
+def _profile_text(row: dict, unit: str = "step") -> str:
+    """The row's :func:`device_profile` figures per ``unit`` (what a row times), or nothing."""
     if "kernels_per_step" not in row:
         return ""
-    return (f"; per step {row['kernels_per_step']:,.0f} kernels, device busy {row['device_busy_ms_per_step']:.1f} ms, "
+    return (f"; per {unit} {row['kernels_per_step']:,.0f} kernels, device busy {row['device_busy_ms_per_step']:.1f} ms, "
             f"{row['host_waits_per_step']:.0f} host waits")
 
 
