@@ -3,8 +3,8 @@
 The evaluation splits collisions into the ego's fault (its front or side struck another car)
 and others' fault (a car behind ran into it): a car that drives into the ego's rear is to blame,
 as on a real road; a car cutting in ahead or beside is not, because the ego decides how close
-it passes a car that may turn (defensive driving). The struck part is read off the state right
-after the collision: the collider is the other vehicle nearest to the ego in units of the
+it passes a car that may turn (defensive driving). The struck part is read off the state at the
+impact (the worlds' collision push taken back: :meth:`mmpc.highway.worlds.World.observe_impact`): the collider is the other vehicle nearest to the ego in units of the
 footprint (``max(|along| / length, |across| / width)`` in the ego's frame), and the part is the
 face of the ego's rectangle its centre lies beyond: the rear when it is behind the ego and more
 behind than beside it, measured in those units, the front likewise ahead, else a side.
@@ -38,7 +38,7 @@ def struck_part(
     """The part of the ego that the nearest other vehicle touches.
 
     Args:
-        ego: the ego's (x, y, heading psi) [m, m, rad] right after the collision.
+        ego: the ego's (x, y, heading psi) [m, m, rad] at the impact.
         others: the other vehicles' centres (x, y) [m].
         vehicle: every vehicle's (length, width) [m].
 
@@ -54,7 +54,7 @@ def struck_part(
 
 
 class Crash(NamedTuple):
-    """The scene of a collision, read right after it (:func:`crash_scene`).
+    """The scene of a collision, read at the impact (:func:`crash_scene`).
 
     Fields:
         part: what the collider struck of the ego (``"front"``, ``"side"``, ``"rear"``).
@@ -90,7 +90,7 @@ def crash_scene(
     :func:`struck_part`), where it is and how it moves relative to the ego.
 
     Args:
-        ego: the ego's (x, y, heading psi, speed v) [m, m, rad, m/s] right after the collision.
+        ego: the ego's (x, y, heading psi, speed v) [m, m, rad, m/s] at the impact.
         others: the other vehicles' (x, y, vx, vy) [m, m/s], road frame (lane k's centre at
             ``y = k * lane_width``).
         vehicle: every vehicle's (length, width) [m].

@@ -18,7 +18,7 @@ command's steering ``atan(L psidot / v)`` inverts it to first order.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Mapping, NamedTuple
 
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers the highway-v0 family)
@@ -115,15 +115,23 @@ def vehicle_motion(vehicle: Vehicle) -> tuple[float, float]:
     return beta, vehicle.speed * math.sin(beta) / (vehicle.LENGTH / 2)
 
 
-def road_state(env: AbstractEnv, frame: RoadFrame, *, dtype: torch.dtype = torch.float32) -> RoadState:
-    """Read the ego and every other vehicle from ``env`` (its ``unwrapped`` highway-env)."""
+def road_state(env: AbstractEnv, frame: RoadFrame, *, dtype: torch.dtype = torch.float32,
+               displaced: Mapping[int, np.ndarray] = {}) -> RoadState:
+    """Read the ego and every other vehicle from ``env`` (its ``unwrapped`` highway-env).
+
+    ``displaced``: world displacements (2,) [m] to take back from the positions read, by the
+    ``id`` of the vehicle they moved (:attr:`HighwayEpisode.pushes`: the scene at a collision's impact).
+    """
+    def position(vehicle: Vehicle) -> np.ndarray:
+        return np.asarray(vehicle.position) - displaced.get(id(vehicle), 0.0)
+
     ego = env.vehicle
     beta, turn_rate = vehicle_motion(ego)
-    x, y = frame.to_road(np.asarray(ego.position))
+    x, y = frame.to_road(position(ego))
     ego_row = [x, y, ego.heading + beta - frame.heading, ego.speed, float(ego.action["acceleration"]), turn_rate]
     others = [v for v in env.road.vehicles if v is not ego]
     if others:
-        positions = frame.to_road(np.array([v.position for v in others]))
+        positions = frame.to_road(np.array([position(v) for v in others]))
         velocities = frame.vector_to_road(np.array([v.velocity for v in others]))
         rows = np.concatenate([positions, velocities], axis=1)
     else:
@@ -173,6 +181,8 @@ class HighwayEpisode:
         self.frame = RoadFrame.of(self.unwrapped)
         self.time = 0.0
         self.reward = 0.0
+        #: The collision pushes the last frame applied: world displacement (2,) [m] by the ``id`` of the vehicle moved.
+        self.pushes: dict[int, np.ndarray] = {}
 
     @property
     def ego(self) -> Vehicle:
@@ -192,6 +202,16 @@ class HighwayEpisode:
         state = road_state(self.unwrapped, self.frame, dtype=dtype)
         return Observation(state.ego, state.vehicles, None, self.kinematics()[None])
 
+    def observe_impact(self) -> Observation:
+        """The current state with the last frame's collision pushes taken back (E = 1, no
+        Kinematics rows): after the frame in which the ego crashed, the cars where they met.
+
+        highway-env separates two cars predicted to collide by half the minimum translation each
+        (``RoadObject.handle_collisions``), applied in the next frame, the one that marks them crashed.
+        """
+        state = road_state(self.unwrapped, self.frame, displaced=self.pushes)
+        return Observation(state.ego, state.vehicles, None, None)
+
     def apply(self, acceleration: float, steering: float) -> None:
         """Send one command for one frame, then let the traffic controller move vehicles.
 
@@ -202,7 +222,10 @@ class HighwayEpisode:
         """
         speed = float(self.ego.speed)
         acceleration = max(acceleration, -max(speed, 0.0) * self.scenario.frequency)
+        pending = {id(v): (v, v.impact) for v in self.unwrapped.road.vehicles if v.impact is not None}
         _, reward, _, _, _ = self.env.step(command_to_action(acceleration, steering))
+        # A push was applied where the vehicle no longer holds it (a vehicle that does not step, e.g. a replay, keeps it).
+        self.pushes = {key: np.array(impact) for key, (v, impact) in pending.items() if v.impact is not impact}
         if speed >= 0.0 and self.ego.speed < 0.0:  # rounding of the stopping command
             self.ego.speed = 0.0
         self.reward = float(reward)

@@ -101,10 +101,11 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
     ]
 
 
-def _crash_scene(after: Observation, scenario: ScenarioConfig) -> Optional[Crash]:
-    """The scene of a collision (:func:`mmpc.collisions.crash_scene`), from the state right after it (E = 1)."""
-    ego = after.ego[0]
-    vehicles = after.vehicles[0] if after.vehicle_mask is None else after.vehicles[0][after.vehicle_mask[0]]
+def _crash_scene(impact: Observation, scenario: ScenarioConfig) -> Optional[Crash]:
+    """The scene of a collision (:func:`mmpc.collisions.crash_scene`), from the state at its impact (E = 1,
+    :meth:`mmpc.highway.worlds.World.observe_impact`)."""
+    ego = impact.ego[0]
+    vehicles = impact.vehicles[0] if impact.vehicle_mask is None else impact.vehicles[0][impact.vehicle_mask[0]]
     return crash_scene((float(ego[EGO_X]), float(ego[EGO_Y]), float(ego[EGO_PSI]), float(ego[EGO_V])),
                        vehicles.tolist(), scenario.vehicle, scenario.road.lane_width)
 
@@ -306,7 +307,7 @@ def run_lockstep(
                         observer.applied(step)
                 if ended[i]:
                     if episodes[i].ego.crashed:
-                        crashes[i] = _crash_scene(world.observe([i])[1][0], scenario)
+                        crashes[i] = _crash_scene(world.observe_impact(i), scenario)
                     for observer in observers:
                         observer.finished(i, episodes[i])
             active = [i for i in active if not ended[i]]

@@ -32,6 +32,10 @@ class World(Protocol):
     def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
         """Apply one command per ``active`` environment, (A,) each [m/s^2], [rad]."""
 
+    def observe_impact(self, index: int) -> Observation:
+        """Environment ``index`` (E = 1) after the step in which its ego crashed, with that step's
+        collision pushes taken back: the cars where they met (both worlds push colliding cars apart)."""
+
     def done(self) -> list[bool]:
         """Per environment: its episode is over."""
 
@@ -68,6 +72,9 @@ class HighwayEnvWorld:
     def apply(self, active: Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
         for row, i in enumerate(active):
             self.episodes[i].apply(float(acceleration[row]), float(steering[row]))
+
+    def observe_impact(self, index: int) -> Observation:
+        return self.episodes[index].observe_impact()
 
     def done(self) -> list[bool]:
         return [episode.done for episode in self.episodes]
@@ -175,6 +182,10 @@ class BatchedWorld:
         running[rows] = True
         self.sim.step(command, running)
         self._read_status()
+
+    def observe_impact(self, index: int) -> Observation:
+        ego, vehicles, mask = (field[index:index + 1].cpu() for field in self.sim.road_state(at_impact=True))
+        return Observation(ego, vehicles, mask, None)
 
     def done(self) -> list[bool]:
         return self.ended

@@ -64,6 +64,8 @@ class SimEpisodes:
         self.steps = torch.zeros_like(self.seeds)
         #: (E, 2) the ego's applied acceleration [m/s^2] and steering [rad] (zero before the first command).
         self.applied = torch.zeros(self.num_envs, 2, dtype=dtype, device=self.seeds.device)
+        #: (E, V, 2) the collision pushes [m] the last step applied (:meth:`road_state` ``at_impact``).
+        self.pushes = torch.zeros_like(self.state.impact)
 
     @property
     def device(self) -> torch.device:
@@ -118,13 +120,16 @@ class SimEpisodes:
             after = keep_in_window(after, window, self.seeds, self.steps, self.config)
         command = command.to(before.x.dtype)
         applied = torch.stack(ego_action(command[:, 0], command[:, 1], before.speed[:, 0], self.config), dim=1)
+        # The step's one frame applies the pushes pending before it (a scenario's frame is its control step).
+        pushes = torch.where((before.impact_pending & before.alive)[..., None], before.impact, 0.0)
         if running is None:
-            self.state, self.applied, self.steps = after, applied, self.steps + 1
+            self.state, self.applied, self.steps, self.pushes = after, applied, self.steps + 1, pushes
             return
         self.state = VehicleState(*(torch.where(running.view(-1, *([1] * (new.dim() - 1))), new, old)
                                     for new, old in zip(after, before)))
         self.applied = torch.where(running[:, None], applied, self.applied)
         self.steps = self.steps + running.to(self.steps.dtype)
+        self.pushes = torch.where(running[:, None, None], pushes, 0.0)
 
     def reset(self, envs: Union[Sequence[int], torch.Tensor], seeds: Seeds) -> None:
         """Start new episodes in some environments; the others keep running.
@@ -153,9 +158,16 @@ class SimEpisodes:
         self.seeds = self.seeds.index_copy(0, envs, seeds)
         self.steps = self.steps.index_fill(0, envs, 0)
         self.applied = self.applied.index_fill(0, envs, 0.0)
+        self.pushes = self.pushes.index_fill(0, envs, 0.0)
 
-    def road_state(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def road_state(self, *, at_impact: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The egos and the other vehicles in the road frame, as the MPC takes them.
+
+        Args:
+            at_impact: take back the collision pushes the last step applied (:attr:`pushes`): after
+                the step in which an ego crashed, the cars where they met rather than where the
+                push left them (the simulator, as highway-env, separates two cars predicted to
+                collide by half the minimum translation each, in the frame that marks them crashed).
 
         Returns:
             ego: (E, 6) as :data:`mmpc.EGO_FIELDS`: x, y [m], psi (direction of motion: heading
@@ -165,12 +177,15 @@ class SimEpisodes:
             mask: (E, V - 1) bool, the slots that hold a vehicle.
         """
         state = self.state
+        x, y = state.x, state.y
+        if at_impact:
+            x, y = x - self.pushes[..., 0], y - self.pushes[..., 1]
         beta = torch.atan(0.5 * torch.tan(self.applied[:, 1]))
         speed = state.speed[:, 0]
         turn_rate = speed * torch.sin(beta) / (state.length[:, 0] / 2)
-        ego = torch.stack([state.x[:, 0], state.y[:, 0], state.heading[:, 0] + beta, speed, self.applied[:, 0], turn_rate], dim=1)
+        ego = torch.stack([x[:, 0], y[:, 0], state.heading[:, 0] + beta, speed, self.applied[:, 0], turn_rate], dim=1)
         heading, others_speed = state.heading[:, 1:], state.speed[:, 1:]
-        vehicles = torch.stack([state.x[:, 1:], state.y[:, 1:], others_speed * torch.cos(heading),
+        vehicles = torch.stack([x[:, 1:], y[:, 1:], others_speed * torch.cos(heading),
                                 others_speed * torch.sin(heading)], dim=2)
         return ego, vehicles, state.alive[:, 1:]
 
