@@ -10,11 +10,12 @@ busy shared machine inflates less; each row records the 1-minute load average.
 from __future__ import annotations
 
 import argparse
-import sys
 import json
 import os
 import platform
+import re
 import statistics
+import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,7 +24,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from mmpc.cli.arguments import int_list
-from mmpc.config import ConfigError, OptimizerConfig
+from mmpc.config import OptimizerConfig, require, require_int, require_positive
 from mmpc.footprint import covering_semi_axes
 from mmpc.optimizer import BatchOptimizer
 from mmpc.plotting import plot_scaling
@@ -63,6 +64,22 @@ class SolverBenchmark:
     max_seconds_per_row: float = 20.0
     environments: int = 64
     config: OptimizerConfig = field(default_factory=OptimizerConfig)
+
+    def __post_init__(self) -> None:
+        require(bool(self.batches) and all(isinstance(b, int) and b >= 1 for b in self.batches),
+                f"`batches` must be batch sizes >= 1; got {self.batches!r}")
+        require(bool(self.obstacles) and all(isinstance(m, int) and m >= 0 for m in self.obstacles),
+                f"`obstacles` must be obstacle counts >= 0; got {self.obstacles!r}")
+        require(bool(self.devices) and set(self.devices) <= {"cpu", "cuda"},
+                f"`devices` must be 'cpu' and/or 'cuda'; got {self.devices!r}")
+        require(bool(self.variants) and len(set(self.variants)) == len(self.variants),
+                f"`variants` must be distinct and at least one; got {self.variants!r}")
+        for variant in self.variants:
+            check_variant(variant)
+            replace(self.config, exit_checks=exit_checks(variant))  # checks fit the schedule
+        require_int("", low=1, threads=self.threads, repeats=self.repeats)
+        require_int("", low=0, warmup=self.warmup, environments=self.environments)
+        require_positive("", max_seconds_per_row=self.max_seconds_per_row)
 
 
 def benchmark_problem(batch: int, obstacles: int, times: torch.Tensor) -> ProblemBatch:
@@ -260,6 +277,21 @@ def _suffix(variant: str, name: str) -> Optional[str]:
     return next((part[len(name):] for part in variant.split("-")[1:] if part.startswith(name)), None)
 
 
+#: A variant: an optimizer kind, then suffixes, each kind of suffix at most once (:class:`SolverBenchmark`).
+VARIANT = re.compile(r"(eager|compiled)(-turned|-warm[^-]*|-exit[^-]*)*")
+
+
+def check_variant(variant: str) -> None:
+    """Refuse a variant the benchmark does not know (``ValueError`` naming the allowed form), so
+    that a misspelled one is not timed as eager under its own label."""
+    suffixes = [re.match(r"[a-z]*", part).group() for part in variant.split("-")[1:]]
+    if not VARIANT.fullmatch(variant) or len(set(suffixes)) != len(suffixes):
+        raise ValueError(f"variant {variant!r} is not one the benchmark knows: expected 'eager' or 'compiled', then "
+                         "optionally each at most once '-turned', '-warmK' (K >= 1) and '-exitA.B...' "
+                         "(e.g. 'compiled-turned-warm10', 'eager-exit10.30')")
+    warm_iterations(variant)
+
+
 def warm_iterations(variant: str) -> Optional[int]:
     """K of a "-warmK" variant (:class:`SolverBenchmark`), else ``None``."""
     iterations = _suffix(variant, "warm")
@@ -355,17 +387,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                        help="E for the one-call-vs-one-call-per-environment comparison (0 skips)")
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     args = bench.parse_args(argv)
-    try:
-        for variant in args.variants.split(","):
-            warm_iterations(variant)
-            OptimizerConfig(exit_checks=exit_checks(variant))
-    except (ValueError, ConfigError) as error:
+    try:  # every value checked before any work
+        spec = SolverBenchmark(
+            batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
+            variants=tuple(args.variants.split(",")), threads=args.threads, repeats=args.repeats,
+            max_seconds_per_row=args.max_seconds_per_row, environments=args.environments,
+        )
+    except ValueError as error:  # a ConfigError too
         bench.error(str(error))
-    spec = SolverBenchmark(
-        batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
-        variants=tuple(args.variants.split(",")), threads=args.threads, repeats=args.repeats,
-        max_seconds_per_row=args.max_seconds_per_row, environments=args.environments,
-    )
     report = run(spec, Path(args.out))
     print(f"wrote {Path(args.out) / 'bench_solver.json'} ({len(report['rows'])} rows) and bench_solver.png")
     return 0
