@@ -10,6 +10,11 @@ the same seeds, possibly in separate folders and on scenarios of the same traffi
 
 A spec is ``[LABEL=]FOLDER[#DRIVER[#SCENARIO]]``: the folder's ``episodes.csv``, narrowed to one
 driver and scenario where it holds several. The first spec is the reference.
+
+Pairs are of the same traffic only on the same scenario: each folder's ``scenarios.json`` records
+the settings its episodes were run with, and runs whose settings differ (another duration, a
+``--set``) are refused unless ``--allow-different-scenarios`` says that is meant (the settings that
+differ are printed then). Names alone may differ.
 """
 
 from __future__ import annotations
@@ -19,12 +24,31 @@ import json
 import sys
 from pathlib import Path
 
+from typing import NamedTuple
+
 from mmpc.evaluate import paired_differences, read_episodes
-from mmpc.evaluate.report import PAIRED_METRICS
+from mmpc.evaluate.report import PAIRED_METRICS, check_paired_metrics
+from mmpc.evaluate.store import read_inputs
 
 
-def select(spec: str) -> tuple[str, list[dict]]:
-    """(label, rows of one driver on one scenario) of a spec ``[LABEL=]FOLDER[#DRIVER[#SCENARIO]]``."""
+class Selection(NamedTuple):
+    """The rows of one driver on one scenario, named by a spec.
+
+    Fields:
+        label: the driver's name in the table.
+        folder: the evaluation folder.
+        scenario: the scenario's name.
+        rows: its episodes.csv rows.
+    """
+
+    label: str
+    folder: Path
+    scenario: str
+    rows: list[dict]
+
+
+def select(spec: str) -> Selection:
+    """The rows of one driver on one scenario of a spec ``[LABEL=]FOLDER[#DRIVER[#SCENARIO]]``."""
     label, _, where = spec.partition("=") if "=" in spec.split("#")[0] else ("", "", spec)
     folder, *narrow = where.split("#")
     if len(narrow) > 2:
@@ -41,7 +65,37 @@ def select(spec: str) -> tuple[str, list[dict]]:
         raise ValueError(f"{spec!r}: {folder} holds {len(groups)} driver x scenario groups {groups}; "
                          "name one as FOLDER#DRIVER#SCENARIO")
     driver, scenario = groups[0]
-    return label or f"{driver} on {scenario}", rows
+    return Selection(label or f"{driver} on {scenario}", Path(folder), scenario, rows)
+
+
+def _flat(settings: dict, prefix: str = "") -> dict:
+    """Nested settings as ``{"dotted.key": value}``."""
+    flat = {}
+    for key, value in settings.items():
+        flat.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+    return flat
+
+
+def scenario_differences(reference: Selection, other: Selection) -> list[str]:
+    """How ``other``'s scenario differs from ``reference``'s, read from the folders'
+    ``scenarios.json``: ``"key: reference value vs other value"`` per setting but the name; empty
+    where they agree; one line saying so where a folder does not record its scenario's settings."""
+    recorded = []
+    for selection in (reference, other):
+        inputs = read_inputs(selection.folder)
+        if selection.scenario not in inputs.scenarios:
+            return [f"{selection.folder / 'scenarios.json'} does not record scenario {selection.scenario!r}, "
+                    "so its settings cannot be compared"]
+        recorded.append((inputs.scenarios[selection.scenario], inputs.settings.get(selection.scenario)))
+    (reference_hash, reference_settings), (other_hash, other_settings) = recorded
+    if reference_hash == other_hash:
+        return []
+    if reference_settings is None or other_settings is None:
+        return [f"settings hash {reference_hash} vs {other_hash} (the settings are not recorded: a folder of an earlier "
+                "mmpc)"]
+    ours, theirs = _flat(reference_settings), _flat(other_settings)
+    return [f"{key}: {ours.get(key, '-')} vs {theirs.get(key, '-')}" for key in sorted(ours.keys() | theirs.keys())
+            if key != "name" and ours.get(key, "-") != theirs.get(key, "-")]
 
 
 def cell(entry: dict) -> str:
@@ -58,17 +112,35 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("reference", help="[LABEL=]FOLDER[#DRIVER[#SCENARIO]] of the reference driver")
     parser.add_argument("others", nargs="+", help="the drivers compared with it, same form")
     parser.add_argument("--metrics", default=",".join(PAIRED_METRICS), help="episodes.csv columns (default: %(default)s)")
+    parser.add_argument("--allow-different-scenarios", action="store_true",
+                        help="compare runs whose scenario settings differ (or are not recorded); the differences are printed")
     parser.add_argument("--out", default=None, help="write compare_drivers.json here")
     args = parser.parse_args(argv)
     keys = [key for key in args.metrics.split(",") if key]
     try:
-        reference_label, reference = select(args.reference)
+        check_paired_metrics(keys)
+    except ValueError as error:
+        return _refuse(f"--metrics: {error}")
+    try:
+        reference = select(args.reference)
         compared = [select(spec) for spec in args.others]
-        results = {label: paired_differences(reference, rows, keys) for label, rows in compared}
+        differences = {selection.label: scenario_differences(reference, selection) for selection in compared}
+        for label, lines in differences.items():
+            if lines and not args.allow_different_scenarios:
+                raise ValueError(f"{label} ran another scenario than {reference.label} ({'; '.join(lines)}), so its "
+                                 "seeds are not the same traffic; pass --allow-different-scenarios if that is meant")
+        results = {}
+        for selection in compared:
+            results[selection.label] = paired_differences(reference.rows, selection.rows, keys)
+            if not results[selection.label]["episodes"]:
+                raise ValueError(f"{selection.label} and {reference.label} finished no seed in common "
+                                 f"({_seeds(selection.rows)} against {_seeds(reference.rows)}); compare runs of the same seeds")
     except (ValueError, FileNotFoundError) as error:
-        print(f"compare_drivers: error: {error}", file=sys.stderr)
-        return 2
-    print(f"differences against {reference_label}, per seed, 95 % intervals")
+        return _refuse(str(error))
+    print(f"differences against {reference.label}, per seed, 95 % intervals")
+    for label, lines in differences.items():
+        for line in lines:
+            print(f"  {label}: scenario differs from the reference's: {line}")
     print("| driver | paired episodes | collisions (reference) | " + " | ".join(keys) + " |")
     print("|---|---:|---:|" + "---:|" * len(keys))
     for label, result in results.items():
@@ -79,9 +151,22 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         path = Path(args.out) / "compare_drivers.json"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps({"reference": reference_label, "results": results}, indent=1))
+        path.write_text(json.dumps({"reference": reference.label, "results": results,
+                                    "scenario_differences": differences}, indent=1))
         print(f"wrote {path}")
     return 0
+
+
+def _refuse(message: str) -> int:
+    """Print ``message`` as the script's error; the exit status of a refusal."""
+    print(f"compare_drivers: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _seeds(rows: list[dict]) -> str:
+    """The finished seeds of ``rows`` in words."""
+    seeds = sorted(row["seed"] for row in rows if row.get("status", "ok") == "ok")
+    return f"{len(seeds)} finished seeds" + (f" {seeds[0]}-{seeds[-1]}" if seeds else "")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ import pytest
 from compare_drivers import main
 from mmpc.evaluate import paired_differences
 from mmpc.evaluate.report import mean_ci
-from mmpc.evaluate.store import COLUMNS
+from mmpc.evaluate.store import COLUMNS, check_inputs
+from mmpc.scenario import load_scenario
 
 
 def _rows(driver, returns, collisions=None, status=None):
@@ -46,11 +47,13 @@ def test_only_seeds_both_finished_are_paired_and_repeated_seeds_are_refused():
 
 
 def _folder(path, rows):
+    """An evaluation folder of the rows, on the scenario cruise (its scenarios.json as `mmpc evaluate` writes it)."""
     path.mkdir()
     with open(path / "episodes.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, COLUMNS)
         writer.writeheader()
         writer.writerows(rows)
+    check_inputs(path, [load_scenario("cruise")], ())
     return path
 
 

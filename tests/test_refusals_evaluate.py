@@ -1,9 +1,140 @@
-"""Refusals of the evaluation tools (tracker issue 55): bench_solver.py refuses unknown variants
-and repeats before any work."""
+"""Refusals of the evaluation tools (tracker issue 55): compare_drivers.py pairs only runs of one
+scenario and seeds, a resumed evaluation refuses a driver whose files changed, bench_solver.py
+refuses unknown variants and repeats before any work."""
+
+import csv
+import json
 
 import pytest
+import torch
 
 import bench_solver
+from compare_drivers import main as compare
+from mmpc.cli.main import main
+from mmpc.drivers import Decision, Driver, Observation, registry
+from mmpc.evaluate import COLUMNS, EvaluationConfig, EvaluationFolderError, evaluate, read_episodes
+from mmpc.evaluate.store import check_inputs, driver_files
+from mmpc.scenario import load_scenario
+
+
+# ------------------------------------------------------------------- compare_drivers.py (item 2)
+
+
+def _folder(path, scenario, returns, seeds=None):
+    """An evaluation folder as `mmpc evaluate` leaves it: episodes.csv and scenarios.json."""
+    path.mkdir()
+    with open(path / "episodes.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, COLUMNS)
+        writer.writeheader()
+        for seed, value in zip(seeds or range(len(returns)), returns):
+            row = {column: 0 for column in COLUMNS}
+            row.update(driver="mpc", scenario=scenario.name, seed=seed, status="ok", error="", worker="w",
+                       collision_part="", task_return=value, duration=scenario.duration)
+            writer.writerow(row)
+    check_inputs(path, [scenario], ("mpc",))
+    return path
+
+
+def test_compare_refuses_runs_of_other_scenario_settings_unless_told(tmp_path, capsys):
+    cruise = load_scenario("cruise")
+    long = _folder(tmp_path / "long", cruise.replace(duration=3.0), [300.0, 290.0, 310.0])
+    short = _folder(tmp_path / "short", cruise.replace(duration=1.0), [100.0, 98.0, 103.0])
+    assert compare([str(long), str(short)]) == 2
+    captured = capsys.readouterr()
+    assert "duration: 3.0 vs 1.0" in captured.err and "--allow-different-scenarios" in captured.err
+    assert "|" not in captured.out  # no table
+    assert compare([str(long), str(short), "--allow-different-scenarios", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "mpc on cruise: scenario differs from the reference's: duration: 3.0 vs 1.0" in printed
+    written = json.loads((tmp_path / "compare_drivers.json").read_text())
+    assert written["scenario_differences"] == {"mpc on cruise": ["duration: 3.0 vs 1.0"]}
+    # the same settings under another name pair; a folder without scenarios.json cannot be checked
+    renamed = _folder(tmp_path / "renamed", cruise.replace(duration=3.0, name="cruise_again"), [301.0, 291.0, 311.0])
+    assert compare([str(long), str(renamed), "--metrics", "task_return"]) == 0
+    assert "| mpc on cruise_again | 3 | 0 (0) | +1 ± 0 (+0.3%) |" in capsys.readouterr().out
+    (renamed / "scenarios.json").unlink()
+    assert compare([str(long), str(renamed)]) == 2
+    assert "does not record scenario 'cruise_again'" in capsys.readouterr().err
+
+
+def test_compare_refuses_no_common_seed_and_unknown_or_no_metrics(tmp_path, capsys):
+    cruise = load_scenario("cruise")
+    first = _folder(tmp_path / "first", cruise, [300.0, 290.0, 310.0])
+    later = _folder(tmp_path / "later", cruise, [300.0, 290.0, 310.0], seeds=[10, 11, 12])
+    assert compare([str(first), str(later)]) == 2
+    err = capsys.readouterr().err
+    assert "finished no seed in common (3 finished seeds 10-12 against 3 finished seeds 0-2)" in err
+    same = _folder(tmp_path / "same", cruise, [301.0, 291.0, 311.0])
+    for metrics, unknown in (("task_retrun", "'task_retrun'"), ("task_return,collision_part", "'collision_part'")):
+        assert compare([str(first), str(same), "--metrics", metrics]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("compare_drivers: error: --metrics: the metrics must be one or more of the number columns")
+        assert f"of which {unknown} not" in err and err.count("\n") == 1
+    assert compare([str(first), str(same), "--metrics", ""]) == 2
+    assert "--metrics: the metrics must be one or more of the number columns of episodes.csv" in capsys.readouterr().err
+    assert compare([str(first), str(same), "--metrics", ","]) == 2
+
+
+# ------------------------------------------------------------ driver files on resume (item 3)
+
+
+class Coast(Driver):
+    """No acceleration, no steering."""
+
+    name = "coast"
+    built = 0
+
+    def decide(self, observation: Observation) -> Decision:
+        zeros = torch.zeros(observation.num_envs, dtype=observation.ego.dtype)
+        return Decision.command_only(zeros, zeros, solve_ms=0.1)
+
+
+def _coast(scenario, argument):
+    Coast.built += 1
+    return Coast()
+
+
+@pytest.fixture
+def coast(monkeypatch):
+    monkeypatch.setitem(registry._registered, "coast", _coast)
+    Coast.built = 0
+
+
+@pytest.mark.usefixtures("one_thread", "coast")
+def test_resume_refuses_a_driver_whose_file_changed(tmp_path, capsys):
+    checkpoint = tmp_path / "policy.pt"
+    checkpoint.write_bytes(b"first weights")
+    spec = f"coast:{checkpoint}"
+    out = tmp_path / "evaluation"
+    scenario = load_scenario("cruise").replace(duration=0.3)
+    evaluate([scenario], out, EvaluationConfig(drivers=(spec,), seeds=(0,), report=False))
+    assert Coast.built == 1
+    checkpoint.write_bytes(b"other weights")  # retrained into the same path
+    with pytest.raises(EvaluationFolderError, match=f"episodes of driver '{spec}' run with other contents of its "
+                                                    f"file\\(s\\) {checkpoint}"):
+        evaluate([scenario], out, EvaluationConfig(drivers=(spec,), seeds=(0, 1), report=False))
+    cli = ["evaluate", "--driver", spec, "--scenarios", "cruise", "--duration", "0.3", "--seeds", "0-1", "--lockstep", "1",
+           "--out", str(out)]
+    assert main(cli) == 2
+    assert f"mmpc evaluate: error: {out} holds episodes of driver '{spec}'" in capsys.readouterr().err
+    assert Coast.built == 1 and len(read_episodes(out / "episodes.csv")) == 1  # nothing ran with the new file
+    checkpoint.write_bytes(b"first weights")  # the file the episodes were run with: resumed
+    evaluate([scenario], out, EvaluationConfig(drivers=(spec,), seeds=(0, 1), report=False))
+    assert Coast.built == 2 and [r["seed"] for r in read_episodes(out / "episodes.csv")] == [0, 1]
+
+
+def test_shipped_driver_names_are_fingerprinted_by_their_files(tmp_path):
+    from mmpc.imitation.proposer_driver import SHIPPED_PROPOSERS
+    from mmpc.rl.runs import SHIPPED_MODELS
+
+    assert driver_files("proposer:cruise") == (SHIPPED_PROPOSERS / "cruise.pt",)
+    assert driver_files("sb3:high_speed_ppo") == tuple(sorted((SHIPPED_MODELS / "high_speed_ppo").iterdir()))
+    assert driver_files("mpc") == () and driver_files("proposer:no_such_model") == ()
+    # a folder whose proposer:cruise episodes were run with another shipped file is refused before any episode
+    (tmp_path / "scenarios.json").write_text(json.dumps({"format": 2, "scenarios": {}, "drivers": {"proposer:cruise": "0" * 16}}))
+    with pytest.raises(EvaluationFolderError, match="driver 'proposer:cruise' .*cruise.pt"):
+        evaluate([load_scenario("cruise")], tmp_path, EvaluationConfig(drivers=("proposer:cruise",), seeds=(0,)))
+    assert not (tmp_path / "episodes.csv").exists()
 
 
 # -------------------------------------------------------------------- bench_solver.py (item 14)

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             evaluation = evaluate(scenarios, out, config, on_episode=progress)
-        # scenarios.json damaged or of other scenarios, or another evaluation writing there
+        # scenarios.json damaged, of other scenarios or driver files, or another evaluation writing there
         except (EvaluationFolderError, OutputFolderError) as error:
             bar.close()
             print(f"mmpc evaluate: error: {error}", file=sys.stderr)

@@ -17,12 +17,14 @@ processes, or as Ray tasks (``ray=...``); only this (coordinating) process write
   and TensorBoard scalars under ``tensorboard/`` (:mod:`mmpc.evaluate.report`).
 
 Resuming: a second call with the same ``out`` skips the (driver, scenario, seed) keys already
-``ok`` and re-runs the error and missing ones; the file is rewritten (temp file + rename)
-without the rows being re-run, so no key appears twice. A worker process that dies takes its
-pool down; the groups that were in flight are run again one at a time, so the one that kills
-its worker is found and, after ``retries`` further deaths, written as error rows; the run goes
-on. An episode that raises is an error row: a failing group is re-run one seed at a time so
-only the failing episodes are errors.
+``ok`` and re-runs the error and missing ones, once it has checked that each scenario's settings
+and each driver's files (a checkpoint a spec names) are those the folder's episodes were run
+with (``scenarios.json``, :func:`mmpc.evaluate.store.check_inputs`); ``episodes.csv`` is
+rewritten (temp file + rename) without the rows being re-run, so no key appears twice. A
+worker process that dies takes its pool down; the groups that were in flight are run again one
+at a time, so the one that kills its worker is found and, after ``retries`` further deaths,
+written as error rows; the run goes on. An episode that raises is an error row: a failing group
+is re-run one seed at a time so only the failing episodes are errors.
 
 A resumed call may use another ``lockstep`` (and other seeds): done is decided per key, and
 each row records the ``group`` and ``group_size`` it was driven in. Group membership changes an
@@ -42,7 +44,7 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 from mmpc.evaluate.backends import run_tasks
 from mmpc.evaluate.report import summarize, write_report
-from mmpc.evaluate.store import EpisodeFile, Key, check_scenarios, read_episodes, row_key
+from mmpc.evaluate.store import EpisodeFile, Key, check_inputs, read_episodes, row_key
 from mmpc.evaluate.tasks import EvaluationConfig, error_rows, plan_tasks, run_group
 from mmpc.files import atomic_write_text, exclusive
 from mmpc.scenario import ScenarioConfig
@@ -85,8 +87,9 @@ def evaluate(
 
     Raises:
         ValueError: duplicate scenario names.
-        EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name, or
-            a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
+        EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name,
+            episodes of a driver spec whose files changed since (:func:`mmpc.evaluate.store.check_inputs`),
+            or a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
         mmpc.files.OutputFolderError (a RuntimeError): another evaluation holds ``out``.
     """
     names = [s.name for s in scenarios]
@@ -95,7 +98,7 @@ def evaluate(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with exclusive(out, ".evaluate.lock", "another evaluation"):
-        check_scenarios(out, scenarios)
+        check_inputs(out, scenarios, config.drivers)
         wanted = {(d, s, seed) for d in config.drivers for s in names for seed in config.seeds}
         earlier: dict[Key, dict] = {}
         for row in read_episodes(out / "episodes.csv"):

@@ -20,6 +20,7 @@ from statistics import NormalDist
 from typing import Optional, Sequence
 
 from mmpc.config import require_int
+from mmpc.evaluate.store import NUMBER_COLUMNS
 from mmpc.files import file_slug
 from mmpc.metrics import OFF_CENTRE
 
@@ -173,6 +174,16 @@ def summarize(rows: Sequence[dict]) -> list[dict]:
 PAIRED_METRICS = ("task_return", "mean_speed", "meta_cost_mean", "fallback_steps", "right_lane_distance_mean", "min_clearance")
 
 
+def check_paired_metrics(keys: Sequence[str]) -> None:
+    """Refuse ``keys`` for :func:`paired_differences` unless they are one or more of the number
+    columns of ``episodes.csv`` (:data:`mmpc.evaluate.store.NUMBER_COLUMNS`)."""
+    unknown = [key for key in keys if key not in NUMBER_COLUMNS]
+    if not keys or unknown:
+        raise ValueError(f"the metrics must be one or more of the number columns of episodes.csv "
+                         f"({', '.join(NUMBER_COLUMNS)}); got {list(keys)}"
+                         + (f", of which {', '.join(map(repr, unknown))} not" if unknown else ""))
+
+
 def paired_differences(reference: Sequence[dict], rows: Sequence[dict],
                        keys: Sequence[str] = PAIRED_METRICS) -> dict:
     """Per-seed differences ``rows - reference`` over the seeds both finished: one driver on one
@@ -191,7 +202,11 @@ def paired_differences(reference: Sequence[dict], rows: Sequence[dict],
         ``reference_collisions`` over the paired seeds, and per key ``{"reference", "mean",
         "difference", "difference_ci" (95 % t interval), "relative"}`` (difference / reference
         mean; ``None`` where undefined).
+
+    Raises:
+        ValueError: a seed repeats, or ``keys`` are not number columns (:func:`check_paired_metrics`).
     """
+    check_paired_metrics(keys)
     def by_seed(group: Sequence[dict], name: str) -> dict[int, dict]:
         done = [row for row in group if row.get("status", "ok") == "ok"]
         seeds = [row["seed"] for row in done]

@@ -1,5 +1,6 @@
 """The evaluation's files: ``episodes.csv`` (one row per episode, :data:`COLUMNS`) and
-``scenarios.json`` (the settings hash of every scenario whose episodes the folder holds).
+``scenarios.json`` (:class:`FolderInputs`: the settings and their hash of every scenario whose
+episodes the folder holds, and the hash of the files of every driver spec that names files).
 
 ``episodes.csv`` is written by the coordinating process only: rewritten atomically at the start
 of a run, then appended to and fsync'ed as each group finishes, so a killed run loses no
@@ -11,15 +12,18 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import importlib.util
 import io
 import json
 import logging
 import os
+from importlib import metadata
 from pathlib import Path
-from typing import Sequence
+from typing import NamedTuple, Optional, Sequence
 
 from mmpc.collisions import CRASH_COLUMNS
 from mmpc.config import to_dict
+from mmpc.drivers.registry import ENTRY_POINT_GROUP, check_spec
 from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
 
@@ -45,6 +49,8 @@ COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
                           "lane_changes", "fallback_steps", "crash_fallback_steps"})
 _TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker", "collision_part"})
+#: The metrics that are numbers (all but the part a collision struck).
+NUMBER_COLUMNS = tuple(column for column in METRIC_COLUMNS if column not in _TEXT_COLUMNS)
 _NULLABLE_TEXT_COLUMNS = frozenset({"collision_part"})  # an empty cell reads back as None
 
 Key = tuple[str, str, int]
@@ -158,17 +164,64 @@ class EpisodeFile:
 
 
 #: What to do about a damaged ``scenarios.json``.
-_CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run with the scenarios as they are now; "
-                      "otherwise use another `out`")
+_CORRUPT_SCENARIOS = ("delete it only if the episodes in this folder were run with the scenarios and driver files as "
+                      "they are now; otherwise use another `out`")
 
 
-def scenario_fingerprint(scenario: ScenarioConfig) -> str:
-    """A short hash of every setting of a scenario (:func:`mmpc.config.to_dict`); ``sim`` counts
-    only when it is not highway-env, so that folders written before the batched simulator resume."""
+def scenario_settings(scenario: ScenarioConfig) -> dict:
+    """Every setting of a scenario (:func:`mmpc.config.to_dict`), what :func:`scenario_fingerprint`
+    hashes; ``sim`` only when it is not highway-env, so that folders written before the batched
+    simulator resume."""
     settings = to_dict(scenario)
     if settings.get("sim") == "highway-env":
         del settings["sim"]
-    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+    return settings
+
+
+def scenario_fingerprint(scenario: ScenarioConfig) -> str:
+    """A short hash of :func:`scenario_settings`."""
+    return hashlib.sha256(json.dumps(scenario_settings(scenario), sort_keys=True).encode()).hexdigest()[:16]
+
+
+#: The folder of a package's shipped models, beside the module that declares a driver.
+SHIPPED_MODELS = "models"
+
+
+def driver_files(spec: str) -> tuple[Path, ...]:
+    """The files a driver spec names, in order: those of its argument (the text after ``:``) where
+    that is a file or a folder (its files); else a model of that name shipped with the package
+    that declares the driver, as the factories of ``proposer:NAME`` and ``sb3:NAME`` find it (the
+    file ``NAME.*`` or the files of the folder ``NAME`` in :data:`SHIPPED_MODELS` beside the
+    declaring module); none for a spec without an argument or whose argument names no file.
+
+    Raises:
+        ValueError: an unknown driver (:func:`mmpc.drivers.check_spec`).
+    """
+    name, _, argument = check_spec(spec)
+    if not argument:
+        return ()
+    path = Path(argument)
+    if not path.exists():
+        point = next((p for p in metadata.entry_points(group=ENTRY_POINT_GROUP) if p.name == name), None)
+        found = None if point is None else importlib.util.find_spec(point.module)
+        if found is None or found.origin is None:
+            return ()
+        models = Path(found.origin).parent / SHIPPED_MODELS
+        path = models / argument
+        if not path.is_dir():
+            return tuple(sorted(p for p in models.glob("*") if p.is_file() and p.stem == argument))
+    return (path,) if path.is_file() else tuple(sorted(p for p in path.iterdir() if p.is_file()))
+
+
+def driver_fingerprint(spec: str) -> Optional[str]:
+    """A short hash of the names and contents of :func:`driver_files` (``None``: it names none)."""
+    files = driver_files(spec)
+    if not files:
+        return None
+    digest = hashlib.sha256()
+    for path in files:
+        digest.update(path.name.encode() + b"\0" + hashlib.sha256(path.read_bytes()).digest())
+    return digest.hexdigest()[:16]
 
 
 #: ``format`` of ``scenarios.json``; files without it come from mmpc before 2026-11-23, whose
@@ -176,26 +229,62 @@ def scenario_fingerprint(scenario: ScenarioConfig) -> str:
 SCENARIOS_FORMAT = 2
 
 
-def check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
-    """Refuse to mix episodes of two different scenarios under one name in ``out``."""
+class FolderInputs(NamedTuple):
+    """What an evaluation folder's ``scenarios.json`` records of the inputs its episodes were run with.
+
+    Fields:
+        scenarios: scenario name -> :func:`scenario_fingerprint`.
+        settings: scenario name -> :func:`scenario_settings` (none in folders of an earlier mmpc).
+        drivers: driver spec -> :func:`driver_fingerprint`, for the specs that name files
+            (none in folders of an earlier mmpc).
+        legacy: written by mmpc before 2026-11-23, whose scenario hashes covered other settings.
+    """
+
+    scenarios: dict[str, str]
+    settings: dict[str, dict]
+    drivers: dict[str, str]
+    legacy: bool
+
+
+def read_inputs(out: Path) -> FolderInputs:
+    """The ``scenarios.json`` of the evaluation folder ``out`` (all empty where there is none).
+
+    Raises:
+        EvaluationFolderError: the file is not such a record (the message names it).
+    """
+    path = Path(out) / "scenarios.json"
+    if not path.exists():
+        return FolderInputs({}, {}, {}, False)
+    try:
+        stored = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as error:  # JSONDecodeError names the line and column; UnicodeDecodeError the byte
+        raise EvaluationFolderError(f"{path} is corrupt ({error}); expected the JSON object of scenario name -> "
+                                    f"settings hash this folder's episodes were run with; {_CORRUPT_SCENARIOS}") from error
+    legacy = isinstance(stored, dict) and "format" not in stored
+    record = {"scenarios": stored} if legacy else stored if isinstance(stored, dict) else {}
+    inputs = FolderInputs(record.get("scenarios"), record.get("settings", {}), record.get("drivers", {}), legacy)
+    if not all(isinstance(section, dict) and all(isinstance(v, kind) for v in section.values())
+               for section, kind in ((inputs.scenarios, str), (inputs.settings, dict), (inputs.drivers, str))):
+        raise EvaluationFolderError(f"{path} is corrupt: expected a JSON object of scenario name -> settings hash (and "
+                                    f"of scenario name -> settings, driver spec -> files hash); got {str(stored)[:100]}; "
+                                    f"{_CORRUPT_SCENARIOS}")
+    return inputs
+
+
+def check_inputs(out: Path, scenarios: Sequence[ScenarioConfig], drivers: Sequence[str]) -> None:
+    """Refuse to mix in ``out`` episodes of two different scenarios under one name, or of a driver
+    spec whose files (:func:`driver_files`) changed; record those of this run in ``scenarios.json``.
+
+    Raises:
+        EvaluationFolderError: a scenario's settings or a driver's files differ from those
+            ``out``'s episodes were run with, or ``scenarios.json`` is damaged.
+    """
     path = out / "scenarios.json"
-    known: dict[str, str] = {}
-    legacy = False
-    if path.exists():
-        try:
-            stored = json.loads(path.read_text(encoding="utf-8"))
-        except ValueError as error:  # JSONDecodeError names the line and column; UnicodeDecodeError the byte
-            raise EvaluationFolderError(f"{path} is corrupt ({error}); expected the JSON object of scenario name -> "
-                                        f"settings hash this folder's episodes were run with; {_CORRUPT_SCENARIOS}") from error
-        legacy = isinstance(stored, dict) and "format" not in stored
-        known = stored if legacy else stored.get("scenarios") if isinstance(stored, dict) else stored
-        if not isinstance(known, dict) or not all(isinstance(v, str) for v in known.values()):
-            raise EvaluationFolderError(f"{path} is corrupt: expected a JSON object of scenario name -> settings hash; "
-                                        f"got {str(stored)[:100]}; {_CORRUPT_SCENARIOS}")
+    known = read_inputs(out)
     for scenario in scenarios:
         fingerprint = scenario_fingerprint(scenario)
-        if known.setdefault(scenario.name, fingerprint) != fingerprint:
-            if legacy:
+        if known.scenarios.setdefault(scenario.name, fingerprint) != fingerprint:
+            if known.legacy:
                 raise EvaluationFolderError(
                     f"{out} was written by an earlier mmpc whose scenario hashes included settings that are no longer "
                     f"part of a scenario (mpc.compile, mpc.wheelbase), so its episodes of {scenario.name!r} cannot be "
@@ -205,4 +294,14 @@ def check_scenarios(out: Path, scenarios: Sequence[ScenarioConfig]) -> None:
                 f"{out} holds episodes of another scenario named {scenario.name!r} (settings changed, e.g. --duration or "
                 f"--set); use another `out` or rename the scenario (--set name=...)"
             )
-    atomic_write_text(path, json.dumps({"format": SCENARIOS_FORMAT, "scenarios": known}, indent=2) + "\n")
+        known.settings.setdefault(scenario.name, scenario_settings(scenario))
+    for spec in drivers:
+        fingerprint = driver_fingerprint(spec)
+        if fingerprint is not None and known.drivers.setdefault(spec, fingerprint) != fingerprint:
+            files = ", ".join(str(p) for p in driver_files(spec))
+            raise EvaluationFolderError(
+                f"{out} holds episodes of driver {spec!r} run with other contents of its file(s) {files} (files hash "
+                f"{known.drivers[spec]}, now {fingerprint}); use another `out`, or give the new file another path "
+                "(another spec)")
+    record = {"format": SCENARIOS_FORMAT, "scenarios": known.scenarios, "settings": known.settings, "drivers": known.drivers}
+    atomic_write_text(path, json.dumps(record, indent=2) + "\n")
