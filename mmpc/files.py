@@ -6,7 +6,8 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
-import tempfile
+import stat
+import uuid
 from pathlib import Path
 from typing import IO, Callable, Iterator
 
@@ -22,18 +23,24 @@ class OutputFolderError(RuntimeError):
 
 def atomic_write(path: Path, write: Callable[[IO[bytes]], object]) -> None:
     """Write through ``write(handle)`` (a binary file) to a temporary file in ``path``'s folder,
-    flush it to disk, then rename it onto ``path``; the temporary file is removed on an error."""
+    flush it to disk, then rename it onto ``path``; the temporary file is removed on an error.
+
+    The file gets the mode ``open(path, "w")`` would give it: an existing file's, else 0o666
+    less the umask (a temporary file of :mod:`tempfile` would leave it 0o600)."""
     path = Path(path)
-    handle = tempfile.NamedTemporaryFile("wb", dir=path.parent, prefix=TEMPORARY_PREFIX, suffix=path.suffix, delete=False)
+    temporary = path.with_name(f"{TEMPORARY_PREFIX}{uuid.uuid4().hex}{path.suffix}")
+    handle = os.fdopen(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb")
     try:
         with handle:
+            with contextlib.suppress(FileNotFoundError):
+                os.fchmod(handle.fileno(), stat.S_IMODE(os.stat(path).st_mode))
             write(handle)
             handle.flush()
             os.fsync(handle.fileno())
-        os.replace(handle.name, path)
+        os.replace(temporary, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
-            os.unlink(handle.name)
+            os.unlink(temporary)
         raise
 
 
@@ -44,20 +51,46 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 @contextlib.contextmanager
 def exclusive(
-    out: Path, lock: str, holder: str, error: type[Exception] = OutputFolderError,
+    out: Path, lock: str, holder: str, error: type[Exception] = OutputFolderError, *, remove: bool = False,
 ) -> Iterator[None]:
     """Hold the lock file ``out / lock`` while the block runs (released by the OS if this process
-    dies); when another process holds it, raise ``error`` naming ``holder``, the folder and the lock."""
-    with open(out / lock, "w") as handle:
+    dies); when another process holds it, raise ``error`` naming ``holder``, the folder and the lock.
+
+    With ``remove`` the lock file is deleted when the block ends, normally or by an exception,
+    while it is still held. A process that opened the file before it was deleted finds, once it
+    holds that file's lock, that ``out / lock`` is another file or none, and takes the lock anew:
+    a deleted lock file never lets two writers in.
+    """
+    path = out / lock
+    while True:
+        handle = open(path, "w")
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError as busy:
-            raise error(f"{holder} is writing to {out} (it holds the lock {out / lock}); wait for it or use another "
+            handle.close()
+            raise error(f"{holder} is writing to {out} (it holds the lock {path}); wait for it or use another "
                         "output folder") from busy
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+        if _names(path, handle):
+            break
+        handle.close()  # the lock of a file deleted since it was opened: open the one there now
+    try:
+        yield
+    finally:
+        if remove:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
+
+
+def _names(path: Path, handle: IO) -> bool:
+    """``path`` is the file open in ``handle`` (not deleted or replaced since)."""
+    try:
+        named = os.stat(path)
+    except FileNotFoundError:
+        return False
+    opened = os.fstat(handle.fileno())
+    return (named.st_dev, named.st_ino) == (opened.st_dev, opened.st_ino)
 
 
 def file_slug(text: str) -> str:

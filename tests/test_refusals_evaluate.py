@@ -1,21 +1,28 @@
-"""Refusals of the evaluation tools (tracker issue 55): compare_drivers.py pairs only runs of one
-scenario and seeds, a resumed evaluation refuses a driver whose files changed, bench_solver.py
-refuses unknown variants and repeats before any work."""
+"""Refusals and leftovers of the evaluation tools (tracker issue 55): compare_drivers.py pairs
+only runs of one scenario and seeds, a resumed evaluation refuses a driver whose files changed,
+bench_solver.py refuses unknown variants and repeats before any work, and an evaluation leaves
+files of the usual mode, no lock file and no error bar below a bound."""
 
 import csv
 import json
+import os
+import stat
 
+import matplotlib
 import pytest
 import torch
 
 import bench_solver
+import mmpc.files as files
 from compare_drivers import main as compare
 from mmpc.cli.main import main
 from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.evaluate import COLUMNS, EvaluationConfig, EvaluationFolderError, evaluate, read_episodes
+from mmpc.evaluate.report import COMPARED, plot_comparison, summarize
 from mmpc.evaluate.store import check_inputs, driver_files
+from mmpc.files import atomic_write_text, exclusive
 from mmpc.scenario import load_scenario
-
+from tests.conftest import lock_is_free
 
 # ------------------------------------------------------------------- compare_drivers.py (item 2)
 
@@ -168,3 +175,95 @@ def test_bench_spec_takes_known_variants_and_refuses_others():
     for variants in (("compile",), ("eager", "eager"), ()):
         with pytest.raises(ValueError, match="variant"):
             bench_solver.SolverBenchmark(variants=variants)
+
+
+# ------------------------------------------------- outputs: modes, lock file, error bars (item 21)
+
+
+@pytest.fixture
+def umask_022():
+    previous = os.umask(0o022)
+    yield
+    os.umask(previous)
+
+
+@pytest.mark.usefixtures("one_thread", "coast", "umask_022")
+def test_evaluation_files_get_the_usual_mode_and_no_lock_file_stays(tmp_path):
+    scenario = load_scenario("cruise").replace(duration=0.3)
+    config = EvaluationConfig(drivers=("coast",), seeds=(0, 1))
+    evaluate([scenario], tmp_path, config)
+    for name in ("episodes.csv", "summary.json", "scenarios.json", "summary.md", "compare.png"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o644, name
+    assert not (tmp_path / ".evaluate.lock").exists()
+    with pytest.raises(EvaluationFolderError, match="another scenario named 'cruise'"):  # raised holding the lock
+        evaluate([scenario.replace(duration=0.2)], tmp_path, config)
+    assert not (tmp_path / ".evaluate.lock").exists()
+
+
+def test_atomic_write_gives_the_mode_open_would(tmp_path):
+    previous = os.umask(0o027)
+    try:
+        atomic_write_text(tmp_path / "new.json", "{}")
+        with open(tmp_path / "plain.json", "w") as handle:
+            handle.write("{}")
+        assert stat.S_IMODE((tmp_path / "new.json").stat().st_mode) == 0o640
+        assert stat.S_IMODE((tmp_path / "plain.json").stat().st_mode) == 0o640
+        os.chmod(tmp_path / "new.json", 0o604)  # an existing file keeps its mode, as with open(path, "w")
+        atomic_write_text(tmp_path / "new.json", "[]")
+        assert stat.S_IMODE((tmp_path / "new.json").stat().st_mode) == 0o604
+        assert (tmp_path / "new.json").read_text() == "[]"
+    finally:
+        os.umask(previous)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new.json", "plain.json"]  # no temporary file left
+
+
+def test_a_removed_lock_file_still_keeps_a_second_writer_out(tmp_path, monkeypatch):
+    path = tmp_path / ".test.lock"
+    with exclusive(tmp_path, ".test.lock", "a first run", remove=True):
+        with pytest.raises(RuntimeError, match="a first run is writing to"):
+            with exclusive(tmp_path, ".test.lock", "a first run", remove=True):
+                pass
+        assert path.exists()  # a refused writer leaves the holder's file alone
+    assert not path.exists()
+    # a writer that opened the lock file just before the holder removed it locks a file no longer there:
+    # it must take the lock of the file there now, or a third writer would get in beside it
+    stale = tmp_path / "stale"
+    stale.write_text("")
+    opened = []
+
+    def open_stale_first(name, mode="r", *args, **kwargs):
+        opened.append(name)
+        if len(opened) == 1:
+            handle = open(stale, mode, *args, **kwargs)
+            stale.unlink()  # removed by the holder that was finishing
+            return handle
+        return open(name, mode, *args, **kwargs)
+
+    monkeypatch.setattr(files, "open", open_stale_first, raising=False)
+    with exclusive(tmp_path, ".test.lock", "a second run", remove=True):
+        assert opened == [path, path]
+        assert not lock_is_free(path)
+    assert not path.exists()
+
+
+def test_compare_plot_draws_no_error_bar_below_zero_for_a_non_negative_metric(tmp_path, monkeypatch):
+    rows = [{column: 0.0 for column in COLUMNS} | {"driver": "mpc", "scenario": "cruise", "seed": seed, "status": "ok",
+                                                   "collisions": 0, "offroad": 0, "collision_part": None,
+                                                   "meta_cost_mean": cost, "mean_speed": speed}
+            for seed, cost, speed in ((0, 0.1, 14.0), (1, 2.0, 15.0))]
+    summary = summarize(rows)
+    assert summary[0]["meta_cost_mean_ci"][0] < 0  # two episodes: the t interval reaches below zero
+    bars = []
+    original = matplotlib.axes.Axes.bar
+
+    def recording_bar(self, xs, heights, *args, yerr=None, **kwargs):
+        bars.append((list(heights), [list(side) for side in yerr]))
+        return original(self, xs, heights, *args, yerr=yerr, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "bar", recording_bar)
+    plot_comparison(summary, tmp_path / "compare.png")
+    panels = dict(zip((key for key, _ in COMPARED), bars))
+    [cost], ([below], [above]) = panels["meta_cost_mean"]
+    assert cost - below == 0.0 and cost + above == pytest.approx(summary[0]["meta_cost_mean_ci"][1])
+    [speed], ([below], _) = panels["mean_speed"]  # a speed has no such bound: its interval as it is
+    assert speed - below == pytest.approx(summary[0]["mean_speed_ci"][0])

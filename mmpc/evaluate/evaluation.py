@@ -90,14 +90,15 @@ def evaluate(
         EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name,
             episodes of a driver spec whose files changed since (:func:`mmpc.evaluate.store.check_inputs`),
             or a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
-        mmpc.files.OutputFolderError (a RuntimeError): another evaluation holds ``out``.
+        mmpc.files.OutputFolderError (a RuntimeError): another evaluation holds ``out`` (its lock
+            file ``.evaluate.lock``, removed when the call ends).
     """
     names = [s.name for s in scenarios]
     if not names or len(set(names)) != len(names):
         raise ValueError(f"`scenarios` must be at least one, with distinct names; got {names}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    with exclusive(out, ".evaluate.lock", "another evaluation"):
+    with exclusive(out, ".evaluate.lock", "another evaluation", remove=True):
         check_inputs(out, scenarios, config.drivers)
         wanted = {(d, s, seed) for d in config.drivers for s in names for seed in config.seeds}
         earlier: dict[Key, dict] = {}

@@ -64,6 +64,8 @@ COMPARED = (
     ("solve_ms_mean", "solve ms per decision"),
     ("solve_ms_per_episode_mean", "solve ms per episode-step"),
 )
+#: Metrics that are >= 0 by definition (a speed is not: highway-env lets a car reverse).
+NON_NEGATIVE = frozenset({"collision_rate", "meta_cost_mean", "solve_ms_mean", "solve_ms_per_episode_mean"})
 
 _Z = NormalDist().inv_cdf(0.975)
 
@@ -359,7 +361,8 @@ def plot_comparison(summary: Sequence[dict], path: str | Path) -> Path:
                 value, interval = entry[key], entry.get(f"{key}_ci") or [entry[key], entry[key]]
                 xs.append(s + (d - (len(drivers) - 1) / 2) * width)
                 heights.append(value)
-                errors[0].append(value - interval[0])
+                # a t interval of few episodes reaches below a bound the mean cannot cross: cut it there
+                errors[0].append(value - (max(interval[0], 0.0) if key in NON_NEGATIVE else interval[0]))
                 errors[1].append(interval[1] - value)
             ax.bar(xs, heights, width, yerr=errors, capsize=3, label=str(driver))
         ax.set_xticks(range(len(scenarios)), scenarios)
