@@ -8,7 +8,8 @@ Three functions serve them all, reading the field types:
   configs (a scenario's ``objective``, ``traffic``) by its ``type`` key. A key that is not a
   field is an error that names the section and lists the allowed keys, so that a misspelled
   YAML key is refused instead of silently ignored; so is a value not of its field's type
-  (:func:`fits_type`: ``v_max: true``, ``horizon: abc``), by its dotted key. A section may
+  (:func:`fits_type`: ``v_max: true``, ``horizon: abc``), by its dotted key, and so is a NaN or
+  infinite number where a float is wanted (``ego.speed: .inf``). A section may
   start from another file: ``{from: NAME_OR_PATH, ...}`` (or just ``NAME_OR_PATH``) loads that
   config and changes the keys given (sections merge key by key).
 - :func:`to_dict` writes the YAML-ready inverse (tuples as lists, ``type`` for variants), so
@@ -224,6 +225,7 @@ def _build(cls: type[T], values: Any, where: str, chain: tuple[str, ...], key: s
         dotted = f"{key}.{name}" if key else name
         built[name] = _convert(hints[name], value, f"{where}: {name}", chain, dotted)
         require(fits_type(hints[name], built[name]), _type_message(hints[name], value, dotted, where))
+        _require_finite(hints[name], built[name], dotted, where)
     return cls(**built)
 
 
@@ -406,6 +408,37 @@ def describe_type(hint: Any) -> str:
     return f"{'an' if name[:1].lower() in 'aeiou' else 'a'} {name}"
 
 
+def non_finite(hint: Any, value: Any, key: str) -> Optional[tuple[str, float]]:
+    """The first NaN or infinity that ``value`` holds where the field type ``hint`` wants a float
+    (the field itself, the items of a ``tuple[float, ...]``, the values of a ``Mapping[str,
+    float]``, a member of ``Optional`` / a union), as ``(key, value)`` with the key of the item
+    (``traffic.target_speeds[1]``); ``None`` when every such float is finite. A field typed
+    ``Any`` is not looked into."""
+    if hint is float:
+        return (key, value) if isinstance(value, float) and not math.isfinite(value) else None
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        member = next((member for member in args if fits_type(member, value)), None)
+        return None if member is None else non_finite(member, value, key)
+    if origin is tuple and isinstance(value, tuple):
+        items = (args[0],) * len(value) if len(args) == 2 and args[1] is Ellipsis else args
+        found = (non_finite(item, part, f"{key}[{i}]") for i, (item, part) in enumerate(zip(items, value)))
+        return next((hit for hit in found if hit is not None), None)
+    if origin in (dict, collections.abc.Mapping) and len(args) == 2 and isinstance(value, collections.abc.Mapping):
+        found = (non_finite(args[1], item, f"{key}.{name}") for name, item in value.items())
+        return next((hit for hit in found if hit is not None), None)
+    return None
+
+
+def _require_finite(hint: Any, value: Any, key: str, where: str) -> None:
+    """Refuse a NaN or infinite float in a float field (:func:`non_finite`): no float setting of
+    mmpc takes inf for "unbounded", and a NaN slips through range checks written as comparisons.
+    The message names the key: ``"{where}: `ego.speed` must be finite; got inf"``."""
+    found = non_finite(hint, value, key)
+    if found is not None:
+        raise ConfigError(f"{where}: `{found[0]}` must be finite; got {found[1]!r}")
+
+
 def _type_message(hint: Any, value: Any, key: str, where: str) -> str:
     """``"{where}: `key` must be a number; got 'abc'"``: a value not of its field type."""
     return f"{where}: `{key}` must be {describe_type(hint)}; got {value!r}"
@@ -414,12 +447,14 @@ def _type_message(hint: Any, value: Any, key: str, where: str) -> str:
 def require_field_types(config: Any) -> None:
     """Check every field of the config dataclass ``config`` against its type (:func:`fits_type`),
     for a config built directly, not by :func:`from_dict` (which checks as it builds); the
-    message names the class and the field: ``"OptimizerConfig: `a_max` must be a number; got '4'"``."""
+    message names the class and the field: ``"OptimizerConfig: `a_max` must be a number; got '4'"``.
+    A float field (or float item) that is NaN or infinite is refused as :func:`from_dict` refuses it."""
     hints = _field_hints(type(config))
     for field in dataclasses.fields(config):
         if field.init:
             value = getattr(config, field.name)
             require(fits_type(hints[field.name], value), _type_message(hints[field.name], value, field.name, type(config).__name__))
+            _require_finite(hints[field.name], value, field.name, type(config).__name__)
 
 
 def require(condition: bool, message: str) -> None:

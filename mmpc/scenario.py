@@ -494,6 +494,11 @@ class ScenarioConfig:
             f"{where}: `mpc.num_obstacles` ({self.mpc.num_obstacles}) must be <= `optimizer.max_obstacles` "
             f"({self.optimizer.max_obstacles})",
         )
+        require(
+            self.mpc.warm_iterations <= self.optimizer.iterations,
+            f"{where}: `mpc.warm_iterations` ({self.mpc.warm_iterations}) must be <= `optimizer.iterations` "
+            f"({self.optimizer.iterations}): a warm solve runs the last warm_iterations of the schedule",
+        )
 
     @property
     def period(self) -> float:
