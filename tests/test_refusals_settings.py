@@ -7,13 +7,19 @@ makes a folder, the driver specs in --help, and a README whose commands parse.""
 from __future__ import annotations
 
 import math
+import os
 import re
+from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
-from mmpc.cli.main import main
+from mmpc.cli import solve as solve_module
+from mmpc.cli.arguments import THREADS_PER_CPU, max_threads
+from mmpc.cli.main import build_parser, main, refused
 from mmpc.config import ConfigError, load_config
+from mmpc.device import DEVICE_ENV
 from mmpc.imitation.bc import TrainConfig as BCTrainConfig
 from mmpc.scenario import EgoConfig, IDMTraffic, load_scenario
 
@@ -99,3 +105,109 @@ def test_set_refuses_a_non_finite_value_in_one_line(argv, verb, key, tmp_path, c
     line = _one_refusal(capsys.readouterr().err, f"mmpc {verb}: error:")
     assert re.search(rf"`{re.escape(key)}` must be finite; got (inf|nan)$", line), line
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- item 8: the device from the environment
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal of cuda on a machine without it")
+def test_mmpc_device_cuda_without_a_gpu_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(DEVICE_ENV, "cuda")
+    out = tmp_path / "out"
+    argv = ["evaluate", "--scenarios", "cruise", "--seeds", "0", "--duration", "0.2", "--compile", "off", "--out", str(out)]
+    assert main(argv) == 2
+    line = _one_refusal(capsys.readouterr().err, f"mmpc: error: {DEVICE_ENV}:")
+    assert "cannot use" in line
+    assert not out.exists()  # no episodes.csv of error rows, no "run again to retry"
+
+
+def test_mmpc_device_garbage_is_one_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(DEVICE_ENV, "garbage")
+    out = tmp_path / "out"
+    assert main(["drive", "--duration", "0.2", "--out", str(out)]) == 2
+    line = _one_refusal(capsys.readouterr().err, f"mmpc: error: {DEVICE_ENV}:")
+    assert "'garbage'" in line
+    assert not out.exists()
+
+
+def test_a_verb_that_computes_nowhere_ignores_the_device_variable(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv(DEVICE_ENV, "garbage")
+    assert main(["config", "show", "optimizer"]) == 0
+
+
+# ---------------------------------------------------------------- item 9: --threads bounded
+
+
+@pytest.mark.parametrize("threads", ["0", "-3", str(max_threads() + 1), "1000", "100000"])
+def test_threads_outside_the_bound_are_refused_naming_it(threads, capsys):
+    # scenarios that do not exist: the old code went on to set the threads and failed later
+    assert main(["evaluate", "--threads", threads, "--scenarios", "no-such-scenario"]) == 2
+    line = _one_refusal(capsys.readouterr().err, "mmpc: error: --threads")
+    assert f"[1, {max_threads()}]" in line and f"{THREADS_PER_CPU} per CPU" in line and line.endswith(f"got {threads}")
+
+
+def test_threads_up_to_the_bound_pass(capsys):
+    for verb in (["drive"], ["evaluate"], ["imitate", "demos"]):
+        assert refused(build_parser().parse_args([*verb, "--threads", str(max_threads())])) is None
+        assert refused(build_parser().parse_args([*verb, "--threads", str(max_threads() + 1)])) is not None
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert max_threads() == THREADS_PER_CPU * cpus
+
+
+# ---------------------------------------------------------------- item 16: one line, not a traceback
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory) -> Path:
+    """A demonstrations folder of one short episode (for imitate bc)."""
+    out = tmp_path_factory.mktemp("demos")
+    assert main(["imitate", "demos", "--episodes", "1", "--duration", "0.3", "--compile", "off", "--out", str(out)]) == 0
+    return out
+
+
+UNWRITABLE_OUT = {
+    "solve": ["solve"],
+    "evaluate": ["evaluate", "--scenarios", "cruise", "--seeds", "0", "--duration", "0.2", "--compile", "off"],
+    "rl train": ["rl", "train", "--algo", "dqn", "--config", "smoke", "--timesteps", "10", "--no-eval"],
+    "rl report": ["rl", "report", "a=no-such-run"],
+    "imitate demos": ["imitate", "demos", "--episodes", "1", "--duration", "0.2", "--compile", "off"],
+    "imitate bc": ["imitate", "bc", "--set", "epochs=1"],
+    "imitate dagger": ["imitate", "dagger", "--iterations", "0", "--duration", "0.2", "--compile", "off"],
+    "imitate proposer": ["imitate", "proposer", "--rounds", "0", "--duration", "0.2", "--compile", "off"],
+    "imitate export": ["imitate", "export", "--policy", "no-such-policy.pt"],
+}
+
+
+@pytest.mark.parametrize("verb", sorted(UNWRITABLE_OUT))
+def test_an_out_folder_that_cannot_be_made_is_one_line(verb, tmp_path, capsys, request):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder\n")  # a path under a regular file: refused even to root
+    argv = list(UNWRITABLE_OUT[verb])
+    if verb == "imitate bc":
+        argv += ["--dataset", str(request.getfixturevalue("demos"))]
+    out = blocker / "out" / ("policy.zip" if verb == "imitate export" else "")
+    assert main([*argv, "--out", str(out)]) == 2
+    line = _one_refusal(capsys.readouterr().err, f"mmpc {verb}: error:")
+    assert "NotADirectoryError" in line and str(blocker) in line
+    assert blocker.read_text() == "not a folder\n"
+
+
+def test_repeated_scenarios_are_one_line_before_any_folder(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["evaluate", "--scenarios", "cruise,cruise", "--seeds", "0", "--out", str(out)]) == 2
+    assert "--scenarios names cruise more than once" in _one_refusal(capsys.readouterr().err, "mmpc: error:")
+    assert main(["drive", "--scenario", "high_speed,cruise,high_speed", "--seeds", "0", "--out", str(out)]) == 2
+    assert "--scenario names high_speed more than once" in _one_refusal(capsys.readouterr().err, "mmpc: error:")
+    # distinct files, one name: refused by the loaded names
+    assert main(["drive", "--scenario", "cruise,high_speed", "--seeds", "0", "--set", "name=same", "--out", str(out)]) == 2
+    assert "distinct names" in _one_refusal(capsys.readouterr().err, "mmpc drive: error:")
+    assert not out.exists()
+
+
+def test_a_bug_keeps_its_traceback(monkeypatch, tmp_path):
+    def broken(args):
+        raise ValueError("a bug, not a refusal")
+
+    monkeypatch.setattr(solve_module, "run", broken)
+    with pytest.raises(ValueError, match="a bug, not a refusal"):
+        main(["solve", "--out", str(tmp_path)])

@@ -109,11 +109,25 @@ def add_device(parser: argparse.ArgumentParser) -> None:
 
 
 def apply_device(choice: Optional[str]) -> None:
-    """Set :data:`mmpc.device.DEVICE_ENV` for ``--device`` (``None`` leaves it) and check it names a
-    device this machine has (``ValueError`` saying what came)."""
-    if choice is not None:
+    """Set :data:`mmpc.device.DEVICE_ENV` for ``--device`` (``None`` leaves it) and check that the
+    run's setting, given or inherited from the environment, names a device this machine has
+    (``ValueError`` saying what came), before any work: a worker would otherwise fail on it."""
+    if choice is None:
+        resolve_device(os.environ.get(DEVICE_ENV, ""))
+    else:
         resolve_device(choice)  # before it is set: a refused value leaves the process's setting as it was
         os.environ[DEVICE_ENV] = choice
+
+
+#: ``--threads`` at most this many per CPU the process may use: more only oversubscribes the
+#: cores (and OpenMP far above fails: 1,000 threads hung a 2-core machine, 20,000 broke libgomp).
+THREADS_PER_CPU = 4
+
+
+def max_threads() -> int:
+    """The largest ``--threads`` accepted: :data:`THREADS_PER_CPU` x the CPUs this process may run on."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return THREADS_PER_CPU * cpus
 
 
 def apply_compile(choice: str) -> None:

@@ -30,6 +30,11 @@ def run(args: argparse.Namespace) -> int:
         if args.duration is not None:
             scenario = scenario.replace(duration=args.duration)
         scenarios.append(scenario)
+    names = [scenario.name for scenario in scenarios]
+    if len(set(names)) != len(names):
+        print(f"mmpc drive: error: the scenarios must have distinct names (they key the results); got {names}",
+              file=sys.stderr)
+        return 2
     out = Path(args.out)
     problem = unwritable(out)  # before driving: an episode's outputs are written at its end
     if problem is not None:

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import add_config
+from mmpc.cli.arguments import add_config, unwritable
 from mmpc.config import OptimizerConfig, load_config
 from mmpc.goals import CruiseGoals, HighSpeedGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost
@@ -24,6 +25,12 @@ def run(args: argparse.Namespace) -> int:
     """One batch solve of the built-in demo scene; table + plot + JSON."""
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     config = load_config(OptimizerConfig, args.config, dict(args.set))
+    out = Path(args.out)
+    problem = unwritable(out)  # before solving: the outputs are written at the end
+    if problem is not None:
+        print(f"mmpc solve: error: --out {out} must be a folder this process can create and write to; got {problem}",
+              file=sys.stderr)
+        return 2
     optimizer = BatchOptimizer(config, dtype=dtype)
     scene = demo_scene(optimizer.config.num_steps, optimizer.config.horizon)
     if args.scenario == "cruise":
@@ -65,8 +72,6 @@ def run(args: argparse.Namespace) -> int:
     verdict = "feasible" if bool(best.feasible[0]) else "NO feasible candidate: least-infeasible fallback"
     print(f"best: goal {best_index} ({verdict}), meta cost {float(best.cost[0]):.2f}")
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     plot = plot_candidates(out / "solve.png", problem, result, scene.road, best=best_index,
                            ellipse=optimizer.config.ellipse,
                            title=f"mmpc solve ({args.scenario}): {args.goals} goal-directed optimizations, best in red")
