@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -211,3 +213,15 @@ def test_a_bug_keeps_its_traceback(monkeypatch, tmp_path):
     monkeypatch.setattr(solve_module, "run", broken)
     with pytest.raises(ValueError, match="a bug, not a refusal"):
         main(["solve", "--out", str(tmp_path)])
+
+
+# ---------------------------------------------------------------- item 17: no SDL noise from a drive
+
+
+def test_drive_with_a_video_prints_no_sdl_error(tmp_path):
+    env = {key: value for key, value in os.environ.items() if key not in ("XDG_RUNTIME_DIR", "SDL_VIDEODRIVER")}
+    done = subprocess.run([sys.executable, "-m", "mmpc.cli", "drive", "--duration", "0.2", "--compile", "off",
+                           "--threads", "1", "--out", str(tmp_path)], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "XDG_RUNTIME_DIR" not in done.stderr and "error:" not in done.stderr.lower(), done.stderr
+    assert (tmp_path / "episode.mp4").stat().st_size > 0

@@ -7,12 +7,18 @@ executed one (red, thick).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional
 
-import imageio.v2 as imageio
-import numpy as np
-import pygame
+# highway-env's viewer opens a pygame display; SDL, left to pick its video driver, tries Wayland
+# and prints "error: XDG_RUNTIME_DIR is invalid or not set" where there is no session. The video
+# is read from the drawn surface, so SDL's offscreen driver is all it needs (unless one is set).
+os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
+
+import imageio.v2 as imageio  # noqa: E402
+import numpy as np  # noqa: E402
+import pygame  # noqa: E402
 
 from mmpc.drivers import Candidates
 from mmpc.highway.episode import HighwayEpisode
