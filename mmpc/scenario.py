@@ -500,6 +500,14 @@ class ScenarioConfig:
             f"({self.optimizer.iterations}): a warm solve runs the last warm_iterations of the schedule",
         )
 
+    def missing_data(self) -> Optional[str]:
+        """What the scenario reads that this machine lacks (``None``: nothing): the NGSIM recording
+        of NGSIM traffic, which mmpc does not ship (README, "NGSIM replay")."""
+        if isinstance(self.traffic, NGSIMTraffic) and not Path(self.traffic.path).is_file():
+            return (f"`traffic.path` {self.traffic.path} is not a file: the NGSIM recording is not shipped; "
+                    "README, 'NGSIM replay', says where to download it and where to put it")
+        return None
+
     @property
     def period(self) -> float:
         """The control period [s]: ``1 / frequency``."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -22,8 +23,12 @@ from mmpc.cli.arguments import THREADS_PER_CPU, max_threads
 from mmpc.cli.main import build_parser, main, refused
 from mmpc.config import ConfigError, load_config
 from mmpc.device import DEVICE_ENV
+from mmpc.drivers import registry
 from mmpc.imitation.bc import TrainConfig as BCTrainConfig
 from mmpc.scenario import EgoConfig, IDMTraffic, load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
 
 
 def _error_lines(err: str) -> list[str]:
@@ -225,3 +230,86 @@ def test_drive_with_a_video_prints_no_sdl_error(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "XDG_RUNTIME_DIR" not in done.stderr and "error:" not in done.stderr.lower(), done.stderr
     assert (tmp_path / "episode.mp4").stat().st_size > 0
+
+
+# ---------------------------------------------------------------- item 18: config spellings
+
+
+def test_drive_takes_config_as_the_scenario():
+    parser = build_parser()
+    assert parser.parse_args(["drive", "--config", "high_speed"]).scenario == "high_speed"
+    assert parser.parse_args(["drive", "--scenario", "high_speed"]).scenario == "high_speed"
+
+
+def _readme_commands() -> list[str]:
+    """Every ``mmpc ...`` line of the README's bash blocks (continuations joined, comments cut)."""
+    commands = []
+    for block in re.findall(r"```bash\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            for part in line.split("#", 1)[0].split("&&"):
+                if part.strip().startswith("mmpc "):
+                    commands.append(part.strip())
+    return commands
+
+
+def test_every_mmpc_command_of_the_readme_parses():
+    commands = _readme_commands()
+    assert len(commands) >= 8
+    for command in commands:
+        try:
+            build_parser().parse_args(shlex.split(command)[1:])
+        except SystemExit as error:
+            raise AssertionError(f"README command does not parse: {command}") from error
+
+
+# ---------------------------------------------------------------- item 19: NGSIM data not shipped
+
+
+@pytest.mark.skipif(Path(load_scenario("cruise_ngsim").traffic.path).is_file(), reason="the NGSIM recording is here")
+def test_the_ngsim_scenario_without_its_data_is_refused_before_making_a_folder(tmp_path, capsys):
+    out = tmp_path / "ngsim"
+    assert main(["drive", "--scenario", "cruise_ngsim", "--out", str(out)]) == 2
+    line = _one_refusal(capsys.readouterr().err, "mmpc drive: error: scenario 'cruise_ngsim':")
+    assert "'NGSIM replay'" in line and load_scenario("cruise_ngsim").traffic.path in line
+    assert not out.exists()
+    assert main(["config", "show", "scenario"]) == 0
+    shown = capsys.readouterr().out
+    assert "cruise_ngsim (needs data)" in shown and "cruise (needs data)" not in shown
+
+
+def test_the_readme_says_where_the_ngsim_data_comes_from_and_goes():
+    text = README.read_text(encoding="utf-8")
+    section = text[text.index("NGSIM replay"):]
+    section = section[:section.index("\n\n")]
+    assert "data.transportation.gov" in section and "Next Generation Simulation (NGSIM) Vehicle Trajectories" in section
+    assert "US-101" in section and load_scenario("cruise_ngsim").traffic.path in section
+
+
+# ---------------------------------------------------------------- item 20: every driver spec in --help
+
+
+def test_drive_help_lists_every_driver_spec(monkeypatch, capsys):
+    monkeypatch.setitem(registry._registered, "probe-driver", lambda scenario, argument: None)
+    monkeypatch.setenv("COLUMNS", "2000")  # argparse wraps the help at hyphens otherwise
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["drive", "--help"])
+    text = capsys.readouterr().out
+    for name in registry.driver_names():
+        assert name in text, name
+    assert "probe-driver" in text  # generated from the registry, not written out
+    for form in ("proposer:RUN/proposer.pt", "safe-expert[:RL_CONFIG]", "safe-random[:RL_CONFIG]", "sb3:RUN/model.zip",
+                 "bc:RUN/policy.pt", "batch-nlp[:B]"):
+        assert form in text, form
+
+
+# ---------------------------------------------------------------- items 22, 23: README
+
+
+def test_readme_keeps_its_two_commands_says_how_to_get_cpu_torch_and_stays_short():
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= 300
+    assert lines[3].startswith("pip install torch==2.13.0 -e . && mmpc drive ")
+    assert lines[4].startswith('pip install torch==2.13.0 -e ".[test]" && python -m pytest ')
+    assert any("pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in line for line in lines[5:12])
+    text = "\n".join(lines)
+    assert "about 34 s on an idle 2-core machine" in text and "about 6 minutes on an idle 2-core machine" in text

@@ -169,6 +169,26 @@ def unwritable(out: Path) -> Optional[str]:
 
 
 
+#: What each of mmpc's own drivers takes after ``NAME:`` in a spec (``[...]``: optional), for
+#: :func:`driver_help`; a driver registered by another package is listed by its name alone.
+DRIVER_ARGUMENTS = {
+    "batch-nlp": "[:B] (B goals, default 11)",
+    "bc": ":RUN/policy.pt",
+    "proposer": ":RUN/proposer.pt or :NAME (shipped)",
+    "sb3": ":RUN/model.zip or :NAME (shipped)",
+    "safe-random": "[:RL_CONFIG] (random goals behind the safety layer)",
+    "safe-expert": "[:RL_CONFIG] (the expert behind the safety layer)",
+}
+
+
+def driver_help() -> str:
+    """Every driver spec form, from the registry's names (:func:`mmpc.drivers.registry.driver_names`:
+    the entry points and the drivers registered in this process) and :data:`DRIVER_ARGUMENTS`."""
+    from mmpc.drivers.registry import driver_names
+
+    return ", ".join(f"{name}{DRIVER_ARGUMENTS.get(name, '')}" for name in driver_names())
+
+
 def driver_specs(values: list[str]) -> tuple[str, ...]:
     """``--driver mpc,frenet --driver bc:run/policy.pt`` -> distinct specs in order."""
     return tuple(dict.fromkeys(spec.strip() for value in values for spec in value.split(",") if spec.strip()))

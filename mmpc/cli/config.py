@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import Optional
 
 import yaml
 
@@ -40,9 +41,22 @@ def run(args: argparse.Namespace) -> int:
         return 2
     source = args.name or "defaults"
     shipped = shipped_names(cls)
-    print(f"# {cls.__module__}.{cls.__name__}: {source}" + (f"; shipped: {', '.join(shipped)}" if shipped else ""))
+    needs = {name: missing_data(load_config(cls, name)) for name in shipped} if hasattr(cls, "missing_data") else {}
+    listed = [name + (" (needs data)" if needs.get(name) else "") for name in shipped]
+    print(f"# {cls.__module__}.{cls.__name__}: {source}" + (f"; shipped: {', '.join(listed)}" if listed else ""))
+    needs[source] = missing_data(config)  # the config shown, with its --set
+    for name, reason in needs.items():
+        if reason:
+            print(f"# {name} needs data: {reason}")
     print(yaml.safe_dump(to_dict(config, complete=True), sort_keys=False), end="")
     return 0
+
+
+def missing_data(config: object) -> Optional[str]:
+    """What ``config`` reads that this machine lacks (its ``missing_data()``, as
+    :meth:`mmpc.scenario.ScenarioConfig.missing_data`; ``None``: nothing, or a kind that reads no data)."""
+    method = getattr(config, "missing_data", None)
+    return method() if callable(method) else None
 
 
 def add_subcommand(sub: argparse._SubParsersAction) -> None:

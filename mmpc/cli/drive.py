@@ -9,7 +9,8 @@ from pathlib import Path
 
 import torch
 
-from mmpc.cli.arguments import add_compile, add_device, add_set, add_sim, apply_compile, scenario_overrides, seed_list, unwritable
+from mmpc.cli.arguments import (add_compile, add_device, add_set, add_sim, apply_compile, driver_help, scenario_overrides,
+                                 seed_list, unwritable)
 from mmpc.collisions import CRASH_COLUMNS
 
 
@@ -35,6 +36,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"mmpc drive: error: the scenarios must have distinct names (they key the results); got {names}",
               file=sys.stderr)
         return 2
+    for scenario in scenarios:
+        missing = scenario.missing_data()
+        if missing is not None:  # before the output folder is made
+            print(f"mmpc drive: error: scenario {scenario.name!r}: {missing}", file=sys.stderr)
+            return 2
     out = Path(args.out)
     problem = unwritable(out)  # before driving: an episode's outputs are written at its end
     if problem is not None:
@@ -93,12 +99,10 @@ def run(args: argparse.Namespace) -> int:
 def add_subcommand(sub: argparse._SubParsersAction) -> None:
     """Add ``mmpc drive``."""
     drive = sub.add_parser("drive", help="closed-loop highway-env episode: metrics, steps.csv, video, top-down plot")
-    drive.add_argument("--scenario", default="cruise",
-                       help="name in configs/scenarios (cruise, high_speed, ...) or a YAML path; "
+    drive.add_argument("--scenario", "--config", default="cruise", metavar="NAME_OR_PATH",
+                       help="the scenario config: a name in configs/scenarios (cruise, high_speed, ...) or a YAML path; "
                             "comma-separated with --seeds (default cruise)")
-    drive.add_argument("--driver", default="mpc",
-                       help="who drives: mpc (default), frenet, standard-mpc, batch-nlp, bc:RUN/policy.pt, sb3:MODEL.zip, "
-                            "safe-random[:RL_CONFIG] (random goals behind the safety layer)")
+    drive.add_argument("--driver", default="mpc", metavar="SPEC", help=f"who drives (default mpc): {driver_help()}")
     drive.add_argument("--seed", type=int, default=None, help="episode seed (default: the scenario's first seed)")
     drive.add_argument("--seeds", type=seed_list, default=None,
                        help="evaluate these seeds instead (e.g. 0-19): a table, summary.json, one folder per episode, "
