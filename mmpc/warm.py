@@ -1,0 +1,121 @@
+"""Warm starts from one control step to the next, per environment, for every receding-horizon
+user of the MPC (the MPC driver, the safety layer, the mode proposer's driver).
+
+Consecutive problems of an environment differ by one control step: its last solve's final
+iterates, moved one step on (:meth:`mmpc.BatchOptimizer.shifted`), start the next solve near the
+answer, which then runs only the last :attr:`mmpc.MPCConfig.warm_iterations` iterations of the
+schedule. An environment solves cold instead
+
+- at its first solve (or when it newly joins the batch, or after :meth:`WarmStarts.forget`),
+- at the solve after one that found no feasible goal (its plan was a fallback),
+- at the solve after a warm one that kept fewer than :attr:`mmpc.MPCConfig.warm_keep_share` of
+  its last cold solve's feasible goals (a warm chain's feasible set only shrinks),
+- every :attr:`mmpc.MPCConfig.warm_cold_every`-th solve since its last cold one (warm chains
+  drift to costlier plans),
+
+and a problem whose warm solve finds no feasible goal is solved again cold by the optimizer.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+
+from mmpc.mpc import MPC
+from mmpc.result import SolveResult, WarmStart
+
+
+class WarmRound(NamedTuple):
+    """What :meth:`WarmStarts.start` hands a solve of E environments and takes back in :meth:`WarmStarts.keep`.
+
+    Fields:
+        warm: the iterates to start from, (E, G, ...), NaN in the rows that solve cold; ``None``
+            where every row solves cold.
+        steps: (E,) long, each row's warm solves since its last cold one, this one included (0: cold).
+        cold_feasible_goals: (E,) long, the feasible goals of each row's last cold solve (0 where cold).
+    """
+
+    warm: Optional[WarmStart]
+    steps: torch.Tensor
+    cold_feasible_goals: torch.Tensor
+
+
+class _Kept(NamedTuple):
+    """The last solve of each environment it served (rows E')."""
+
+    ids: torch.Tensor  # (E',) environment ids
+    starts: torch.Tensor  # (E', 2) ego positions the iterates are relative to [m]
+    warm: WarmStart  # the final iterates, (E', G, ...)
+    steps: torch.Tensor  # (E',) long, warm solves since the environment's last cold one
+    fell_back: torch.Tensor  # (E',) bool, the solve found no feasible goal
+    feasible_goals: torch.Tensor  # (E',) long
+    cold_feasible_goals: torch.Tensor  # (E',) long, of the environment's last cold solve
+
+
+class WarmStarts:
+    """Each environment's last solve, kept to warm-start its next one (the module's rules).
+
+    Args:
+        mpc: the MPC whose optimizer solves (its :attr:`mmpc.MPCConfig` warm settings apply).
+        period: time between two solves of an environment [s] (a driver's control period, the
+            safety layer's decision period); must be > 0 when ``mpc.config.warm_iterations`` > 0.
+
+    Use per solve: ``round = warm_starts.start(ids, ego)``, solve with ``warm=round.warm``, then
+    ``warm_starts.keep(ids, ego, result, round)``. With ``warm_iterations`` 0 :attr:`enabled`
+    is False and :meth:`start` always answers cold.
+    """
+
+    def __init__(self, mpc: MPC, period: Optional[float]) -> None:
+        if mpc.config.warm_iterations and not (period is not None and period > 0):
+            raise ValueError(f"warm starts (MPCConfig.warm_iterations={mpc.config.warm_iterations}) need the control "
+                             f"`period` > 0 s; got {period!r}")
+        self.mpc = mpc
+        self.period = period
+        self._kept: Optional[_Kept] = None
+
+    @property
+    def enabled(self) -> bool:
+        """Whether solves are warm-started at all (``MPCConfig.warm_iterations`` > 0)."""
+        return self.mpc.config.warm_iterations > 0
+
+    def reset(self) -> None:
+        """Forget every environment (new episodes everywhere)."""
+        self._kept = None
+
+    def forget(self, ids: torch.Tensor) -> None:
+        """Forget the environments ``ids`` (long, any device): their next solve is cold (e.g. a new episode)."""
+        if self._kept is None:
+            return
+        gone = (self._kept.ids[:, None] == ids.to(self._kept.ids.device)[None, :]).any(dim=1)
+        self._kept = self._kept._replace(fell_back=self._kept.fell_back | gone)
+
+    def start(self, ids: torch.Tensor, ego: torch.Tensor) -> WarmRound:
+        """The starts of a solve of E environments ``ids`` (E,) long at the ego states ``ego`` (E, 6)."""
+        steps = torch.zeros(ids.shape[0], dtype=torch.long, device=ids.device)
+        if not self.enabled or self._kept is None:
+            return WarmRound(None, steps, steps)
+        kept, config = self._kept, self.mpc.config
+        match = ids[:, None] == kept.ids[None, :]  # (E, E')
+        rows = match.int().argmax(dim=1)
+        steps = kept.steps[rows] + 1
+        decayed = kept.feasible_goals[rows] < config.warm_keep_share * kept.cold_feasible_goals[rows]
+        cold = ~match.any(dim=1) | kept.fell_back[rows] | decayed | (steps >= config.warm_cold_every)
+        steps = torch.where(cold, 0, steps)
+        cold_feasible_goals = torch.where(cold, 0, kept.cold_feasible_goals[rows])
+        if bool(cold.all()):
+            return WarmRound(None, steps, cold_feasible_goals)
+        warm = self.mpc.optimizer.shifted(kept.warm.take(rows), self.period, ego[:, :2] - kept.starts[rows])
+        restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
+        warm = WarmStart(*(torch.where(cold.view(-1, *[1] * (field.dim() - 1)), restart, field) for field in warm))
+        return WarmRound(warm, steps, cold_feasible_goals)
+
+    def keep(self, ids: torch.Tensor, ego: torch.Tensor, result: SolveResult, round: WarmRound) -> None:
+        """Keep the solve of ``ids`` at ``ego`` that :meth:`start` began with ``round``: its final
+        iterates and feasible goals (the environments not in ``ids`` are forgotten)."""
+        if not self.enabled:
+            return
+        feasible_goals = result.feasible.sum(dim=1)
+        solved_warm = round.steps > 0
+        self._kept = _Kept(ids, ego[:, :2], result.warm, round.steps, feasible_goals == 0, feasible_goals,
+                           torch.where(solved_warm, round.cold_feasible_goals, feasible_goals))
