@@ -5,6 +5,7 @@ import dataclasses
 import csv
 import json
 import math
+import re
 
 import imageio.v2 as imageio
 import pytest
@@ -119,8 +120,11 @@ def test_drive_cli_rejects_bad_arguments(tmp_path, capsys):
     assert main(["drive", "--duration", "-1", "--out", str(tmp_path)]) == 2
     assert main(["drive", "--scenario", "cruise,high_speed", "--out", str(tmp_path)]) == 2
     assert main(["drive", "--seed", "1", "--seeds", "0-3", "--out", str(tmp_path)]) == 2
-    with pytest.raises(FileNotFoundError, match=r"shipped scenarios: \[.*'high_speed'"):
-        main(["drive", "--scenario", "nowhere", "--out", str(tmp_path)])
+    capsys.readouterr()
+    assert main(["drive", "--scenario", "nowhere", "--out", str(tmp_path)]) == 2  # one line, no traceback
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("mmpc drive: error: FileNotFoundError: ScenarioConfig 'nowhere'")
+    assert re.search(r"shipped scenarios: \[.*'high_speed'", err), err
     with pytest.raises(SystemExit):
         main(["drive", "--seeds", "a-b"])
 

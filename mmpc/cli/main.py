@@ -49,8 +49,8 @@ def user_errors() -> tuple[type[Exception], ...]:
     run holds or an earlier run's damaged files (:class:`mmpc.files.OutputFolderError`,
     :class:`mmpc.evaluate.EvaluationFolderError`, :class:`mmpc.imitation.dataset.DemonstrationsError`),
     and the operating system's refusals (``OSError``: an ``--out`` that cannot be created or
-    written). A missing input file (``FileNotFoundError``: a config name that is not shipped) is
-    left to raise, with its message, as callers of :func:`main` expect it."""
+    written, a missing input file such as a config name that is not shipped, whose
+    ``FileNotFoundError`` names it and lists the shipped ones)."""
     from mmpc.config import ConfigError
     from mmpc.evaluate.store import EvaluationFolderError
     from mmpc.files import OutputFolderError
@@ -121,8 +121,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(interrupted(args), file=sys.stderr)
         return INTERRUPTED
     except Exception as error:
-        if isinstance(error, FileNotFoundError) or not isinstance(error, user_errors()):
-            raise  # a bug (or a missing input file): its traceback
+        if not isinstance(error, user_errors()):
+            raise  # a bug: its traceback
         print(f"mmpc {verb(args)}: error: {one_line(error)}", file=sys.stderr)
         return 2
 
