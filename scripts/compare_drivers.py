@@ -9,7 +9,8 @@ the same seeds, possibly in separate folders and on scenarios of the same traffi
     python scripts/compare_drivers.py runs/cmp/defer agent=runs/cmp/agent --out runs/cmp
 
 A spec is ``[LABEL=]FOLDER[#DRIVER[#SCENARIO]]``: the folder's ``episodes.csv``, narrowed to one
-driver and scenario where it holds several. The first spec is the reference.
+driver and scenario where it holds several. The first spec is the reference. The label (default
+``DRIVER on SCENARIO``) keys the results, so two compared runs of one label are refused.
 
 Pairs are of the same traffic only on the same scenario: each folder's ``scenarios.json`` records
 the settings its episodes were run with, and runs whose settings differ (another duration, a
@@ -98,6 +99,16 @@ def scenario_differences(reference: Selection, other: Selection) -> list[str]:
             if key != "name" and ours.get(key, "-") != theirs.get(key, "-")]
 
 
+def check_labels(compared: list[Selection]) -> None:
+    """Refuse two compared runs of one label (a label keys the results, so the second would
+    replace the first); the reference's label may be a compared run's (one driver, two folders)."""
+    labels = [selection.label for selection in compared]
+    for label in dict.fromkeys(label for label in labels if labels.count(label) > 1):
+        runs = ", ".join(str(s.folder) for s in compared if s.label == label)
+        raise ValueError(f"the compared runs must have distinct labels (a label keys the results); {label!r} names "
+                         f"{labels.count(label)} of them ({runs}): give each its own as LABEL=FOLDER")
+
+
 def cell(entry: dict) -> str:
     """``difference +- half (relative %)`` of one metric."""
     difference, interval, relative = entry["difference"], entry["difference_ci"], entry["relative"]
@@ -124,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         reference = select(args.reference)
         compared = [select(spec) for spec in args.others]
+        check_labels(compared)
         differences = {selection.label: scenario_differences(reference, selection) for selection in compared}
         for label, lines in differences.items():
             if lines and not args.allow_different_scenarios:
