@@ -7,13 +7,16 @@ import argparse
 import sys
 from pathlib import Path
 
-from mmpc.cli.arguments import add_compile, add_device, add_set, add_sim, apply_compile, driver_specs, scenario_overrides, seed_list
+from mmpc.cli.arguments import (add_compile, add_device, add_set, add_sim, apply_compile, driver_help, driver_specs,
+                                 scenario_overrides, seed_list)
 
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from mmpc.config import ConfigError
     from mmpc.evaluate import EvaluationConfig, EvaluationFolderError, evaluate, format_table, read_episodes
+    from mmpc.evaluate.evaluation import check_scenarios
     from mmpc.files import OutputFolderError
     from mmpc.scenario import load_scenario
 
@@ -29,6 +32,10 @@ def run(args: argparse.Namespace) -> int:
     if not scenarios:
         print("mmpc evaluate: error: --scenarios needs at least one scenario", file=sys.stderr)
         return 2
+    try:  # before the output folder is made
+        check_scenarios(scenarios)
+    except ConfigError as error:  # it names the scenarios as loaded; say what was given
+        raise ConfigError(f"--scenarios {args.scenarios}: {error}") from error
     if args.workers is None and args.ray is None:
         args.workers = 1
     if args.collision_videos and not args.episode_outputs:
@@ -86,11 +93,11 @@ def add_subcommand(subparsers: argparse._SubParsersAction) -> None:
                          "intervals, table, plot, TensorBoard; resumable",
     )
     parser.add_argument("--driver", action="append", metavar="SPEC",
-                        help="driver(s), comma-separated or repeated: mpc (default), frenet, standard-mpc, batch-nlp, "
-                             "bc:RUN/policy.pt, sb3:MODEL.zip, safe-random[:RL_CONFIG]; several give a "
-                             "side-by-side table")
-    parser.add_argument("--scenarios", default="cruise,high_speed",
-                        help="comma-separated names in configs/scenarios or YAML paths (default cruise,high_speed)")
+                        help=f"driver(s), comma-separated or repeated; several give a side-by-side table (default mpc): "
+                             f"{driver_help()}")
+    parser.add_argument("--scenarios", "--config", default="cruise,high_speed", metavar="NAMES_OR_PATHS",
+                        help="the scenario configs: comma-separated names in configs/scenarios or YAML paths, each with "
+                             "its own name (default cruise,high_speed)")
     parser.add_argument("--seeds", type=seed_list, default=tuple(range(20)), help="seeds such as 0-999 or 0,3,7 (default 0-19)")
     parser.add_argument("--workers", type=int, default=None,
                         help="tasks in flight: local processes (default 1: in this process) or Ray tasks "

@@ -42,6 +42,7 @@ import logging
 from pathlib import Path
 from typing import Callable, NamedTuple, Optional, Sequence
 
+from mmpc.config import ConfigError
 from mmpc.evaluate.backends import run_tasks
 from mmpc.evaluate.report import summarize, write_report
 from mmpc.evaluate.store import EpisodeFile, Key, check_inputs, read_episodes, row_key
@@ -62,6 +63,28 @@ class Evaluation(NamedTuple):
 
     rows: list[dict]
     summary: list[dict]
+
+
+def check_scenarios(scenarios: Sequence[ScenarioConfig]) -> None:
+    """Refuse scenarios that cannot be evaluated together, before any work or folder: none, two
+    of one name (a name keys the rows and ``scenarios.json``; files of one ``name:``, or a
+    ``name`` override given to several), or one that reads data this machine lacks
+    (:meth:`mmpc.scenario.ScenarioConfig.missing_data`: NGSIM traffic without its recording).
+
+    Raises:
+        mmpc.config.ConfigError: the message names the repeated names or the scenario and what it lacks.
+    """
+    names = [s.name for s in scenarios]
+    if not names:
+        raise ConfigError("`scenarios` must be at least one scenario; got none")
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ConfigError(f"the scenarios must have distinct names (a name keys the results); got {names}: "
+                          f"{', '.join(map(repr, repeated))} more than once")
+    for scenario in scenarios:
+        missing = scenario.missing_data()
+        if missing is not None:
+            raise ConfigError(f"scenario {scenario.name!r}: {missing}")
 
 
 def evaluate(
@@ -86,16 +109,16 @@ def evaluate(
         ones') and their summary.
 
     Raises:
-        ValueError: duplicate scenario names.
+        mmpc.config.ConfigError (a ValueError): scenarios :func:`check_scenarios` refuses (none, two of
+            one name, one without its data), before ``out`` is made.
         EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name,
             episodes of a driver spec whose files changed since (:func:`mmpc.evaluate.store.check_inputs`),
             or a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
         mmpc.files.OutputFolderError (a RuntimeError): another evaluation holds ``out`` (its lock
             file ``.evaluate.lock``, removed when the call ends).
     """
+    check_scenarios(scenarios)
     names = [s.name for s in scenarios]
-    if not names or len(set(names)) != len(names):
-        raise ValueError(f"`scenarios` must be at least one, with distinct names; got {names}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with exclusive(out, ".evaluate.lock", "another evaluation", remove=True):
