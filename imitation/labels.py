@@ -40,6 +40,7 @@ from mmpc.mpc import MPC
 from mmpc.problem import EGO_V
 from mmpc.ranking import Selection
 from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.warm import WarmStarts
 
 
 def ranking_fields(num_goals: int) -> dict[str, tuple[type, tuple[int, ...], float]]:
@@ -70,18 +71,22 @@ class RankingExpert(Driver):
         beta: probability that the expert drives an environment-step, in [0, 1].
         keep: goals the learner keeps per step besides the ego lane's stop goal.
         seed: seeds the draw of who drives.
+        period: the control period [s] (default: the MPC's): the expert's solves are warm-started
+            from each environment's last one (:class:`mmpc.warm.WarmStarts`) when the MPC's config
+            says so (:attr:`mmpc.MPCConfig.warm_iterations`); its episodes are labelled in order.
 
     It computes on its MPC's device (:attr:`device`); its labels come to the host once per step.
     """
 
     def __init__(self, mpc: MPC, proposer: Optional[ModeProposer] = None, *, beta: float = 1.0, keep: int = DEFAULT_KEEP,
-                 seed: int = 0) -> None:
+                 seed: int = 0, period: Optional[float] = None) -> None:
         if not 0.0 <= beta <= 1.0:
             raise ValueError(f"`beta` must be in [0, 1]; got {beta!r}")
         if proposer is None and beta < 1.0:
             raise ValueError(f"beta = {beta} lets a learner drive, but no proposer was given")
         self.mpc = mpc
-        self.learner = None if proposer is None else ProposerDriver(mpc, proposer, keep=keep)
+        self.learner = None if proposer is None else ProposerDriver(mpc, proposer, keep=keep, period=period)
+        self.warm_starts = WarmStarts(mpc, period)
         self.beta = beta
         self.rng = np.random.default_rng(seed)
         self.name = "ranking-expert"
@@ -93,6 +98,7 @@ class RankingExpert(Driver):
         return self.mpc.optimizer.device
 
     def reset(self, num_envs: int) -> None:
+        self.warm_starts.reset()
         if self.learner is not None:
             self.learner.reset(num_envs)
 
@@ -105,7 +111,10 @@ class RankingExpert(Driver):
         count, device = observation.num_envs, self.device
         observation = observation.to(device)
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
-        scored = self.mpc.score(problem)
+        ids = observation.ids()
+        warm = self.warm_starts.start(ids, observation.ego)
+        scored = self.mpc.score(problem, warm.warm)
+        self.warm_starts.keep(ids, observation.ego, scored.result, warm)
         expert = self.mpc.select(problem, scored)
         draws = self.rng.random(count) >= self.beta
         learner_rows = torch.as_tensor(draws, device=device)

@@ -8,7 +8,9 @@ the next in 83 % of the high-speed states), and the optimizer solves only those.
 ranks its own set (feasibility, meta cost, tie-break, the same fallback), so a bad proposal costs
 meta cost, never safety checks. Where none of the proposed goals is feasible the step escalates:
 the full goal set is solved for those environments (``escalate``), so the proposer never leaves
-the ego on the fallback while the expert would have had a feasible plan.
+the ego on the fallback while the expert would have had a feasible plan. With the scenario's warm
+starts (:attr:`mmpc.MPCConfig.warm_iterations`), an environment whose proposed goals were all solved
+at its last step starts from those iterates (:class:`mmpc.warm.WarmStarts`, goals named by slot).
 
 The driver computes on its MPC's device (the run's, :func:`mmpc.device.run_device`), the
 proposer network included; the road features are computed on the host from one copy of the
@@ -30,6 +32,7 @@ from mmpc.imitation.proposer import ModeProposer, load_proposer_checkpoint, prop
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_X, EGO_Y, ProblemBatch
 from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.warm import WarmStarts
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +82,7 @@ class ProposerDriver(Driver):
         keep: goals kept per step besides the ego lane's stop goal and the last step's goal, 1 <= keep <= G.
         escalate: solve the full goal set where no proposed goal is feasible.
         name: the driver's name in tables.
+        period: the control period [s] for warm starts; default: the MPC's (:attr:`mmpc.MPC.control_period`).
 
     Attributes:
         decided_rows, escalated_rows: environment-steps decided, and those that escalated.
@@ -87,7 +91,7 @@ class ProposerDriver(Driver):
     """
 
     def __init__(self, mpc: MPC, proposer: ModeProposer, *, keep: int = DEFAULT_KEEP, escalate: bool = True,
-                 name: str = "proposer") -> None:
+                 name: str = "proposer", period: Optional[float] = None) -> None:
         if proposer.road != mpc.road:
             raise ValueError(f"the proposer was trained on {proposer.road}; the MPC drives {mpc.road}")
         if not isinstance(keep, int) or isinstance(keep, bool) or not 1 <= keep <= proposer.num_goals:
@@ -99,6 +103,7 @@ class ProposerDriver(Driver):
         self.name = name
         self.decided_rows = 0
         self.escalated_rows = 0
+        self.warm_starts = WarmStarts(mpc, period)
         # environment id -> the goal driven at its last step, (x ahead of the ego [m], y [m])
         self._previous: dict[int, tuple[float, float]] = {}
 
@@ -109,6 +114,7 @@ class ProposerDriver(Driver):
 
     def reset(self, num_envs: int) -> None:
         self._previous = {}
+        self.warm_starts.reset()
 
     def remember(self, observation: Observation, problem: ProblemBatch, slots: torch.Tensor) -> None:
         """Note the goals of ``slots`` (E,) driven in the environments of ``observation``, whose
@@ -160,7 +166,10 @@ class ProposerDriver(Driver):
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         slots = self.propose(observation, problem)
         subset = subset_problem(problem, slots)
-        plan = self.mpc.plan_problem(subset)
+        ids = observation.ids()
+        warm = self.warm_starts.start(ids, observation.ego, slots)
+        plan = self.mpc.plan_problem(subset, warm=warm.warm)
+        self.warm_starts.keep(ids, observation.ego, plan.result, warm, slots)
         compile_ms = plan.compile_ms
         selection = plan.selection
         acceleration, steering = plan.acceleration.clone(), plan.steering.clone()

@@ -396,8 +396,14 @@ class MPC:
         *,
         wheelbase: float = HIGHWAY_VEHICLE[0],
         vehicle_width: float = HIGHWAY_VEHICLE[1],
+        control_period: Optional[float] = None,
     ) -> None:
         require_positive("MPC", wheelbase=wheelbase, vehicle_width=vehicle_width)
+        if control_period is not None:
+            require_positive("MPC", control_period=control_period)
+        #: time between two of its steps [s] (a scenario's 1 / frequency), by which a warm start moves
+        #: the last solve (:mod:`mmpc.warm`); ``None``: unknown, its users name it.
+        self.control_period = control_period
         self.wheelbase = wheelbase
         self.vehicle = (wheelbase, vehicle_width)
         self.optimizer = optimizer

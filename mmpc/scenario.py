@@ -577,8 +577,8 @@ class ScenarioConfig:
 
 
 def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device: torch.device | str | None = None) -> MPC:
-    """The scenario's MPC (float32): its optimizer, goals, meta cost and loop settings, and
-    the vehicle length as wheelbase.
+    """The scenario's MPC (float32): its optimizer, goals, meta cost and loop settings, the
+    vehicle length as wheelbase and the scenario's period as its control period.
 
     Args:
         scenario: the scenario.
@@ -594,7 +594,7 @@ def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device:
     goals = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
     optimizer = BatchOptimizer(scenario.optimizer, device=run_device() if device is None else device, compile=compile)
     return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0],
-               vehicle_width=scenario.vehicle[1])
+               vehicle_width=scenario.vehicle[1], control_period=scenario.period)
 
 
 def load_scenario(name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None) -> ScenarioConfig:

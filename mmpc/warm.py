@@ -7,6 +7,8 @@ answer, which then runs only the last :attr:`mmpc.MPCConfig.warm_iterations` ite
 schedule. An environment solves cold instead
 
 - at its first solve (or when it newly joins the batch, or after :meth:`WarmStarts.forget`),
+- when it solves a goal its last solve did not (a solver of a subset of the goal set names the
+  goals by their slots in the whole set),
 - at the solve after one that found no feasible goal (its plan was a fallback),
 - at the solve after a warm one that kept fewer than :attr:`mmpc.MPCConfig.warm_keep_share` of
   its last cold solve's feasible goals (a warm chain's feasible set only shrinks),
@@ -45,6 +47,7 @@ class _Kept(NamedTuple):
     """The last solve of each environment it served (rows E')."""
 
     ids: torch.Tensor  # (E',) environment ids
+    slots: Optional[torch.Tensor]  # (E', G) long, the goal set's slots solved; None: the whole set in order
     starts: torch.Tensor  # (E', 2) ego positions the iterates are relative to [m]
     warm: WarmStart  # the final iterates, (E', G, ...)
     steps: torch.Tensor  # (E',) long, warm solves since the environment's last cold one
@@ -59,17 +62,21 @@ class WarmStarts:
     Args:
         mpc: the MPC whose optimizer solves (its :attr:`mmpc.MPCConfig` warm settings apply).
         period: time between two solves of an environment [s] (a driver's control period, the
-            safety layer's decision period); must be > 0 when ``mpc.config.warm_iterations`` > 0.
+            safety layer's decision period); default: the MPC's :attr:`mmpc.MPC.control_period`.
+            Needed (> 0) when ``mpc.config.warm_iterations`` > 0.
 
     Use per solve: ``round = warm_starts.start(ids, ego)``, solve with ``warm=round.warm``, then
-    ``warm_starts.keep(ids, ego, result, round)``. With ``warm_iterations`` 0 :attr:`enabled`
-    is False and :meth:`start` always answers cold.
+    ``warm_starts.keep(ids, ego, result, round)``; a solver of some goals of a goal set passes
+    their ``slots`` to both. With ``warm_iterations`` 0 :attr:`enabled` is False and
+    :meth:`start` always answers cold.
     """
 
-    def __init__(self, mpc: MPC, period: Optional[float]) -> None:
+    def __init__(self, mpc: MPC, period: Optional[float] = None) -> None:
+        period = mpc.control_period if period is None else period
         if mpc.config.warm_iterations and not (period is not None and period > 0):
-            raise ValueError(f"warm starts (MPCConfig.warm_iterations={mpc.config.warm_iterations}) need the control "
-                             f"`period` > 0 s; got {period!r}")
+            raise ValueError(f"warm starts (MPCConfig.warm_iterations={mpc.config.warm_iterations}) need the time "
+                             f"between two solves, `period` > 0 s (or an MPC with a control_period, "
+                             f"mmpc.scenario.build_mpc); got {period!r}")
         self.mpc = mpc
         self.period = period
         self._kept: Optional[_Kept] = None
@@ -90,10 +97,11 @@ class WarmStarts:
         gone = (self._kept.ids[:, None] == ids.to(self._kept.ids.device)[None, :]).any(dim=1)
         self._kept = self._kept._replace(fell_back=self._kept.fell_back | gone)
 
-    def start(self, ids: torch.Tensor, ego: torch.Tensor) -> WarmRound:
-        """The starts of a solve of E environments ``ids`` (E,) long at the ego states ``ego`` (E, 6)."""
+    def start(self, ids: torch.Tensor, ego: torch.Tensor, slots: Optional[torch.Tensor] = None) -> WarmRound:
+        """The starts of a solve of E environments ``ids`` (E,) long at the ego states ``ego`` (E, 6),
+        of the goals ``slots`` (E, K) long of a goal set (``None``: the whole set, in order)."""
         steps = torch.zeros(ids.shape[0], dtype=torch.long, device=ids.device)
-        if not self.enabled or self._kept is None:
+        if not self.enabled or self._kept is None or (slots is None) != (self._kept.slots is None):
             return WarmRound(None, steps, steps)
         kept, config = self._kept, self.mpc.config
         match = ids[:, None] == kept.ids[None, :]  # (E, E')
@@ -101,21 +109,30 @@ class WarmStarts:
         steps = kept.steps[rows] + 1
         decayed = kept.feasible_goals[rows] < config.warm_keep_share * kept.cold_feasible_goals[rows]
         cold = ~match.any(dim=1) | kept.fell_back[rows] | decayed | (steps >= config.warm_cold_every)
+        warm = kept.warm.take(rows)
+        if slots is not None:  # each goal's iterate from where the last solve had it; a goal it had not: cold
+            same = slots[:, :, None] == kept.slots[rows][:, None, :]  # (E, K, K')
+            cold = cold | ~same.any(dim=2).all(dim=1)
+            where = same.int().argmax(dim=2)  # (E, K)
+            warm = WarmStart(*(field.gather(1, where.view(*where.shape, *[1] * (field.dim() - 2)).expand(
+                *where.shape, *field.shape[2:])) for field in warm))
         steps = torch.where(cold, 0, steps)
         cold_feasible_goals = torch.where(cold, 0, kept.cold_feasible_goals[rows])
         if bool(cold.all()):
             return WarmRound(None, steps, cold_feasible_goals)
-        warm = self.mpc.optimizer.shifted(kept.warm.take(rows), self.period, ego[:, :2] - kept.starts[rows])
+        warm = self.mpc.optimizer.shifted(warm, self.period, ego[:, :2] - kept.starts[rows])
         restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
         warm = WarmStart(*(torch.where(cold.view(-1, *[1] * (field.dim() - 1)), restart, field) for field in warm))
         return WarmRound(warm, steps, cold_feasible_goals)
 
-    def keep(self, ids: torch.Tensor, ego: torch.Tensor, result: SolveResult, round: WarmRound) -> None:
-        """Keep the solve of ``ids`` at ``ego`` that :meth:`start` began with ``round``: its final
-        iterates and feasible goals (the environments not in ``ids`` are forgotten)."""
+    def keep(self, ids: torch.Tensor, ego: torch.Tensor, result: SolveResult, round: WarmRound,
+             slots: Optional[torch.Tensor] = None) -> None:
+        """Keep the solve of ``ids`` at ``ego`` (of the goals ``slots``, as given to :meth:`start`)
+        that :meth:`start` began with ``round``: its final iterates and feasible goals (the
+        environments not in ``ids`` are forgotten)."""
         if not self.enabled:
             return
         feasible_goals = result.feasible.sum(dim=1)
         solved_warm = round.steps > 0
-        self._kept = _Kept(ids, ego[:, :2], result.warm, round.steps, feasible_goals == 0, feasible_goals,
+        self._kept = _Kept(ids, slots, ego[:, :2], result.warm, round.steps, feasible_goals == 0, feasible_goals,
                            torch.where(solved_warm, round.cold_feasible_goals, feasible_goals))

@@ -22,7 +22,7 @@ class MPCDriver(Driver):
     Args:
         mpc: the MPC (its goal sampler, meta cost and optimizer).
         name: the driver's name in tables.
-        period: the control period [s] (a scenario's ``1 / frequency``); needed for warm starts.
+        period: the control period [s] for warm starts; default: the MPC's (:attr:`mmpc.MPC.control_period`).
     """
 
     def __init__(self, mpc: MPC, name: str = "mpc", period: Optional[float] = None) -> None:
