@@ -13,11 +13,18 @@ same event files as SB3's ``rollout/`` and ``train/`` scalars):
 
 Environments without a safety layer (plain highway-env) give no ``solve_ms`` or intervention
 figures; those scalars are then not written.
+
+Given a :class:`CrashLog`, the callback also writes every training episode that ended in a
+collision as a CSV row with what replays it: its seed, where it ended and the agent's actions.
 """
 
 from __future__ import annotations
 
+import csv
+import json
 from collections import deque
+from pathlib import Path
+from typing import Any, Optional
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
@@ -25,6 +32,51 @@ from stable_baselines3.common.callbacks import BaseCallback
 #: The custom scalar tags.
 SCALAR_TAGS = ("solver/solve_ms", "safety/intervention_rate", "safety/collision_rate", "safety/crashes",
                "safety/episodes", "driving/mean_speed")
+#: The columns of a :class:`CrashLog`.
+CRASH_LOG_COLUMNS = ("timesteps", "env", "episode_seed", "step", "time_s", "actions")
+
+
+class CrashLog:
+    """The training episodes that ended in a collision, one CSV row each, appended as they end (a
+    killed run keeps the rows so far; a run without collisions leaves the header alone).
+
+    Columns (:data:`CRASH_LOG_COLUMNS`): ``timesteps`` (the run's environment steps when the
+    episode ended), ``env`` (its environment in the vectorized batch), ``episode_seed`` (the seed
+    its environment reset it with, which fixes its traffic; empty where the environment reports
+    none), ``step`` (agent steps into the episode, the crashing one included), ``time_s``
+    (simulated time into the episode [s]) and ``actions`` (the agent's actions, a JSON list).
+    Resetting an environment of the run's settings with ``seed=episode_seed`` and stepping it with
+    ``actions`` drives the episode again (up to the floating-point rounding of a batched solve).
+
+    Args:
+        path: the CSV file, created with its header.
+        frequency: simulation frames per second [Hz], to turn frames into time.
+    """
+
+    def __init__(self, path: Path, frequency: float) -> None:
+        if not frequency > 0:
+            raise ValueError(f"`frequency` must be > 0 Hz; got {frequency}")
+        self.path = Path(path)
+        self.frequency = frequency
+        with open(self.path, "w", newline="") as handle:
+            csv.writer(handle).writerow(CRASH_LOG_COLUMNS)
+
+    def add(self, timesteps: int, env: int, episode: "RunningEpisode") -> None:
+        """Append the crashed ``episode`` of environment ``env``."""
+        with open(self.path, "a", newline="") as handle:
+            csv.writer(handle).writerow([timesteps, env, "" if episode.seed is None else episode.seed, episode.steps,
+                                         round(episode.frames / self.frequency, 6), json.dumps(episode.actions)])
+
+
+class RunningEpisode:
+    """What the callback keeps of an environment's running episode for :class:`CrashLog`: its
+    seed (``None``: not reported), agent steps, simulation frames and the agent's actions."""
+
+    def __init__(self, seed: Optional[int]) -> None:
+        self.seed = None if seed is None else int(seed)
+        self.steps = 0
+        self.frames = 0
+        self.actions: list[Any] = []
 
 
 class SafetyTensorboardCallback(BaseCallback):
@@ -33,9 +85,12 @@ class SafetyTensorboardCallback(BaseCallback):
     Args:
         log_every: environment steps (summed over the vectorized environments) between writes.
         window: finished episodes the collision rate is taken over.
+        crash_log: where the episodes that ended in a collision are written (optional). The
+            episodes' seeds are read from the training environment's ``reset_infos``
+            (``info["episode_seed"]`` of its resets).
     """
 
-    def __init__(self, log_every: int = 500, window: int = 100) -> None:
+    def __init__(self, log_every: int = 500, window: int = 100, *, crash_log: Optional[CrashLog] = None) -> None:
         super().__init__()
         if log_every < 1 or window < 1:
             raise ValueError(f"`log_every` and `window` must be >= 1; got {log_every}, {window}")
@@ -43,6 +98,8 @@ class SafetyTensorboardCallback(BaseCallback):
         self.crashes: deque[bool] = deque(maxlen=window)
         self.total_crashes = 0
         self.total_episodes = 0
+        self.crash_log = crash_log
+        self.episodes: list[RunningEpisode] = []
         self._reset_window()
         self._last_write = 0
 
@@ -53,9 +110,15 @@ class SafetyTensorboardCallback(BaseCallback):
         self.speed_sum = 0.0
         self.speed_count = 0
 
+    def _on_training_start(self) -> None:
+        if self.crash_log is not None:
+            self.episodes = [RunningEpisode(info.get("episode_seed")) for info in self.training_env.unwrapped.reset_infos]
+
     def _on_step(self) -> bool:
         infos = self.locals.get("infos", [])
         dones = self.locals.get("dones", np.zeros(len(infos), dtype=bool))
+        if self.crash_log is not None:
+            self._follow_episodes(infos, dones)
         for info, done in zip(infos, dones):
             frames = int(info.get("frames", 1))
             if "solve_ms" in info:
@@ -75,6 +138,22 @@ class SafetyTensorboardCallback(BaseCallback):
         if self.num_timesteps - self._last_write >= self.log_every:
             self.write()
         return True
+
+    def _follow_episodes(self, infos: list[dict], dones: np.ndarray) -> None:
+        """Add the step to every environment's running episode; write the crashed ones that ended
+        and start following the episodes their resets began."""
+        # the actions the environments were given: on-policy algorithms step with the Box actions clipped
+        actions = np.asarray(self.locals.get("clipped_actions", self.locals.get("actions"))).tolist()
+        reset_infos = self.training_env.unwrapped.reset_infos
+        for index, (info, done) in enumerate(zip(infos, dones)):
+            episode = self.episodes[index]
+            episode.steps += 1
+            episode.frames += int(info.get("frames", 1))
+            episode.actions.append(actions[index])
+            if done:
+                if info.get("crashed", False):
+                    self.crash_log.add(self.num_timesteps, index, episode)
+                self.episodes[index] = RunningEpisode(reset_infos[index].get("episode_seed"))
 
     def _on_training_end(self) -> None:
         self.write()

@@ -65,7 +65,8 @@ def plot_curves(runs: Mapping[str, str | Path], path: str | Path) -> Path:
 
 
 def results_table(runs: Mapping[str, str | Path]) -> tuple[str, dict]:
-    """A markdown table of the runs' ``eval.json`` and the figures as a dict (label -> summary)."""
+    """A markdown table of the runs' ``eval.json`` and the figures as a dict (label -> summary); its
+    train steps are the steps trained (``trained_timesteps``, the budget rounded up to whole rollouts)."""
     rows = ["| agent | algorithm | env | train steps | train time [min] | training crashes per 10^5 steps | episodes | "
             "collision rate | mean speed [m/s] | mean return | intervention rate |",
             "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -75,12 +76,14 @@ def results_table(runs: Mapping[str, str | Path]) -> tuple[str, dict]:
         if not path.is_file():
             raise FileNotFoundError(f"no {path}: train the run with its evaluation (without --no-eval)")
         summary = json.loads(path.read_text())
-        figures[label] = {key: summary.get(key) for key in ("algo", "env", "timesteps", "train_seconds", "episodes",
-                                                            "collision_rate", "mean_speed", "mean_return", "intervention_rate")}
+        figures[label] = {key: summary.get(key) for key in ("algo", "env", "timesteps", "trained_timesteps", "train_seconds",
+                                                            "episodes", "collision_rate", "mean_speed", "mean_return",
+                                                            "intervention_rate")}
         figures[label]["training_crashes_per_1e5_steps"] = crashes = training_crashes_per_1e5_steps(run)
         rate = summary.get("intervention_rate")
         minutes = summary.get("train_seconds", float("nan")) / 60
-        rows.append(f"| {label} | {summary.get('algo')} | {summary.get('env')} | {summary.get('timesteps')} | {minutes:.0f} | "
+        steps = summary.get("trained_timesteps", summary.get("timesteps"))  # older runs recorded the budget alone
+        rows.append(f"| {label} | {summary.get('algo')} | {summary.get('env')} | {steps} | {minutes:.0f} | "
                     f"{'n/a' if crashes is None else f'{crashes:.1f}'} | "
                     f"{summary['episodes']} | {summary['collision_rate']:.0%} | {summary['mean_speed']:.2f} | "
                     f"{summary['mean_return']:.1f} | {'n/a' if rate is None else f'{rate:.1%}'} |")

@@ -3,48 +3,56 @@ unprotected baseline) and evaluate them on fixed seeds.
 
 A run directory holds::
 
-    config.yaml          the resolved configuration (algorithm, environment, action space, seed, budget)
+    config.yaml          the resolved configuration (algorithm, environment, action space, seed, budget;
+                         after training, ``trained_timesteps``: the steps trained, the budget rounded
+                         up to whole rollouts)
     scenario.yaml        its scenario alone, for ``mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip``
     tb/<algo>_1/         TensorBoard event files: SB3's scalars plus solver/, safety/, driving/
     checkpoints/         <algo>_<steps>_steps.zip every ``train.checkpoint_every`` steps
     model.zip            the final model
+    crashes.csv          the training episodes that ended in a collision (:class:`mmpc.rl.callbacks.CrashLog`):
+                         their seed, step and actions replay them
     eval.json            the evaluation: collision_rate, mean_speed, mean_return,
                          intervention_rate, episodes, and one row per episode
-    .train.lock          held by the run while it writes (:data:`RUN_LOCK`)
+    .train.lock          held by the run while it writes, removed at its end (:data:`RUN_LOCK`)
 
 A run gets a folder of its own: :func:`train` refuses a folder another run is writing to, and
 one holding anything (an earlier run's files would be replaced or mixed with the new run's).
+It builds its environments and its model before it writes anything there, so a start refused
+for its settings leaves the folder empty for the corrected command.
 """
 
 from __future__ import annotations
 
-import contextlib
 import inspect
 import json
 import logging
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator, NamedTuple, Optional, Sequence
+from typing import Any, Callable, NamedTuple, Optional, Sequence
 
 import gymnasium as gym
 import numpy as np
 import torch
 import yaml
 
-from mmpc.config import require_int, to_dict
-from mmpc.files import OutputFolderError, exclusive
+from mmpc.config import ConfigError, is_finite_number, require, require_int, to_dict
+from mmpc.files import atomic_write_text
 from mmpc.highway.runner import Observer, Step
 from mmpc.rl.config import ALGORITHMS, RLConfig
 from mmpc.rl.envs import frame_reward, vehicle_meta_cost_reward
+from mmpc.rl.folders import run_folder
 from mmpc.rl.runs import ALGORITHM_CLASSES, TrainedRun, algorithm_class
 
 logger = logging.getLogger(__name__)
 
 #: Environments ``train`` can train on: the safe layer or plain highway-env.
 ENV_KINDS = ("safe", "highway")
-#: The lock file a training run holds in its folder (:func:`mmpc.files.exclusive`).
+#: The lock file a training run holds in its folder (:func:`mmpc.rl.folders.run_folder`).
 RUN_LOCK = ".train.lock"
+#: Seeds numpy (and so stable-baselines3 and highway-env) accepts: [0, 2^32 - 1].
+MAX_SEED = 2**32 - 1
 
 
 # ----------------------------------------------------------------------------------- plain baseline
@@ -80,11 +88,15 @@ class HighwayBaseline(gym.Wrapper):
         self.scenario = scenario
         self.reward = config.reward
 
-    def reset(self, **kwargs: Any) -> tuple[Any, dict]:
-        observation, info = self.env.reset(**kwargs)
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[Any, dict]:
+        """Start an episode; ``seed`` (or one drawn from the environment's generator) seeds
+        highway-env, so a seed fixes the episode: ``info["episode_seed"]`` says which."""
+        if seed is None:
+            seed = int(self.np_random.integers(2**31 - 1))
+        observation, info = self.env.reset(seed=seed, options=options)
         ego = self.env.unwrapped.vehicle
         ego.speed = self.ego_speed
-        return self.env.unwrapped.observation_type.observe(), info
+        return self.env.unwrapped.observation_type.observe(), dict(info, episode_seed=seed)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
         observation, reward, terminated, truncated, info = self.env.step(action)
@@ -283,12 +295,14 @@ def make_training_env(config: RLConfig, *, env_kind: str, continuous: bool, seed
 
 
 def algorithm_kwargs(config: RLConfig, algo: str) -> dict:
-    """The run's constructor arguments of ``algo``; unknown names raise ``ValueError``."""
+    """The run's constructor arguments of ``algo``; unknown names, and a ``learning_rate`` that is
+    not a finite number > 0, raise :class:`mmpc.config.ConfigError`."""
     kwargs = dict(config.algorithms.get(algo, {}))
     allowed = set(inspect.signature(algorithm_class(algo).__init__).parameters) - {"self", "policy", "env"}
     unknown = sorted(set(kwargs) - allowed)
-    if unknown:
-        raise ValueError(f"unknown argument(s) {unknown} in `algorithms.{algo}`; {ALGORITHM_CLASSES[algo]} accepts {sorted(allowed)}")
+    require(not unknown, f"unknown argument(s) {unknown} in `algorithms.{algo}`; {ALGORITHM_CLASSES[algo]} accepts {sorted(allowed)}")
+    rate = kwargs.get("learning_rate", 1.0)
+    require(is_finite_number(rate) and rate > 0, f"`algorithms.{algo}.learning_rate` must be a finite number > 0; got {rate!r}")
     return kwargs
 
 
@@ -316,13 +330,17 @@ def train(
 ) -> dict:
     """Train ``algo`` for ``timesteps`` environment steps, save it, evaluate it.
 
+    stable-baselines3 trains whole rollouts (:func:`rollout_steps`): a budget that is not a
+    multiple of one is rounded up, with a warning, and the run records the steps it trained
+    (``trained_timesteps`` in config.yaml and the summary).
+
     Args:
         config: the run's configuration.
         algo: ``dqn``, ``ppo`` or ``sac``.
         timesteps: environment (agent) steps, summed over the vectorized environments.
         out: the run directory: new, empty or missing (created; see the module docstring).
         env_kind: ``safe`` (the goal-choosing environments) or ``highway`` (plain highway-env).
-        seed: seeds the model and the training environments.
+        seed: seeds the model and the training environments, in [0, 2^32 - 1].
         progress_bar: SB3's progress bar.
         evaluate_after: run the evaluation (``train.eval_episodes`` episodes) and write eval.json.
 
@@ -330,81 +348,104 @@ def train(
         The evaluation summary (``{}`` without evaluation).
 
     Raises:
-        mmpc.files.OutputFolderError: ``out`` is held by another run or holds files (:func:`run_folder`).
+        mmpc.config.ConfigError: settings the run cannot start with (``seed``, ``algorithms.<algo>``,
+            the expert prior, or what the environments or the model refuse, e.g. the action space
+            or the scenario's MPC), before anything is written to ``out``.
+        mmpc.files.OutputFolderError: ``out`` cannot be written, is held by another run or holds
+            files (:func:`mmpc.rl.folders.run_folder`).
     """
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
 
-    from mmpc.rl.callbacks import SafetyTensorboardCallback
+    from mmpc.rl.callbacks import CrashLog, SafetyTensorboardCallback
 
     if algo not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
     if env_kind not in ENV_KINDS:
         raise ValueError(f"`env_kind` must be one of {ENV_KINDS}; got {env_kind!r}")
     require_int("", low=1, timesteps=timesteps)
+    require_int("", low=0, high=MAX_SEED, seed=seed)
     continuous = config.action_for(algo) == "continuous"
     # Other algorithms ignore the prior (as algorithms.ppo), and so does the plain baseline of a recipe:
     # highway-env's own actions hold no expert to start at.
     expert_prior = config.train.expert_prior if algo == "ppo" and env_kind == "safe" else 0.0
-    if expert_prior > 0 and (continuous or not config.env.expert_action):
-        raise ValueError(f"train: `expert_prior` sets PPO's discrete policy towards the expert action, so it needs "
-                         f"discrete actions and env.expert_action: true; got {'continuous' if continuous else 'discrete'} "
-                         f"actions, expert_action {config.env.expert_action}")
+    require(expert_prior == 0 or (not continuous and config.env.expert_action),
+            f"train: `expert_prior` sets PPO's discrete policy towards the expert action, so it needs discrete actions "
+            f"and env.expert_action: true; got {'continuous' if continuous else 'discrete'} actions, expert_action "
+            f"{config.env.expert_action}")
     kwargs = algorithm_kwargs(config, algo)
     torch.set_num_threads(config.train.torch_threads)
     out = Path(out)
-    with run_folder(out):
+    with run_folder(out, RUN_LOCK, "another `mmpc rl train` run", fresh="a training run neither resumes nor overwrites one",
+                    describe=_held_run):
+        env, model = _start(config, algo, env_kind, continuous, seed, out, kwargs, expert_prior)
         run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete",
                "timesteps": timesteps, "seed": seed, "config": to_dict(config)}
         (out / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
         # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
         (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
-        env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
-        # the policy stays on the CPU and reads numpy whatever --device says (that is the MPC's and the simulator's)
-        kwargs.setdefault("device", "cpu")
-        model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"), **kwargs)
-        if expert_prior > 0:
-            prefer_expert_action(model, expert_prior)
+        rollout = rollout_steps(model)
+        if rollout is not None and timesteps % rollout:
+            logger.warning("%s trains whole rollouts of %d steps (n_envs = %d): %d timesteps round up to %d (config.yaml "
+                           "records trained_timesteps)", algo, rollout, config.train.n_envs, timesteps,
+                           math.ceil(timesteps / rollout) * rollout)
         checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1),
                                          str(out / "checkpoints"), name_prefix=algo)
+        safety = SafetyTensorboardCallback(config.train.log_every,
+                                           crash_log=CrashLog(out / "crashes.csv", config.scenario.frequency))
         start = time.perf_counter()
         try:
-            model.learn(timesteps, callback=CallbackList([checkpoints, SafetyTensorboardCallback(config.train.log_every)]),
-                        tb_log_name=algo, progress_bar=progress_bar)
+            model.learn(timesteps, callback=CallbackList([checkpoints, safety]), tb_log_name=algo, progress_bar=progress_bar)
         finally:
             env.close()
         train_s = time.perf_counter() - start
         model.save(out / "model.zip")
-        logger.info("trained %s on %s for %d steps in %.0f s", algo, env_kind, timesteps, train_s)
+        run["trained_timesteps"] = int(model.num_timesteps)
+        atomic_write_text(out / "config.yaml", yaml.safe_dump(run, sort_keys=False))
+        logger.info("trained %s on %s for %d steps in %.0f s", algo, env_kind, model.num_timesteps, train_s)
         if not evaluate_after:
             return {}
         summary = evaluate_run(model, config, env_kind=env_kind, continuous=continuous)
-        summary = {"algo": algo, "env": env_kind, "timesteps": timesteps, "train_seconds": train_s, **summary}
+        summary = {"algo": algo, "env": env_kind, "timesteps": timesteps, "trained_timesteps": run["trained_timesteps"],
+                   "train_seconds": train_s, **summary}
         (out / "eval.json").write_text(json.dumps(summary, indent=2) + "\n")
         return summary
 
 
-@contextlib.contextmanager
-def run_folder(out: Path) -> Iterator[None]:
-    """Hold the run folder ``out`` (created when missing) while the block writes it: its
-    :data:`RUN_LOCK` keeps a second run out, and a folder holding anything else is refused, since
-    the run would replace or mix with what is there (``mmpc rl train`` does not resume).
+def _start(config: RLConfig, algo: str, env_kind: str, continuous: bool, seed: int, out: Path, kwargs: dict,
+           expert_prior: float) -> tuple[Any, Any]:
+    """The training environments and the model, built before the run writes anything in ``out``:
+    a setting they refuse (a ``ValueError`` of the environments, the MPC, stable-baselines3 or
+    torch) raises :class:`mmpc.config.ConfigError` with its message."""
+    try:
+        env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
+        try:
+            # the policy stays on the CPU and reads numpy whatever --device says (that is the MPC's and the simulator's)
+            model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"),
+                                          **{"device": "cpu", **kwargs})
+        except BaseException:
+            env.close()
+            raise
+    except ConfigError:
+        raise
+    except ValueError as error:
+        raise ConfigError(f"{algo} on {env_kind} cannot start: {error}") from error
+    if expert_prior > 0:
+        prefer_expert_action(model, expert_prior)
+    return env, model
 
-    Raises:
-        mmpc.files.OutputFolderError: another run holds ``out``, or ``out`` holds files.
-    """
-    out.mkdir(parents=True, exist_ok=True)
-    if not (out / RUN_LOCK).exists():
-        _require_empty(out)  # before the lock file goes in: a refused folder is left as it was
-    with exclusive(out, RUN_LOCK, "another `mmpc rl train` run", OutputFolderError):
-        _require_empty(out)
-        yield
 
+def rollout_steps(model: Any) -> Optional[int]:
+    """The environment steps of one rollout of ``model``: stable-baselines3 trains whole rollouts,
+    so ``model.learn(T)`` trains T rounded up to a multiple of it. PPO's ``n_steps x n_envs``,
+    DQN's and SAC's ``train_freq x n_envs`` (``None`` for a ``train_freq`` counted in episodes)."""
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+    from stable_baselines3.common.type_aliases import TrainFrequencyUnit
 
-def _require_empty(out: Path) -> None:
-    names = sorted(p.name for p in out.iterdir() if p.name != RUN_LOCK)
-    if names:
-        raise OutputFolderError(f"`out` {out} already holds {_held_run(out)}: {', '.join(names)}; a training run "
-                                "neither resumes nor overwrites one: choose another --out (or remove that folder)")
+    if isinstance(model, OnPolicyAlgorithm):
+        return model.n_steps * model.n_envs
+    if model.train_freq.unit == TrainFrequencyUnit.STEP:
+        return model.train_freq.frequency * model.n_envs
+    return None
 
 
 def _held_run(out: Path) -> str:
