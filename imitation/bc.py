@@ -16,6 +16,7 @@ import copy
 import json
 import logging
 import math
+import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, NamedTuple, Optional
@@ -27,6 +28,7 @@ from mmpc.imitation.dataset import Transitions
 from mmpc.config import from_dict, require_int
 from mmpc.imitation.features import SceneGeometry, road_features, scene_geometry
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, save_policy
+from mmpc.rl.folders import run_folder
 from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
 
@@ -64,6 +66,14 @@ class TrainConfig:
             raise ValueError(f"`weight_decay` must be >= 0; got {self.weight_decay}")
         if not 0 <= self.validation_fraction < 1:
             raise ValueError(f"`validation_fraction` must be in [0, 1); got {self.validation_fraction}")
+
+
+#: The lock file a behaviour cloning run holds in its folder (:func:`mmpc.rl.folders.run_folder`).
+LOCK = ".bc.lock"
+
+
+class TrainingDiverged(ValueError):
+    """The training loss became NaN or infinite: the learning rate is too large for the data."""
 
 
 class History(NamedTuple):
@@ -122,6 +132,9 @@ def train_policy(
     Returns:
         The policy with the weights of the best validation epoch (the last epoch without a
         validation set) and the :class:`History`.
+
+    Raises:
+        TrainingDiverged: an epoch's training or validation loss is NaN or infinite.
     """
     count = data.actions.shape[0]
     if data.actions.shape != (count, 2) or data.ego.shape != (count, 6) or data.neighbours.ndim != 3 \
@@ -160,6 +173,11 @@ def train_policy(
         policy.eval()
         train_loss = total / count
         val_loss, rmse = _evaluate(policy, val_in, val_act) if val_in.shape[0] else (math.nan, (math.nan, math.nan))
+        if not (math.isfinite(train_loss) and (math.isfinite(val_loss) or not val_in.shape[0])):
+            where = f" in {tag.rstrip('/')}" if tag else ""
+            raise TrainingDiverged(f"the training diverged{where}: loss {train_loss:.4g} (training), {val_loss:.4g} "
+                                   f"(validation) at epoch {epoch + 1} of {config.epochs}; try a smaller learning_rate "
+                                   f"(got {config.learning_rate:g})")
         history.train_loss.append(train_loss)
         history.val_loss.append(val_loss)
         history.val_rmse.append(rmse)
@@ -197,10 +215,18 @@ def run_bc(
     """Behaviour cloning from a demonstrations directory (``mmpc imitate demos --out``).
 
     Writes ``out/policy.pt`` (best validation epoch), ``out/train.json`` (per-epoch losses,
-    the config, the dataset) and TensorBoard events under ``out/tb``.
+    the config, the dataset) and TensorBoard events under ``out/tb``, holding the folder's
+    :data:`LOCK` meanwhile. A run gets a folder of its own (new, empty or missing): one holding
+    anything is refused, since the run would replace or mix with it. A run that diverges writes
+    no policy and takes its TensorBoard events back, so the folder takes the corrected command.
 
     Returns:
         The ``train.json`` content.
+
+    Raises:
+        mmpc.files.OutputFolderError: ``out`` cannot be written, another run holds it, or it
+            holds files (:func:`mmpc.rl.folders.run_folder`).
+        TrainingDiverged: the loss became NaN or infinite.
     """
     from torch.utils.tensorboard import SummaryWriter
 
@@ -210,24 +236,38 @@ def run_bc(
     data = dataset_transitions(dataset)
     scenario = from_dict(ScenarioConfig, dataset.storage.metadata["mmpc_scenario"], where=f"{dataset_dir}: mmpc_scenario")
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with SummaryWriter(str(out / "tb")) as writer:
-        writer.add_text("hyperparameters", hyperparameters_text(config))
-        policy, history = train_policy(data, scenario.road, config, scene=scene_geometry(scenario), writer=writer,
-                                       on_epoch=on_epoch)
-    report = {
-        "dataset": str(dataset_dir),
-        "dataset_id": dataset.spec.dataset_id,
-        "episodes": int(dataset.total_episodes),
-        "samples": int(data.actions.shape[0]),
-        "config": json.loads(json.dumps(asdict(config), default=list)),
-        "best_epoch": history.best_epoch,
-        "val_loss": history.val_loss[history.best_epoch],
-        "val_rmse_acceleration": history.val_rmse[history.best_epoch][0],
-        "val_rmse_steering": history.val_rmse[history.best_epoch][1],
-        "train_loss": history.train_loss,
-        "val_loss_per_epoch": history.val_loss,
-    }
-    save_policy(out / "policy.pt", policy, scenario=scenario.name, info={k: report[k] for k in ("dataset_id", "samples", "best_epoch", "val_loss")})
-    (out / "train.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
+    with run_folder(out, LOCK, "another `mmpc imitate bc` run", describe=_held_run,
+                    fresh="a behaviour cloning run neither resumes nor overwrites one"):
+        try:
+            with SummaryWriter(str(out / "tb")) as writer:
+                writer.add_text("hyperparameters", hyperparameters_text(config))
+                policy, history = train_policy(data, scenario.road, config, scene=scene_geometry(scenario),
+                                               writer=writer, on_epoch=on_epoch)
+        except TrainingDiverged:
+            shutil.rmtree(out / "tb", ignore_errors=True)  # the folder held nothing else before this run
+            raise
+        report = {
+            "dataset": str(dataset_dir),
+            "dataset_id": dataset.spec.dataset_id,
+            "episodes": int(dataset.total_episodes),
+            "samples": int(data.actions.shape[0]),
+            "config": json.loads(json.dumps(asdict(config), default=list)),
+            "best_epoch": history.best_epoch,
+            "val_loss": history.val_loss[history.best_epoch],
+            "val_rmse_acceleration": history.val_rmse[history.best_epoch][0],
+            "val_rmse_steering": history.val_rmse[history.best_epoch][1],
+            "train_loss": history.train_loss,
+            "val_loss_per_epoch": history.val_loss,
+        }
+        save_policy(out / "policy.pt", policy, scenario=scenario.name, info={k: report[k] for k in ("dataset_id", "samples", "best_epoch", "val_loss")})
+        (out / "train.json").write_text(json.dumps(report, indent=2, default=float) + "\n")
     return report
+
+
+def _held_run(out: Path) -> str:
+    """What an occupied run folder holds, as words (the run its train.json records, or files)."""
+    try:
+        report = json.loads((out / "train.json").read_text())
+        return f"a finished behaviour cloning run ({report['samples']} samples of {report['dataset']})"
+    except (OSError, ValueError, TypeError, KeyError):
+        return "files"

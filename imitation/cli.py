@@ -61,19 +61,24 @@ def _bc(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mmpc.config import load_config
-    from mmpc.imitation.bc import TrainConfig, run_bc
+    from mmpc.imitation.bc import TrainConfig, TrainingDiverged, run_bc
 
     torch.set_num_threads(args.threads)
     overrides = dict(args.set)
     if args.epochs is not None:
         overrides["epochs"] = args.epochs
     config = load_config(TrainConfig, args.config, overrides)
-    with tqdm(total=config.epochs, desc="bc", unit="epoch") as bar:
+    with tqdm(total=config.epochs, desc="bc", unit="epoch") as bar:  # closed before an error's message
         def on_epoch(epoch: int, train_loss: float, val_loss: float) -> None:
             bar.update(1)
             bar.set_postfix_str(f"train {train_loss:.4f} val {val_loss:.4f}")
 
-        report = run_bc(Path(args.dataset), Path(args.out), config, on_epoch=on_epoch)
+        try:
+            report = run_bc(Path(args.dataset), Path(args.out), config, on_epoch=on_epoch)
+        except TrainingDiverged as error:
+            bar.close()
+            print(f"mmpc imitate bc: error: {error}", file=sys.stderr)
+            return 2
     print(f"{report['samples']} samples from {report['episodes']} episodes; best epoch {report['best_epoch']}: "
           f"validation loss {report['val_loss']:.4f} (standardised), RMSE acceleration "
           f"{report['val_rmse_acceleration']:.3f} m/s^2, steering {report['val_rmse_steering']:.4f} rad")
@@ -214,7 +219,7 @@ def add_subcommands(sub) -> None:
 
     bc = commands.add_parser("bc", help="behaviour cloning of an MLP policy from a demonstrations directory")
     bc.add_argument("--dataset", required=True, help="an `mmpc imitate demos --out` directory")
-    bc.add_argument("--out", default="runs/bc", help="run folder: policy.pt, train.json, tb/ (default runs/bc)")
+    bc.add_argument("--out", default="runs/bc", help="run folder, new or empty: policy.pt, train.json, tb/ (default runs/bc)")
     add_config(bc, "training config (mmpc.imitation.bc.TrainConfig)")
     bc.add_argument("--epochs", type=int, default=None, help="override the config's epochs")
     bc.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")

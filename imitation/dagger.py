@@ -39,6 +39,7 @@ check), and TensorBoard events under ``RUN/tb``; at the end ``RUN/policy.pt`` (t
 policy, named in ``dagger.json``'s ``best_round``).
 Re-running the same command on the same folder resumes after the last finished round, and a
 re-run with more ``iterations`` extends the run (a folder of another configuration is refused).
+A run holds the folder's :data:`LOCK` while it writes, so a second run there is refused.
 """
 
 from __future__ import annotations
@@ -67,10 +68,14 @@ from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.policy import PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
+from mmpc.rl.folders import run_folder
 from mmpc.scenario import ScenarioConfig
 
 logger = logging.getLogger(__name__)
 
+
+#: The lock file a run holds in its folder while it writes (:func:`mmpc.rl.folders.run_folder`).
+LOCK = ".dagger.lock"
 
 #: The policy DAgger trains by default: 2 x 128 ReLU, fewer check collisions than BC's 2 x 256 tanh
 #: on the same data (docs/experiments/2026-11-21-imitation.md).
@@ -381,7 +386,19 @@ def run_dagger(
 
     Returns:
         The ``dagger.json`` content.
+
+    Raises:
+        mmpc.files.OutputFolderError: ``out`` cannot be written, or another run holds it (its :data:`LOCK`).
+        ValueError: ``out`` holds a run of another configuration, or a corrupt ``dagger.json``.
     """
+    out = Path(out)
+    with run_folder(out, LOCK, "another `mmpc imitate dagger` run"):
+        return _run_rounds(scenario, out, config, dataset_dir, on_round)
+
+
+def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, dataset_dir: Optional[Path],
+                on_round: Optional[Callable[[dict], None]]) -> dict:
+    """:func:`run_dagger` in the folder ``out``, whose lock this process holds."""
     from torch.utils.tensorboard import SummaryWriter
 
     from mmpc.drivers import MPCDriver
@@ -389,8 +406,6 @@ def run_dagger(
 
     if config.duration is not None:
         scenario = scenario.replace(duration=config.duration)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     settings = json.loads(json.dumps(asdict(config), default=list))
     settings.pop("iterations")  # a re-run with more iterations extends the run
     identity = {"scenario": to_dict(scenario), "config": settings,

@@ -31,20 +31,21 @@ from typing import Callable, Optional
 import numpy as np
 
 from mmpc.config import require_int, to_dict
-from mmpc.files import atomic_write_text, exclusive
+from mmpc.files import atomic_write_text
 from mmpc.highway import run_lockstep
 from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.labels import label_episodes, read_labels
 from mmpc.imitation.listwise import ProposerTrainConfig, RankingLabels, train_proposer
 from mmpc.imitation.proposer import ModeProposer, load_proposer, save_proposer
 from mmpc.imitation.proposer_driver import ProposerDriver
+from mmpc.rl.folders import run_folder
 from mmpc.drivers import MPCDriver
 from mmpc.scenario import ScenarioConfig, build_mpc
 
 logger = logging.getLogger(__name__)
 
 REPORT = "proposer.json"
-#: The lock file a run holds in its folder while it writes (:func:`mmpc.files.exclusive`).
+#: The lock file a run holds in its folder while it writes (:func:`mmpc.rl.folders.run_folder`).
 LOCK = ".proposer.lock"
 
 
@@ -158,12 +159,11 @@ def run_proposer_dagger(
         The content of ``proposer.json``.
 
     Raises:
-        mmpc.files.OutputFolderError: another run holds ``out`` (its :data:`LOCK`).
+        mmpc.files.OutputFolderError: ``out`` cannot be written, or another run holds it (its :data:`LOCK`).
         ValueError: ``out`` holds a run of another configuration, or a corrupt ``proposer.json``.
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with exclusive(out, LOCK, "another `mmpc imitate proposer` run"):
+    with run_folder(out, LOCK, "another `mmpc imitate proposer` run"):
         return _run_rounds(scenario, out, config, on_round, on_progress)
 
 
