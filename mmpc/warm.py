@@ -128,8 +128,8 @@ class WarmStarts:
     def keep(self, ids: torch.Tensor, ego: torch.Tensor, result: SolveResult, round: WarmRound,
              slots: Optional[torch.Tensor] = None) -> None:
         """Keep the solve of ``ids`` at ``ego`` (of the goals ``slots``, as given to :meth:`start`)
-        that :meth:`start` began with ``round``: its final iterates and feasible goals (the
-        environments not in ``ids`` are forgotten)."""
+        that :meth:`start` began with ``round``: its final iterates and feasible goals. The
+        environments not in ``ids`` are forgotten: one that skips a solve starts its next one cold."""
         if not self.enabled:
             return
         feasible_goals = result.feasible.sum(dim=1)

@@ -216,7 +216,8 @@ class SafeHighwayEnv(gym.Env):
             raise ValueError(f"`render_mode` must be None or 'rgb_array'; got {render_mode!r}")
         self.render_mode = render_mode
         self.continuous = bool(continuous)
-        self.layer = layer if layer is not None else SafetyLayer(build_mpc(scenario), self.config)
+        # no warm starts: environments reset one by one are solved alone, numbered from 0 (no ids to keep them apart)
+        self.layer = layer if layer is not None else SafetyLayer(build_mpc(scenario), self.config, warm_starts=False)
         if self.layer.config != self.config:
             raise ValueError("`layer` was built for other environment settings than `config`")
         if self.layer.road != scenario.road:

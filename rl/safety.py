@@ -14,7 +14,10 @@ ONE optimizer call (:meth:`mmpc.MPC.plan_problem`). The executed candidate follo
    lane-keeping brake; also an intervention).
 
 The layer also measures, for observations, how every goal of the discrete grid fares at the
-current state (:meth:`SafetyLayer.decision_solve`, :meth:`SafetyLayer.features`).
+current state (:meth:`SafetyLayer.decision_solve`, :meth:`SafetyLayer.features`). With the
+scenario's warm starts (:attr:`mmpc.MPCConfig.warm_iterations`) each environment's decision solve
+starts from its last one, one decision period earlier (:class:`mmpc.warm.WarmStarts`); the other
+solves (a frame's plan, the rows replanned between decisions) start cold.
 
 Replanning (:attr:`SafeEnvConfig.replan`): ``"frame"`` solves at every frame of an agent step;
 ``"decision"`` solves at the agent's decision only and tracks the chosen plan between decisions
@@ -41,6 +44,7 @@ from mmpc.ranking import Selection
 from mmpc.result import SolveResult, Trajectories
 from mmpc.rl.config import SafeEnvConfig
 from mmpc.tracking import needs_replan, plan_clearance, track
+from mmpc.warm import WarmStarts
 
 #: Solver features per goal of the grid: feasible flag, squashed meta cost, clearance.
 FEATURES_PER_GOAL = 3
@@ -200,6 +204,11 @@ class SafetyLayer:
     Args:
         mpc: the scenario's MPC (optimizer, standard goals, meta cost, road).
         config: the environment settings (goal grid, action ranges, intervention distance).
+        warm_starts: warm-start the decision solves from each environment's last one (when the
+            MPC's config asks for warm starts; one decision period apart: ``decision_frames`` x
+            the MPC's control period). The caller then names its environments consistently
+            (:attr:`mmpc.drivers.Observation.env_ids`), solves every one at each decision and
+            calls :meth:`mmpc.warm.WarmStarts.forget` for those that start a new episode.
 
     The layer computes on its MPC's device (:attr:`device`): the observations, egos, actions and
     commands it is given elsewhere (highway-env's CPU tensors, SB3's numpy actions) are moved
@@ -220,9 +229,12 @@ class SafetyLayer:
         (True, (8.0, 15.0))
     """
 
-    def __init__(self, mpc: MPC, config: SafeEnvConfig) -> None:
+    def __init__(self, mpc: MPC, config: SafeEnvConfig, *, warm_starts: bool = True) -> None:
         self.mpc = mpc
         self.config = config
+        period = None if mpc.control_period is None else mpc.control_period * config.decision_frames
+        #: the decision solves' warm starts; ``None`` where the caller asked for none
+        self.warm_starts = WarmStarts(mpc, period) if warm_starts and mpc.config.warm_iterations else None
         self.road = mpc.road
         self.horizon = mpc.optimizer.config.horizon
         offsets, speeds = np.meshgrid(np.asarray(config.lane_offsets), np.asarray(config.speeds), indexing="ij")
@@ -320,15 +332,22 @@ class SafetyLayer:
         agent = torch.zeros(observation.num_envs, dtype=torch.long, device=self.device)
         return self._safe_plan(self.mpc.plan_problem(problem, self._selector(agent, problem)), agent, commands)
 
-    def decision_solve(self, observation: Observation) -> DecisionSolve:
+    def decision_solve(self, observation: Observation, *, warm: bool = True) -> DecisionSolve:
         """ONE solve of the discrete goal grid (at the egos' current lanes) and the standard goals
         for E states (``observation`` on any device): the observation's solver features, and the
-        candidates of a discrete decision."""
+        candidates of a discrete decision. ``warm`` False: a solve apart from the decisions (the
+        last states of episodes that ended), cold and not kept for the next decision's warm start."""
         observation = observation.to(self.device)
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         grid = self.goals(problem.ego, self._grid_commands(problem.ego))
         problem = problem._replace(goals=torch.cat([grid, problem.goals], dim=1))
-        scored = self.mpc.score(problem)
+        if self.warm_starts is None or not warm:
+            scored = self.mpc.score(problem)
+        else:
+            ids = observation.ids()
+            warm = self.warm_starts.start(ids, problem.ego)
+            scored = self.mpc.score(problem, warm.warm)
+            self.warm_starts.keep(ids, problem.ego, scored.result, warm)
         expert = self.mpc.select(problem, scored).index if self.config.expert_action else None
         return DecisionSolve(problem, scored, expert)
 

@@ -110,12 +110,13 @@ class SafeSimBatch:
         """Discrete decisions at the decision rate are taken from the solve behind the observation."""
         return self.config.replan == "decision" and not self.continuous
 
-    def _observations(self, rows: torch.Tensor) -> tuple[np.ndarray, Optional[DecisionSolve]]:
+    def _observations(self, rows: torch.Tensor, *, last: bool = False) -> tuple[np.ndarray, Optional[DecisionSolve]]:
         """(R, size) observations of environments ``rows`` and the decision solve behind their
-        solver features (``None`` when neither the features nor the decision need one)."""
+        solver features (``None`` when neither the features nor the decision need one); ``last``:
+        the last states of episodes that ended (their solve is not a decision's, :meth:`SafetyLayer.decision_solve`)."""
         solve = None
         if self.config.solver_features or self._decides_from_features_solve:
-            solve = self.layer.decision_solve(self._road_observation(rows))
+            solve = self.layer.decision_solve(self._road_observation(rows), warm=not last)
         features = self.layer.features(solve) if self.config.solver_features else None
         kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles,
                                             check=False)
@@ -136,6 +137,8 @@ class SafeSimBatch:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
         episode_seeds = self._seeds(seeds)
         self.sim = SimEpisodes(self.scenario, episode_seeds, device=self.device)
+        if self.layer.warm_starts is not None:
+            self.layer.warm_starts.reset()
         observations, self._decision = self._observations(torch.arange(self.num_envs, device=self.device))
         solve_ms = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
         return observations, [{"solve_ms": solve_ms, "episode_seed": s} for s in episode_seeds]
@@ -175,12 +178,14 @@ class SafeSimBatch:
         final: dict[int, np.ndarray] = {}
         reset_infos: dict[int, dict] = {}
         if finished.numel():
-            last, last_solve = self._observations(finished)
+            last, last_solve = self._observations(finished, last=True)
             final = dict(zip(finished.tolist(), last))
             if last_solve is not None:
                 solve_ms.append(last_solve.scored.solve_ms)
             episode_seeds = self._seeds([None] * finished.numel())
             self.sim.reset(finished, episode_seeds)
+            if self.layer.warm_starts is not None:
+                self.layer.warm_starts.forget(finished)
             reset_infos = {row: {"episode_seed": seed} for row, seed in zip(finished.tolist(), episode_seeds)}
         observations, self._decision = self._observations(everyone)
         if self._decision is not None:

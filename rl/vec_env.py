@@ -50,7 +50,7 @@ class SafeHighwayVecEnv(DummyVecEnv):
         batched: bool = True,
     ) -> None:
         require_int("", low=1, num_envs=num_envs)
-        layer = SafetyLayer(build_mpc(scenario), config)
+        layer = SafetyLayer(build_mpc(scenario), config, warm_starts=False)  # as SafeHighwayEnv's own (mmpc.rl.envs)
         self.batched = batched
 
         def make() -> SafeHighwayEnv:
