@@ -237,14 +237,16 @@ class NoisyDriver(Driver):
 def label_states(expert: Driver, states: Sequence[Observation], batch: int) -> np.ndarray:
     """The expert's executed commands at ``states`` (E = 1 observations, on any device; each
     batch goes to the expert's device, its commands come back in one copy), ``batch`` states per call.
+    The expert is reset before each batch: a warm-starting expert (:mod:`mmpc.warm`) labels every
+    state from the cold start, whatever the order (the commands it recorded while driving were warm).
 
     Returns:
         (S, 2) float32 (acceleration [m/s^2], steering [rad]), clipped as highway-env applies them.
     """
     labels = np.empty((len(states), 2), dtype=np.float32)
-    expert.reset(min(batch, len(states)))
     for start in range(0, len(states), batch):
         chunk = list(states[start:start + batch])
+        expert.reset(len(chunk))  # states off-line, not one environment's next steps: each batch from scratch (cold)
         decision = expert.decide(stack_observations(chunk, range(len(chunk))).to(expert.device))
         commands = zip(decision.acceleration.cpu().tolist(), decision.steering.cpu().tolist())
         for row, (acceleration, steering) in enumerate(commands):

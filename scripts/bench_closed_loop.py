@@ -2,8 +2,8 @@
 
 Every method (a driver spec, :func:`mmpc.drivers.make_driver`) drives every (scenario, seed)
 episode of the same duration, one episode at a time (E = 1, so a step's time is one MPC step's).
-Ours runs the paper's schedule (:data:`PAPER_SCHEDULE`: every step cold, all 100 iterations), not
-the shipped scenarios' warm starts and early exit.
+Ours runs the paper's schedule (:data:`mmpc.scenario.PAPER_SCHEDULE`: every step cold, all 100
+iterations), not the shipped scenarios' warm starts and early exit.
 Per (method, scenario) the per-step values of all its episodes are summarised as mean / min / max:
 the scenario's meta-cost term at the driven state, |linear acceleration|, |angular acceleration|
 (the change of heading rate per control period), speed, distance to the right lane and the
@@ -36,12 +36,9 @@ from typing import Callable, Optional, Sequence
 
 from mmpc.cli.arguments import compile_at_once, seed_list
 from mmpc.config import require_int, require_positive
-from mmpc.scenario import SIMULATORS
+from mmpc.scenario import PAPER_SCHEDULE, SIMULATORS
 
 logger = logging.getLogger(__name__)
-
-#: The authors' schedule, over the shipped scenarios' cheaper one: every step from the cold start, all iterations.
-PAPER_SCHEDULE = {"mpc.warm_iterations": 0, "optimizer.exit_checks": []}
 
 #: The methods of the paper's comparison, ours first.
 DEFAULT_METHODS = ("mpc", "standard-mpc", "batch-nlp:6", "batch-nlp:11", "frenet")

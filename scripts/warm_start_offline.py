@@ -21,7 +21,7 @@ from mmpc.drivers import MPCDriver
 from mmpc.highway.runner import Observer, run_lockstep
 from mmpc.optimizer import BatchOptimizer
 from mmpc.ranking import select_best
-from mmpc.scenario import build_mpc, load_scenario
+from mmpc.scenario import PAPER_SCHEDULE, build_mpc, load_scenario
 
 COLD_ITERATIONS = (10, 20, 30, 50)
 WARM_ITERATIONS = (10, 20, 30)
@@ -31,7 +31,7 @@ def main(argv: list[str]) -> dict:
     """Run the study: ``argv`` = scenario, comma-separated seeds, duration [s], JSON path; returns the rows."""
     torch.set_num_threads(1)
     name, seeds, duration, out_path = argv[0], [int(s) for s in argv[1].split(",")], float(argv[2]), argv[3]
-    scenario = load_scenario(name, {"sim": "batched"}).replace(duration=duration)
+    scenario = load_scenario(name, {"sim": "batched", **PAPER_SCHEDULE}).replace(duration=duration)  # cold references
     mpc = build_mpc(scenario, compile=False)
     opt = mpc.optimizer
     cfg = opt.config

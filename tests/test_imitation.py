@@ -45,15 +45,16 @@ from mmpc.imitation.features import FeatureConfig, SceneGeometry, nearest_neighb
 from mmpc.imitation.policy import MLPPolicy, PolicyConfig, PolicyDriver, load_policy, save_policy
 from mmpc.imitation.rollout import rollout_lockstep
 from mmpc.road import Road
-from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
+from mmpc.scenario import PAPER_SCHEDULE, ScenarioConfig, build_mpc, load_scenario
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 SEEDS = [1000, 1001, 1002]
 
 
-def short_cruise(duration: float = 2.0):
-    return load_scenario("cruise").replace(duration=duration)
+def short_cruise(duration: float = 2.0, *, cold: bool = False):
+    """The cruise scenario, shorter; ``cold``: on the paper's schedule (no warm starts, no early exit)."""
+    return load_scenario("cruise", PAPER_SCHEDULE if cold else None).replace(duration=duration)
 
 
 @pytest.fixture(scope="module")
@@ -120,13 +121,26 @@ def test_minari_loads_the_demonstrations_and_iterates_their_episodes(demos_dir, 
 
 
 def test_recorded_actions_are_the_experts_commands_at_the_recorded_states():
-    scenario = short_cruise(1.0)
+    scenario = short_cruise(1.0, cold=True)  # a warm-started expert's commands depend on its last solve too
     expert = MPCDriver(build_mpc(scenario))
     with torch.inference_mode():
         rollout = rollout_lockstep(scenario, [1000], expert, keep_states=True)[0]
         relabelled = label_states(expert, rollout.states, batch=4)  # batched, off-line: the DAgger labelling
     assert len(rollout.states) == rollout.episode.steps == 10
     np.testing.assert_allclose(relabelled, rollout.episode.actions, atol=2e-3)
+
+
+def test_off_line_labels_of_a_warm_starting_expert_are_its_cold_commands_in_any_order():
+    warm, cold = short_cruise(1.0), short_cruise(1.0, cold=True)
+    assert warm.mpc.warm_iterations > 0
+    with torch.inference_mode():
+        states = rollout_lockstep(cold, [1000], MPCDriver(build_mpc(cold)), keep_states=True)[0].states
+        expected = label_states(MPCDriver(build_mpc(cold)), states, batch=10)
+        expert = MPCDriver(build_mpc(warm.replace(optimizer=cold.optimizer)))  # warm starts, the same schedule when cold
+        in_order = label_states(expert, states, batch=2)  # consecutive states: a warm start would follow them
+        shuffled = label_states(expert, states[::-1], batch=3)[::-1]
+    np.testing.assert_allclose(in_order, expected, atol=2e-3)
+    np.testing.assert_allclose(shuffled, expected, atol=2e-3)
 
 
 def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refused(demos_dir, tmp_path):
@@ -351,7 +365,7 @@ def test_policy_learns_a_known_map_and_rejects_bad_shapes(tmp_path):
 
 
 def test_mixture_driver_and_labels_take_the_expert_where_it_drove():
-    scenario = short_cruise(1.0)
+    scenario = short_cruise(1.0, cold=True)  # the expert's commands a function of the state alone
     expert = MPCDriver(build_mpc(scenario))
     policy = MLPPolicy(scenario.road, PolicyConfig(hidden=(8,)), scene=scene_geometry(scenario))
     learner = PolicyDriver(policy)

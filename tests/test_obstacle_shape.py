@@ -142,9 +142,9 @@ def test_mpc_plans_around_the_wider_ellipse_it_builds():
 
 
 def test_plan_refuses_tensors_on_another_device():
-    from mmpc.scenario import build_mpc, load_scenario
+    from mmpc.scenario import PAPER_SCHEDULE, build_mpc, load_scenario
 
-    mpc = build_mpc(load_scenario("cruise", {"optimizer.iterations": 2}), compile=False)
+    mpc = build_mpc(load_scenario("cruise", {"optimizer.iterations": 2, **PAPER_SCHEDULE}), compile=False)
     with pytest.raises(ValueError, match="`ego` is on meta but the MPC's optimizer is on cpu"):
         mpc.plan(torch.zeros(1, 6, device="meta"), torch.zeros(1, 0, 4))
     with pytest.raises(ValueError, match="`vehicles` is on meta"):

@@ -277,10 +277,12 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     assert [(r["table"], r["world"], r["num_envs"]) for r in rows if r["table"] not in ("memory", "rl")] == [
         ("world", "highway-env", 1), ("world", "batched", 1), ("world", "batched", 4),
         ("mpc", "highway-env", 2), ("mpc", "batched", 2), ("mpc", "highway-env", 2), ("mpc", "batched", 2)]
-    # after the untimed first step (cold): cold rows run the whole schedule, warm rows 10 iterations
-    # where no environment fell back (or found no feasible goal warm) at the two timed steps
+    # after the untimed first step (cold): cold rows run the schedule to each goal's early exit (the shipped
+    # scenario's checks at 10, 30, 60), warm rows 10 iterations where no environment fell back (or found
+    # no feasible goal warm) at the two timed steps
     iterations = [r["iterations_per_step"] for r in rows if r["table"] == "mpc"]
-    assert iterations[:2] == [100, 100] and all(10 <= i < 100 for i in iterations[2:])
+    assert all(10 < i <= 100 for i in iterations[:2]) and all(10 <= i < 100 for i in iterations[2:])
+    assert all(i < j for i, j in zip(iterations[2:], iterations[:2]))  # warm rows run fewer
     assert [(r["world"], r["replan"], r["num_envs"]) for r in rows if r["table"] == "rl"] == [
         ("highway-env", "frame", 2), ("highway-env", "decision", 2), ("batched", "frame", 2), ("batched", "decision", 2)]
     # at every frame a solve served every environment when replanning at every frame; at the decision at least with decisions

@@ -191,3 +191,55 @@ def test_a_problem_whose_warm_solve_finds_no_feasible_goal_solves_again_cold(sol
     torch.testing.assert_close(result.trajectories.x, cold.trajectories.x)
     assert bool(result.history.isfinite().all())  # the whole schedule ran
     assert bool((result.iterations == optimizer.config.iterations + 1).all())  # after the warm one
+
+
+# ------------------------------------------------------------------ every receding-horizon user of the MPC
+
+
+def test_a_solver_of_some_goals_is_warm_only_where_it_solved_every_one_of_them_before(cruise_mpc):
+    """mmpc.warm.WarmStarts with goal slots (the mode proposer's driver): a row's solve starts
+    from the last one's iterates, goal by goal, only where each of its goals was solved then."""
+    from mmpc.warm import WarmStarts
+
+    mpc = mmpc.MPC(cruise_mpc.optimizer, cruise_mpc.goal_sampler, cruise_mpc.meta_cost, cruise_mpc.road,
+                   dataclasses.replace(cruise_mpc.config, warm_iterations=10, warm_cold_every=100), control_period=0.1)
+    warm_starts = WarmStarts(mpc)
+    assert warm_starts.period == 0.1  # the MPC's control period
+    ego = torch.tensor([[0.0, 8.0, 0.0, 14.0, 0.0, 0.0], [0.0, 12.0, 0.0, 14.0, 0.0, 0.0]])
+    cars = torch.tensor([[[60.0, 8.0, 10.0, 0.0]], [[60.0, 12.0, 10.0, 0.0]]])
+    problem = mpc.build_problem(ego, cars)
+    ids = torch.tensor([3, 7])
+    slots = torch.tensor([[0, 2, 4], [1, 2, 3]])
+    first = warm_starts.start(ids, ego, slots)
+    assert first.warm is None and first.steps.tolist() == [0, 0]
+    goals = lambda chosen: problem._replace(goals=torch.gather(problem.goals, 1, chosen[..., None].expand(-1, -1, 2)))
+    result = mpc.score(goals(slots)).result
+    warm_starts.keep(ids, ego, result, first, slots)
+    later = ego + torch.tensor([1.4, 0.0, 0.0, 0.0, 0.0, 0.0])
+    swapped = torch.tensor([[4, 0, 2], [1, 2, 5]])  # row 0: the same goals in another order; row 1: goal 5 is new
+    second = warm_starts.start(ids, later, swapped)
+    assert second.steps.tolist() == [1, 0]
+    assert bool(second.warm.position[1].isnan().all()) and bool(second.warm.position[0].isfinite().all())
+    shifted = mpc.optimizer.shifted(result.warm.take(torch.tensor([0])), 0.1, later[:1, :2] - ego[:1, :2])
+    torch.testing.assert_close(second.warm.position[0], shifted.position[0, [2, 0, 1]])  # goal by goal, by slot
+    assert warm_starts.start(ids, later).warm is None  # the whole goal set: not what was kept
+
+
+def test_the_safety_layer_warm_starts_its_decision_solves_and_a_new_episode_solves_cold():
+    from mmpc.config import load_config
+    from mmpc.rl.config import RLConfig
+    from mmpc.rl.sim_vec_env import SafeSimBatch
+
+    config = load_config(RLConfig, "cruise_task")
+    scenario = config.scenario.replace(sim="batched", duration=0.6)  # 3 agent steps of 0.2 s
+    assert scenario.mpc.warm_iterations == 10  # the shipped scenarios warm-start
+    batch = SafeSimBatch(2, scenario, config.env, config.reward, seed=0)
+    batch.reset([5, 6])
+    iterations = lambda: batch._decision.scored.result.iterations.float().mean(dim=1).tolist()
+    assert min(iterations()) > 10  # the first decision: cold
+    assert batch.layer.warm_starts.period == pytest.approx(0.2)  # one decision period: 2 frames of 0.1 s
+    batch.advance([config.env.num_discrete_goals] * 2)  # both defer to the expert
+    assert iterations() == [10.0, 10.0]
+    batch.advance([config.env.num_discrete_goals] * 2)
+    step = batch.advance([config.env.num_discrete_goals] * 2)  # the episodes end and start again
+    assert sorted(step.reset_infos) == [0, 1] and min(iterations()) > 10

@@ -8,7 +8,7 @@ import math
 import torch
 
 from mmpc.road import Road
-from mmpc.scenario import build_mpc, load_scenario
+from mmpc.scenario import PAPER_SCHEDULE, build_mpc, load_scenario
 from mmpc.stopping import conflict_deceleration, first_conflict_x, stop_goals
 
 
@@ -25,7 +25,7 @@ def test_stopping_with_no_obstacle_slots_finds_no_conflict():
 
 
 def test_an_mpc_with_no_obstacle_slots_plans_past_the_vehicles_it_ignores():
-    scenario = load_scenario("cruise", {"mpc.num_obstacles": 0, "optimizer.iterations": 10})
+    scenario = load_scenario("cruise", {"mpc.num_obstacles": 0, "optimizer.iterations": 10, **PAPER_SCHEDULE})
     mpc = build_mpc(scenario, compile=False)
     ego = torch.tensor([[0.0, 8.0, 0.0, 15.0, 0.0, 0.0], [0.0, 4.0, 0.0, 12.0, 0.0, 0.0]])
     vehicles = torch.tensor([[[30.0, 8.0, 10.0, 0.0]], [[20.0, 4.0, 5.0, 0.0]]])
