@@ -8,8 +8,10 @@ Four tables, one torch thread unless ``--threads``:
    steps it: ``HighwayEpisode.apply`` + ``observe``), with constant commands;
 2. **MPC in the loop**: the runner's world + the multi-modal MPC (one optimizer call for all E
    environments per step) on both worlds at each E: environment-steps per second, their ratio,
-   the solve's share of the step and the optimizer iterations per environment-step, cold and
-   warm-started (``--mpc-warm``);
+   the solve's share of the step, the optimizer iterations per environment-step and the minutes
+   one process would take for 1,024 episodes of 40 s at that rate, for each schedule
+   (``--mpc-schedules``): the paper's (every step cold, all iterations) and the scenario's as shipped
+   (warm starts and early exit);
 3. **safe RL**: agent steps per second of the safe vector environment (:mod:`mmpc.rl`) on
    highway-env (``SafeHighwayVecEnv``) and on the batched simulator (``SafeSimVecEnv``), with the
    safety layer replanning at every frame and at the agent's decisions only;
@@ -38,7 +40,7 @@ from typing import Optional, Sequence
 import torch
 
 from mmpc.cli.arguments import compile_at_once, int_list
-from mmpc.scenario import ScenarioConfig, load_scenario
+from mmpc.scenario import PAPER_SCHEDULE, ScenarioConfig, load_scenario
 
 #: The world table's command of every ego, (acceleration [m/s^2], steering [rad]): a world's cost
 #: does not depend on who drives (egos that crash keep being stepped in both worlds).
@@ -106,18 +108,25 @@ def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float
     return total / steps, solve / steps, statistics.fmean(iterations) if iterations else math.nan
 
 
-def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, warm: Sequence[int] = (0,)) -> list[dict]:
+#: The MPC table's schedules: name -> scenario overrides (:func:`mmpc.scenario.load_scenario`).
+SCHEDULES = {"paper": PAPER_SCHEDULE, "shipped": {}}
+#: The evaluation the MPC table projects its rates onto: episodes x seconds.
+EVALUATION = (1024, 40.0)
+
+
+def mpc_rows(scenario_name: str, envs: Sequence[int], steps: int, schedules: Sequence[str] = ("shipped",)) -> list[dict]:
     """Table 2: both worlds with the MPC in the loop at each E (same driver, same seeds), for each
-    of ``warm``: the expert's ``mpc.warm_iterations`` (0: every solve cold)."""
+    of ``schedules`` (:data:`SCHEDULES`) of the scenario ``scenario_name``."""
     from mmpc.drivers import make_driver
     from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld
 
-    drivers = {k: make_driver("mpc", scenario.replace(mpc=dataclasses.replace(scenario.mpc, warm_iterations=k)))
-               for k in warm}
+    scenarios = {name: load_scenario(scenario_name, {"sim": "batched", **SCHEDULES[name]}) for name in schedules}
+    drivers = {name: make_driver("mpc", scenario) for name, scenario in scenarios.items()}
     rows = []
     for num_envs in envs:
         seeds = list(range(num_envs))
         for k, driver in drivers.items():
+            scenario = scenarios[k]
             measured = {}
             for name, build in (("highway-env", HighwayEnvWorld), ("batched", BatchedWorld)):
                 world = build(scenario, seeds)
@@ -126,12 +135,15 @@ def mpc_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, warm: Se
                 finally:
                     world.close()
             reference = num_envs / measured["highway-env"][0]
+            episodes, seconds = EVALUATION
             for name, (step_s, solve_s, iterations) in measured.items():
                 rate = num_envs / step_s
-                rows.append({"table": "mpc", "world": name, "num_envs": num_envs, "warm_iterations": k,
+                rows.append({"table": "mpc", "scenario": scenario_name, "world": name, "num_envs": num_envs, "schedule": k,
+                             "warm_iterations": scenario.mpc.warm_iterations, "exit_checks": list(scenario.optimizer.exit_checks),
                              "warm_cold_every": scenario.mpc.warm_cold_every, "iterations_per_step": iterations,
                              "step_s": step_s, "solve_s": solve_s, "solve_share": solve_s / step_s,
-                             "env_steps_per_s": rate, "speedup": rate / reference})
+                             "solve_ms_per_env_step": 1e3 * solve_s / num_envs, "env_steps_per_s": rate,
+                             "evaluation_minutes": episodes * seconds * scenario.frequency / rate / 60, "speedup": rate / reference})
     return rows
 
 
@@ -141,8 +153,6 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
     every row) on highway-env and on the batched simulator, for each replanning mode (:attr:`mmpc.rl.config.SafeEnvConfig.replan`).
     ``warmup`` untimed steps come first; what later solves spend compiling new layouts is taken
     out of the time (it is paid once per layout in a run)."""
-    import dataclasses
-
     import numpy as np
 
     from mmpc.config import load_config
@@ -246,12 +256,13 @@ TABLES = (
     ("world", "world alone (constant commands): env-steps/s", (
         ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.0f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
-    ("mpc", "MPC in the loop: env-steps/s, the solve's share of the step; warm starts (k iterations) or cold", (
-        ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
-        ("solves", -8, lambda r: f"warm {r['warm_iterations']}" if r["warm_iterations"] else "cold"),
-        ("iter/step", 10, lambda r: f"{r['iterations_per_step']:.1f}"), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),
+    ("mpc", "MPC in the loop: env-steps/s, the solve's share of the step, one process's minutes per 1,024 episodes x 40 s; "
+            "the paper's schedule or the scenario's (warm starts, early exit)", (
+        ("scenario", -11, lambda r: r["scenario"]), ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
+        ("schedule", -8, lambda r: r["schedule"]), ("iter/step", 10, lambda r: f"{r['iterations_per_step']:.1f}"),
+        ("solve ms/env-step", 18, lambda r: f"{r['solve_ms_per_env_step']:.2f}"), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.1f}"), ("solve share", 12, lambda r: f"{r['solve_share']:.0%}"),
-        ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
+        ("min/1024x40s", 13, lambda r: f"{r['evaluation_minutes']:.1f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
     ("rl", "safe RL vector environment: agent steps/s (env.decision_frames frames each; one solve for all E when any row solves)", (
         ("world", -12, lambda r: r["world"]), ("replan", -9, lambda r: r["replan"]), ("E", 6, lambda r: r["num_envs"]),
         ("agent steps/s", 14, lambda r: f"{r['agent_steps_per_s']:.1f}"),
@@ -293,8 +304,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--steps", type=int, default=20, help="timed steps per world row (default 20)")
     parser.add_argument("--mpc-steps", type=int, default=10,
                         help="timed steps per MPC row (default 10: a warm-start cycle at mpc.warm_cold_every 10)")
-    parser.add_argument("--mpc-warm", type=int_list, default=(0, 10),
-                        help="the expert's mpc.warm_iterations per MPC row set (0: cold; default 0,10)")
+    parser.add_argument("--mpc-schedules", type=lambda text: tuple(text.split(",")), default=tuple(SCHEDULES),
+                        help=f"the MPC table's schedules, comma-separated, of {list(SCHEDULES)} (default all)")
+    parser.add_argument("--mpc-scenarios", type=lambda text: tuple(text.split(",")), default=None,
+                        help="the MPC table's scenarios, comma-separated (default: --scenario)")
     parser.add_argument("--highway-envs", type=int, default=8, help="highway-env episodes timed for its rate (default 8)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-mpc", action="store_true", help="skip the MPC table")
@@ -308,11 +321,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 0
     if min(args.steps, args.mpc_steps, args.rl_steps, args.highway_envs, args.threads) < 1:
         parser.error("--steps, --mpc-steps, --rl-steps, --highway-envs and --threads must be >= 1")
+    unknown = sorted(set(args.mpc_schedules) - set(SCHEDULES))
+    if unknown or not args.mpc_schedules:
+        parser.error(f"--mpc-schedules takes names of {list(SCHEDULES)}; got {list(args.mpc_schedules)}")
     torch.set_num_threads(args.threads)
     scenario = load_scenario(args.scenario, {"sim": "batched"})  # refused here if the batched simulator cannot run it
     rows = world_rows(scenario, args.envs, args.steps, args.highway_envs)
     if not args.no_mpc:
-        rows += mpc_rows(scenario, args.mpc_envs, args.mpc_steps, args.mpc_warm)
+        for name in args.mpc_scenarios or (args.scenario,):
+            rows += mpc_rows(name, args.mpc_envs, args.mpc_steps, args.mpc_schedules)
     if not args.no_rl:
         rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup, args.rl_config)
     if not args.no_memory:

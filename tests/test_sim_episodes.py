@@ -271,18 +271,20 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     import bench_sim
 
     argv = ["--envs", "1,4", "--mpc-envs", "2", "--rl-envs", "2", "--rl-steps", "1", "--rl-warmup", "1", "--memory-envs", "4", "--steps", "2",
-            "--mpc-steps", "2", "--mpc-warm", "0,10", "--highway-envs", "1", "--out", str(tmp_path)]
+            "--mpc-steps", "2", "--mpc-schedules", "paper,shipped", "--highway-envs", "1", "--out", str(tmp_path)]
     assert bench_sim.main(argv) == 0
     rows = json.loads((tmp_path / "bench_sim.json").read_text())["rows"]
     assert [(r["table"], r["world"], r["num_envs"]) for r in rows if r["table"] not in ("memory", "rl")] == [
         ("world", "highway-env", 1), ("world", "batched", 1), ("world", "batched", 4),
         ("mpc", "highway-env", 2), ("mpc", "batched", 2), ("mpc", "highway-env", 2), ("mpc", "batched", 2)]
-    # after the untimed first step (cold): cold rows run the schedule to each goal's early exit (the shipped
-    # scenario's checks at 10, 30, 60), warm rows 10 iterations where no environment fell back (or found
-    # no feasible goal warm) at the two timed steps
-    iterations = [r["iterations_per_step"] for r in rows if r["table"] == "mpc"]
-    assert all(10 < i <= 100 for i in iterations[:2]) and all(10 <= i < 100 for i in iterations[2:])
-    assert all(i < j for i, j in zip(iterations[2:], iterations[:2]))  # warm rows run fewer
+    # after the untimed first step (cold): the paper's rows run the whole schedule; the shipped rows warm-start
+    # (10 iterations where no environment fell back, found no feasible goal warm or solved cold) at the timed steps
+    mpc = [r for r in rows if r["table"] == "mpc"]
+    assert [r["schedule"] for r in mpc] == ["paper", "paper", "shipped", "shipped"]
+    assert [r["iterations_per_step"] for r in mpc[:2]] == [100, 100] and all(10 <= r["iterations_per_step"] < 100 for r in mpc[2:])
+    assert [(r["warm_iterations"], r["exit_checks"]) for r in mpc] == [(0, [])] * 2 + [(10, [10, 30, 60])] * 2
+    for r in mpc:  # the projection of 1,024 episodes x 40 s at the row's rate, one process
+        assert r["evaluation_minutes"] == pytest.approx(1024 * 400 / r["env_steps_per_s"] / 60)
     assert [(r["world"], r["replan"], r["num_envs"]) for r in rows if r["table"] == "rl"] == [
         ("highway-env", "frame", 2), ("highway-env", "decision", 2), ("batched", "frame", 2), ("batched", "decision", 2)]
     # at every frame a solve served every environment when replanning at every frame; at the decision at least with decisions
@@ -296,6 +298,9 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     assert "MPC in the loop" in capsys.readouterr().out
     with pytest.raises(ValueError, match="--sim highway-env"):
         bench_sim.main(["--scenario", "cruise_ngsim", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        bench_sim.main(["--mpc-schedules", "warm", "--out", str(tmp_path)])
+    assert "--mpc-schedules takes names of ['paper', 'shipped']" in capsys.readouterr().err
     # a recipe with the expert action: it stays in the decision rows (frame replanning cannot have it)
     recipe = bench_sim.rl_rows([2], steps=1, replans=("frame", "decision"), warmup=0, rl_config="high_speed")
     assert [(r["world"], r["replan"], r["expert_action"], r["config"]) for r in recipe] == [
