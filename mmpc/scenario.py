@@ -55,10 +55,8 @@ HIGHWAY_ACCELERATION_BACKOFF = 0.16
 #: side impacts with cars changing lanes were most of the expert's crashes
 #: (docs/experiments/2026-11-26-no-crash.md).
 HIGHWAY_OBSTACLE_SHAPE = "heading"
-#: Early exit (:attr:`mmpc.OptimizerConfig.exit_checks`) and warm starts (:attr:`mmpc.MPCConfig.warm_iterations`)
-#: of the shipped scenarios: the cheapest schedule measured neutral in closed loop
-#: (docs/experiments/2026-11-27-cheap-defaults.md).
-HIGHWAY_EXIT_CHECKS = (10, 30, 60)
+#: Warm starts of the shipped scenarios (:attr:`mmpc.MPCConfig.warm_iterations`): 5-6x less solve per
+#: step in closed loop; early exit on top saved nothing there (docs/experiments/2026-11-27-cheap-defaults.md).
 HIGHWAY_WARM_ITERATIONS = 10
 #: Overrides (:func:`load_scenario`) that give the paper's schedule instead: every step from the cold
 #: start, all iterations; the paper's tables and the solver studies run it.
@@ -434,14 +432,14 @@ class ScenarioConfig:
             bicycle model turns with the length as wheelbase, and so does the MPC's steering
             (:func:`build_mpc`). Not with NGSIM traffic (recorded vehicles keep their recorded size).
         optimizer: batch optimizer settings (default: the authors' with :data:`HIGHWAY_ELLIPSE`,
-            :data:`HIGHWAY_MAX_HEADING_DEG`, :data:`HIGHWAY_HEADING_TARGET_DEG`, the
-            back-offs :data:`HIGHWAY_OBSTACLE_BACKOFF`, :data:`HIGHWAY_ACCELERATION_BACKOFF` and early
-            exit :data:`HIGHWAY_EXIT_CHECKS`; :data:`PAPER_SCHEDULE` turns it and the warm starts off). Its obstacle
+            :data:`HIGHWAY_MAX_HEADING_DEG`, :data:`HIGHWAY_HEADING_TARGET_DEG` and the
+            back-offs :data:`HIGHWAY_OBSTACLE_BACKOFF`, :data:`HIGHWAY_ACCELERATION_BACKOFF`). Its obstacle
             ellipse must cover two of the scenario's vehicles with the ego anywhere in the
             heading band and the other along the road (:func:`mmpc.footprint.ellipse_coverage`
             <= 1), else the scenario is refused: the ego could touch a car it plans to clear.
         mpc: receding-horizon settings (default: :class:`mmpc.MPCConfig`'s with
-            :data:`HIGHWAY_OBSTACLE_SHAPE` and :data:`HIGHWAY_WARM_ITERATIONS`).
+            :data:`HIGHWAY_OBSTACLE_SHAPE` and the warm starts :data:`HIGHWAY_WARM_ITERATIONS`;
+            :data:`PAPER_SCHEDULE` turns them off).
 
     Scenarios written before mmpc derived the wheelbase and made compiling a run option may
     hold ``mpc.wheelbase`` and ``mpc.compile``; :meth:`upgrade` reads them.
@@ -467,7 +465,6 @@ class ScenarioConfig:
             heading_target_deg=HIGHWAY_HEADING_TARGET_DEG,
             obstacle_backoff=HIGHWAY_OBSTACLE_BACKOFF,
             acceleration_backoff=HIGHWAY_ACCELERATION_BACKOFF,
-            exit_checks=HIGHWAY_EXIT_CHECKS,
         )
     )
     mpc: MPCConfig = field(default_factory=lambda: MPCConfig(obstacle_shape=HIGHWAY_OBSTACLE_SHAPE,

@@ -11,7 +11,7 @@ Four tables, one torch thread unless ``--threads``:
    the solve's share of the step, the optimizer iterations per environment-step and the minutes
    one process would take for 1,024 episodes of 40 s at that rate, for each schedule
    (``--mpc-schedules``): the paper's (every step cold, all iterations) and the scenario's as shipped
-   (warm starts and early exit);
+   (its warm starts);
 3. **safe RL**: agent steps per second of the safe vector environment (:mod:`mmpc.rl`) on
    highway-env (``SafeHighwayVecEnv``) and on the batched simulator (``SafeSimVecEnv``), with the
    safety layer replanning at every frame and at the agent's decisions only;
@@ -257,7 +257,7 @@ TABLES = (
         ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.0f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
     ("mpc", "MPC in the loop: env-steps/s, the solve's share of the step, one process's minutes per 1,024 episodes x 40 s; "
-            "the paper's schedule or the scenario's (warm starts, early exit)", (
+            "the paper's schedule or the scenario's as shipped (warm starts)", (
         ("scenario", -11, lambda r: r["scenario"]), ("world", -12, lambda r: r["world"]), ("E", 6, lambda r: r["num_envs"]),
         ("schedule", -8, lambda r: r["schedule"]), ("iter/step", 10, lambda r: f"{r['iterations_per_step']:.1f}"),
         ("solve ms/env-step", 18, lambda r: f"{r['solve_ms_per_env_step']:.2f}"), ("s/step", 8, lambda r: f"{r['step_s']:.3f}"),

@@ -118,12 +118,12 @@ def test_bad_input_fails_before_writing(tmp_path, capsys):
 
 def test_benchmark_rows_add_up_and_refuse_settings_that_change_the_problems(tiny, tmp_path, capsys):
     out, _ = tiny
-    argv = ["--corpus", str(out), "--compile", "off", "--variant", "iterations=70", "--out", str(tmp_path)]
+    argv = ["--corpus", str(out), "--compile", "off", "--variant", "iterations=30", "--out", str(tmp_path)]
     assert bench_corpus.main(argv) == 0
     report = json.loads((tmp_path / "bench_corpus.json").read_text())
     rows = report["rows"]
     assert [(r["setting"], r["batch"]) for r in rows] == [("shipped", "state"), ("shipped", "all"),
-                                                         ("iterations=70", "state"), ("iterations=70", "all")]
+                                                         ("iterations=30", "state"), ("iterations=30", "all")]
     ipopt = int(load_corpus(out / "cruise.pt")["ipopt_feasible"].sum())
     for row in rows:
         assert row["goals"] == 9 and row["states"] == 3
@@ -133,7 +133,7 @@ def test_benchmark_rows_add_up_and_refuse_settings_that_change_the_problems(tiny
         assert row["ms_per_state"] > 0 and row["distance_mismatch"] < 1e-3  # recomputed distance = the result's
         if row["ours_feasible"]:  # the optimizer's obstacle_tolerance, beyond any depth the start already has
             assert row["max_obstacle_violation"] <= max(row["max_obstacle_violation_at_start"], 0.0) + 0.01 + 1e-6
-    assert "| cruise | iterations=70 | state | 3 | 9 |" in capsys.readouterr().out
+    assert "| cruise | iterations=30 | state | 3 | 9 |" in capsys.readouterr().out
     bad = ["--corpus", str(out), "--compile", "off", "--no-shipped", "--variant", "ellipse_a=9.0", "--out", str(tmp_path / "bad")]
     assert bench_corpus.main(bad) == 2
     assert "optimizer.ellipse_a" in capsys.readouterr().err and not (tmp_path / "bad").exists()

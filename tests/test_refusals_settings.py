@@ -51,8 +51,8 @@ def _one_refusal(err: str, start: str) -> str:
 def test_warm_iterations_above_the_schedule_is_refused_naming_both_keys():
     with pytest.raises(ConfigError, match=r"`mpc.warm_iterations` \(101\) must be <= `optimizer.iterations` \(100\)"):
         load_scenario("cruise", {"mpc.warm_iterations": 101})
-    with pytest.raises(ConfigError, match=r"`mpc.warm_iterations` \(70\) must be <= `optimizer.iterations` \(61\)"):
-        load_scenario("high_speed", {"optimizer.iterations": 61, "mpc.warm_iterations": 70})  # past the last exit check, 60
+    with pytest.raises(ConfigError, match=r"`mpc.warm_iterations` \(40\) must be <= `optimizer.iterations` \(30\)"):
+        load_scenario("high_speed", {"optimizer.iterations": 30, "mpc.warm_iterations": 40})
     assert load_scenario("cruise", {"mpc.warm_iterations": 100}).mpc.warm_iterations == 100  # the whole schedule
 
 
