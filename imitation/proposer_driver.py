@@ -207,6 +207,12 @@ class ProposerDriver(Driver):
                         iterations=iterations)
 
 
+def proposer_checkpoint(argument: str) -> Path:
+    """The checkpoint a ``proposer:`` argument names: the file, else the shipped proposer of that name."""
+    path = Path(argument)
+    return SHIPPED_PROPOSERS / f"{argument}.pt" if not path.is_file() and argument in shipped_proposers() else path
+
+
 def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:
     """Driver factory of the spec ``proposer:PATH`` (a checkpoint of
     :func:`mmpc.imitation.proposer.save_proposer`; it keeps the goal count it was trained with) or
@@ -214,9 +220,7 @@ def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> D
     if not argument:
         raise ValueError("driver 'proposer' needs a checkpoint path or a shipped name: 'proposer:RUN/proposer.pt' "
                          f"(shipped: {', '.join(shipped_proposers()) or 'none'})")
-    path = Path(argument)
-    if not path.is_file() and argument in shipped_proposers():
-        path = SHIPPED_PROPOSERS / f"{argument}.pt"
+    path = proposer_checkpoint(argument)
     if not path.is_file():
         raise FileNotFoundError(f"no proposer checkpoint {argument} (shipped proposers: "
                                 f"{', '.join(shipped_proposers()) or 'none'}; train one with `mmpc imitate proposer`)")
@@ -225,3 +229,13 @@ def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> D
         logger.warning("proposer %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)
     keep = int(checkpoint.get("info", {}).get("keep", DEFAULT_KEEP))
     return ProposerDriver(build_mpc(scenario), proposer_from_checkpoint(checkpoint), keep=keep, name=f"proposer:{argument}")
+
+
+
+def proposer_files(argument: Optional[str]) -> tuple[Path, ...]:
+    """The file the driver of ``proposer:ARGUMENT`` reads (:func:`mmpc.drivers.driver_files`); none where it names none."""
+    path = proposer_checkpoint(argument) if argument else None
+    return (path,) if path is not None and path.is_file() else ()
+
+
+make_proposer_driver.files = proposer_files

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import time
 import zlib
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Optional
 
 import numpy as np
@@ -429,3 +430,37 @@ def make_sb3_driver(scenario: "ScenarioConfig", path: Optional[str]) -> Driver:
     if run.continuous:
         return ContinuousActionDriver(run)
     return MetaActionDriver(run, scenario)
+
+
+def sb3_files(path: Optional[str]) -> tuple[Path, ...]:
+    """The files the driver of ``sb3:PATH`` reads, a model and its run's config (:func:`mmpc.rl.runs.run_files`;
+    :func:`mmpc.drivers.driver_files`); none where ``PATH`` names no run."""
+    from mmpc.rl.runs import run_files
+
+    try:
+        return tuple(sorted(run_files(path))) if path else ()
+    except FileNotFoundError:
+        return ()
+
+
+def rl_config_files(config: Optional[str]) -> tuple[Path, ...]:
+    """The RL config file that ``safe-random:RL_CONFIG`` and ``safe-expert:RL_CONFIG`` read (a run's
+    ``config.yaml``, a shipped name's or a path); none for the defaults or a name that is none of these."""
+    from mmpc.config import read_config_yaml
+    from mmpc.rl.config import RLConfig
+    from mmpc.rl.runs import recorded_config
+
+    if not config:
+        return ()
+    path = Path(config)
+    if recorded_config(path) is not None:
+        return (path / "config.yaml" if path.is_dir() else path,)
+    try:
+        return (read_config_yaml(RLConfig, config)[0],)
+    except (FileNotFoundError, ValueError):
+        return ()
+
+
+make_sb3_driver.files = sb3_files
+make_random_safe_driver.files = rl_config_files
+make_expert_safe_driver.files = rl_config_files

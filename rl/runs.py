@@ -58,10 +58,13 @@ def recorded_config(path: str | Path) -> Optional[RLConfig]:
     return from_dict(RLConfig, record["config"], where=f"{path}: config")
 
 
-def load_run(path: str | Path) -> TrainedRun:
-    """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
-    (the model's folder or the one above, for checkpoints); or a shipped agent by name
-    (:func:`shipped_models`) where no such file exists."""
+def run_files(path: str | Path) -> tuple[Path, Path]:
+    """The model file (``model.zip`` or a checkpoint; a shipped agent's by name, :func:`shipped_models`,
+    where no such file exists) and the ``config.yaml`` of its run (the model's folder or the one above).
+
+    Raises:
+        FileNotFoundError: no such model or no config beside it.
+    """
     path = Path(path)
     if not path.is_file() and str(path) in shipped_models():
         path = SHIPPED_MODELS / str(path) / "model.zip"
@@ -69,10 +72,16 @@ def load_run(path: str | Path) -> TrainedRun:
         raise FileNotFoundError(f"no model file {path} (shipped agents: {', '.join(shipped_models()) or 'none'})")
     for folder in (path.parent, path.parent.parent):
         if (folder / "config.yaml").is_file():
-            run = yaml.safe_load((folder / "config.yaml").read_text())
-            break
-    else:
-        raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc rl train`?")
-    config = from_dict(RLConfig, run["config"], where=f"{folder / 'config.yaml'}: config")
+            return path, folder / "config.yaml"
+    raise FileNotFoundError(f"no config.yaml next to {path} or in its parent folder; was it written by `mmpc rl train`?")
+
+
+def load_run(path: str | Path) -> TrainedRun:
+    """Load ``model.zip`` (or a checkpoint) of a run, with the ``config.yaml`` of its run directory
+    (the model's folder or the one above, for checkpoints); or a shipped agent by name
+    (:func:`shipped_models`) where no such file exists."""
+    path, config_path = run_files(path)
+    run = yaml.safe_load(config_path.read_text())
+    config = from_dict(RLConfig, run["config"], where=f"{config_path}: config")
     model = algorithm_class(run["algo"]).load(str(path), device="cpu")
     return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)

@@ -7,6 +7,7 @@ import csv
 import json
 import os
 import stat
+from pathlib import Path
 
 import matplotlib
 import pytest
@@ -19,7 +20,8 @@ from mmpc.cli.main import main
 from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.evaluate import COLUMNS, EvaluationConfig, EvaluationFolderError, evaluate, read_episodes
 from mmpc.evaluate.report import COMPARED, plot_comparison, summarize
-from mmpc.evaluate.store import check_inputs, driver_files
+from mmpc.drivers import driver_files
+from mmpc.evaluate.store import check_inputs
 from mmpc.files import atomic_write_text, exclusive
 from mmpc.scenario import load_scenario
 from tests.conftest import lock_is_free
@@ -267,3 +269,21 @@ def test_compare_plot_draws_no_error_bar_below_zero_for_a_non_negative_metric(tm
     assert cost - below == 0.0 and cost + above == pytest.approx(summary[0]["meta_cost_mean_ci"][1])
     [speed], ([below], _) = panels["mean_speed"]  # a speed has no such bound: its interval as it is
     assert speed - below == pytest.approx(summary[0]["mean_speed_ci"][0])
+
+
+def test_a_driver_says_which_files_it_reads(tmp_path):
+    """Each driver factory names its own files (mmpc.drivers.driver_files): a run's model with the
+    config beside it, an RL config of the safe stand-ins, a checkpoint given by path."""
+    from mmpc.rl.runs import SHIPPED_MODELS
+
+    assert driver_files("safe-expert:cruise_task")[0].name == "cruise_task.yaml"
+    assert driver_files("safe-expert") == () and driver_files("safe-random:no_such_config") == ()
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    for name in ("config.yaml", "checkpoints/model_100.zip"):
+        (run / name).write_bytes((SHIPPED_MODELS / "high_speed_ppo" / Path(name).name.replace("model_100", "model")).read_bytes())
+    assert driver_files(f"sb3:{run / 'checkpoints' / 'model_100.zip'}") == (run / "checkpoints" / "model_100.zip",
+                                                                            run / "config.yaml")
+    policy = tmp_path / "policy.pt"
+    policy.write_bytes(b"weights")
+    assert driver_files(f"bc:{policy}") == (policy,) and driver_files(f"bc:{tmp_path / 'none.pt'}") == ()

@@ -9,12 +9,15 @@ registers with :func:`register_driver` (in-process backends only: a spawned work
 the script).
 
 A factory is ``factory(scenario, argument) -> Driver``, ``argument`` being the text after ``:``
-in the spec or ``None``.
+in the spec or ``None``. A factory whose driver reads files that a name stands for (a shipped
+model, a run's config beside its model) says which with an attribute ``files(argument) ->
+tuple[Path, ...]`` (:func:`driver_files`); without one, an argument naming a file is that file.
 """
 
 from __future__ import annotations
 
 from importlib import metadata
+from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Optional
 
 from mmpc.drivers.base import Driver
@@ -68,6 +71,22 @@ def make_driver(spec: str, scenario: "ScenarioConfig") -> Driver:
     name, sep, argument = check_spec(spec)
     factory = _registered.get(name) or _declared()[name].load()
     return factory(scenario, argument if sep else None)
+
+
+def driver_files(spec: str) -> tuple[Path, ...]:
+    """The files the driver of ``spec`` reads (a checkpoint; a model and its run's config): its
+    factory's ``files(argument)``, else the argument where it names a file, else none; an
+    evaluation fingerprints them (:mod:`mmpc.evaluate.store`).
+
+    Raises:
+        ValueError: an empty or unknown spec (:func:`check_spec`).
+    """
+    name, sep, argument = check_spec(spec)
+    factory = _registered.get(name) or _declared()[name].load()
+    files = getattr(factory, "files", None)
+    if files is not None:
+        return tuple(files(argument if sep else None))
+    return (Path(argument),) if argument and Path(argument).is_file() else ()
 
 
 def check_spec(spec: str) -> tuple[str, str, str]:

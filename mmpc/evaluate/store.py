@@ -12,18 +12,16 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import importlib.util
 import io
 import json
 import logging
 import os
-from importlib import metadata
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence
 
 from mmpc.collisions import CRASH_COLUMNS
 from mmpc.config import to_dict
-from mmpc.drivers.registry import ENTRY_POINT_GROUP, check_spec
+from mmpc.drivers.registry import driver_files
 from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
 
@@ -183,38 +181,9 @@ def scenario_fingerprint(scenario: ScenarioConfig) -> str:
     return hashlib.sha256(json.dumps(scenario_settings(scenario), sort_keys=True).encode()).hexdigest()[:16]
 
 
-#: The folder of a package's shipped models, beside the module that declares a driver.
-SHIPPED_MODELS = "models"
-
-
-def driver_files(spec: str) -> tuple[Path, ...]:
-    """The files a driver spec names, in order: those of its argument (the text after ``:``) where
-    that is a file or a folder (its files); else a model of that name shipped with the package
-    that declares the driver, as the factories of ``proposer:NAME`` and ``sb3:NAME`` find it (the
-    file ``NAME.*`` or the files of the folder ``NAME`` in :data:`SHIPPED_MODELS` beside the
-    declaring module); none for a spec without an argument or whose argument names no file.
-
-    Raises:
-        ValueError: an unknown driver (:func:`mmpc.drivers.check_spec`).
-    """
-    name, _, argument = check_spec(spec)
-    if not argument:
-        return ()
-    path = Path(argument)
-    if not path.exists():
-        point = next((p for p in metadata.entry_points(group=ENTRY_POINT_GROUP) if p.name == name), None)
-        found = None if point is None else importlib.util.find_spec(point.module)
-        if found is None or found.origin is None:
-            return ()
-        models = Path(found.origin).parent / SHIPPED_MODELS
-        path = models / argument
-        if not path.is_dir():
-            return tuple(sorted(p for p in models.glob("*") if p.is_file() and p.stem == argument))
-    return (path,) if path.is_file() else tuple(sorted(p for p in path.iterdir() if p.is_file()))
-
-
 def driver_fingerprint(spec: str) -> Optional[str]:
-    """A short hash of the names and contents of :func:`driver_files` (``None``: it names none)."""
+    """A short hash of the names and contents of the files the driver reads
+    (:func:`mmpc.drivers.driver_files`; ``None``: it reads none)."""
     files = driver_files(spec)
     if not files:
         return None
@@ -273,7 +242,7 @@ def read_inputs(out: Path) -> FolderInputs:
 
 def check_inputs(out: Path, scenarios: Sequence[ScenarioConfig], drivers: Sequence[str]) -> None:
     """Refuse to mix in ``out`` episodes of two different scenarios under one name, or of a driver
-    spec whose files (:func:`driver_files`) changed; record those of this run in ``scenarios.json``.
+    spec whose files (:func:`mmpc.drivers.driver_files`) changed; record those of this run in ``scenarios.json``.
 
     Raises:
         EvaluationFolderError: a scenario's settings or a driver's files differ from those
