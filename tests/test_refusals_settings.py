@@ -312,4 +312,4 @@ def test_readme_keeps_its_two_commands_says_how_to_get_cpu_torch_and_stays_short
     assert lines[4].startswith('pip install torch==2.13.0 -e ".[test]" && python -m pytest ')
     assert any("pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in line for line in lines[5:12])
     text = "\n".join(lines)
-    assert "about 34 s on an idle 2-core machine" in text and "about 6 minutes on an idle 2-core machine" in text
+    assert "about 23 s on an idle 2-core machine" in text and "about 6 minutes on an idle 2-core machine" in text

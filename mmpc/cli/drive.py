@@ -18,6 +18,8 @@ def run(args: argparse.Namespace) -> int:
     """One episode (video, table, outputs) or, with --seeds, an evaluation over seeds."""
     from tqdm import tqdm
 
+    from mmpc.config import ConfigError
+    from mmpc.evaluate.evaluation import check_scenarios
     from mmpc.scenario import load_scenario
 
     if args.seed is not None and args.seeds is not None:
@@ -31,16 +33,11 @@ def run(args: argparse.Namespace) -> int:
         if args.duration is not None:
             scenario = scenario.replace(duration=args.duration)
         scenarios.append(scenario)
-    names = [scenario.name for scenario in scenarios]
-    if len(set(names)) != len(names):
-        print(f"mmpc drive: error: the scenarios must have distinct names (they key the results); got {names}",
-              file=sys.stderr)
+    try:  # before the output folder is made
+        check_scenarios(scenarios)
+    except ConfigError as error:
+        print(f"mmpc drive: error: {error}", file=sys.stderr)
         return 2
-    for scenario in scenarios:
-        missing = scenario.missing_data()
-        if missing is not None:  # before the output folder is made
-            print(f"mmpc drive: error: scenario {scenario.name!r}: {missing}", file=sys.stderr)
-            return 2
     out = Path(args.out)
     problem = unwritable(out)  # before driving: an episode's outputs are written at its end
     if problem is not None:
