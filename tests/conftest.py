@@ -67,3 +67,25 @@ def lock_is_free(path: Path) -> bool:
             return False
         fcntl.flock(handle, fcntl.LOCK_UN)
     return True
+
+
+def evaluation_folder(path: Path, scenario, returns, seeds=None, driver: str = "mpc") -> Path:
+    """An evaluation folder as `mmpc evaluate` leaves it (episodes.csv, scenarios.json): one finished
+    episode of ``driver`` on ``scenario`` per seed (default 0, 1, ...), ``returns`` its task returns,
+    every other column 0."""
+    import csv
+
+    from mmpc.evaluate import COLUMNS
+    from mmpc.evaluate.store import check_inputs
+
+    path.mkdir()
+    with open(path / "episodes.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, COLUMNS)
+        writer.writeheader()
+        for seed, value in zip(seeds or range(len(returns)), returns):
+            row = dict.fromkeys(COLUMNS, 0)
+            row.update(driver=driver, scenario=scenario.name, seed=seed, status="ok", error="", worker="w",
+                       collision_part="", task_return=value, duration=scenario.duration)
+            writer.writerow(row)
+    check_inputs(path, [scenario], (driver,))
+    return path

@@ -3,7 +3,6 @@ only runs of one scenario and seeds, a resumed evaluation refuses a driver whose
 bench_solver.py refuses unknown variants and repeats before any work, and an evaluation leaves
 files of the usual mode, no lock file and no error bar below a bound."""
 
-import csv
 import json
 import os
 import stat
@@ -21,33 +20,17 @@ from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.evaluate import COLUMNS, EvaluationConfig, EvaluationFolderError, evaluate, read_episodes
 from mmpc.evaluate.report import COMPARED, plot_comparison, summarize
 from mmpc.drivers import driver_files
-from mmpc.evaluate.store import check_inputs
 from mmpc.files import atomic_write_text, exclusive
 from mmpc.scenario import load_scenario
-from tests.conftest import lock_is_free
+from tests.conftest import evaluation_folder, lock_is_free
 
 # ------------------------------------------------------------------- compare_drivers.py (item 2)
 
 
-def _folder(path, scenario, returns, seeds=None):
-    """An evaluation folder as `mmpc evaluate` leaves it: episodes.csv and scenarios.json."""
-    path.mkdir()
-    with open(path / "episodes.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, COLUMNS)
-        writer.writeheader()
-        for seed, value in zip(seeds or range(len(returns)), returns):
-            row = {column: 0 for column in COLUMNS}
-            row.update(driver="mpc", scenario=scenario.name, seed=seed, status="ok", error="", worker="w",
-                       collision_part="", task_return=value, duration=scenario.duration)
-            writer.writerow(row)
-    check_inputs(path, [scenario], ("mpc",))
-    return path
-
-
 def test_compare_refuses_runs_of_other_scenario_settings_unless_told(tmp_path, capsys):
     cruise = load_scenario("cruise")
-    long = _folder(tmp_path / "long", cruise.replace(duration=3.0), [300.0, 290.0, 310.0])
-    short = _folder(tmp_path / "short", cruise.replace(duration=1.0), [100.0, 98.0, 103.0])
+    long = evaluation_folder(tmp_path / "long", cruise.replace(duration=3.0), [300.0, 290.0, 310.0])
+    short = evaluation_folder(tmp_path / "short", cruise.replace(duration=1.0), [100.0, 98.0, 103.0])
     assert compare([str(long), str(short)]) == 2
     captured = capsys.readouterr()
     assert "duration: 3.0 vs 1.0" in captured.err and "--allow-different-scenarios" in captured.err
@@ -58,7 +41,7 @@ def test_compare_refuses_runs_of_other_scenario_settings_unless_told(tmp_path, c
     written = json.loads((tmp_path / "compare_drivers.json").read_text())
     assert written["scenario_differences"] == {"mpc on cruise": ["duration: 3.0 vs 1.0"]}
     # the same settings under another name pair; a folder without scenarios.json cannot be checked
-    renamed = _folder(tmp_path / "renamed", cruise.replace(duration=3.0, name="cruise_again"), [301.0, 291.0, 311.0])
+    renamed = evaluation_folder(tmp_path / "renamed", cruise.replace(duration=3.0, name="cruise_again"), [301.0, 291.0, 311.0])
     assert compare([str(long), str(renamed), "--metrics", "task_return"]) == 0
     assert "| mpc on cruise_again | 3 | 0 (0) | +1 ± 0 (+0.3%) |" in capsys.readouterr().out
     (renamed / "scenarios.json").unlink()
@@ -68,12 +51,12 @@ def test_compare_refuses_runs_of_other_scenario_settings_unless_told(tmp_path, c
 
 def test_compare_refuses_no_common_seed_and_unknown_or_no_metrics(tmp_path, capsys):
     cruise = load_scenario("cruise")
-    first = _folder(tmp_path / "first", cruise, [300.0, 290.0, 310.0])
-    later = _folder(tmp_path / "later", cruise, [300.0, 290.0, 310.0], seeds=[10, 11, 12])
+    first = evaluation_folder(tmp_path / "first", cruise, [300.0, 290.0, 310.0])
+    later = evaluation_folder(tmp_path / "later", cruise, [300.0, 290.0, 310.0], seeds=[10, 11, 12])
     assert compare([str(first), str(later)]) == 2
     err = capsys.readouterr().err
     assert "finished no seed in common (3 finished seeds 10-12 against 3 finished seeds 0-2)" in err
-    same = _folder(tmp_path / "same", cruise, [301.0, 291.0, 311.0])
+    same = evaluation_folder(tmp_path / "same", cruise, [301.0, 291.0, 311.0])
     for metrics, unknown in (("task_retrun", "'task_retrun'"), ("task_return,collision_part", "'collision_part'")):
         assert compare([str(first), str(same), "--metrics", metrics]) == 2
         err = capsys.readouterr().err

@@ -6,7 +6,6 @@ refuses two runs of one label."""
 
 from __future__ import annotations
 
-import csv
 import re
 from pathlib import Path
 
@@ -15,10 +14,9 @@ import pytest
 from compare_drivers import main as compare
 from mmpc.cli.main import build_parser, main
 from mmpc.config import ConfigError
-from mmpc.drivers import registry
-from mmpc.evaluate import COLUMNS, EvaluationConfig, evaluate
-from mmpc.evaluate.store import check_inputs
+from mmpc.evaluate import EvaluationConfig, evaluate
 from mmpc.scenario import ScenarioConfig, load_scenario
+from tests.conftest import evaluation_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,20 +32,6 @@ def _one_refusal(err: str, start: str) -> str:
 
 
 # ---------------------------------------------------------------- evaluate --help and --config
-
-
-def test_evaluate_help_lists_every_driver_spec(monkeypatch, capsys):
-    monkeypatch.setitem(registry._registered, "probe-driver", lambda scenario, argument: None)
-    monkeypatch.setenv("COLUMNS", "2000")  # argparse wraps the help at hyphens otherwise
-    with pytest.raises(SystemExit):
-        build_parser().parse_args(["evaluate", "--help"])
-    text = capsys.readouterr().out
-    for name in registry.driver_names():
-        assert name in text, name
-    assert "probe-driver" in text  # generated from the registry, not written out
-    for form in ("proposer:RUN/proposer.pt", "safe-expert[:RL_CONFIG]", "safe-random[:RL_CONFIG]", "sb3:RUN/model.zip",
-                 "bc:RUN/policy.pt", "batch-nlp[:B]"):
-        assert form in text, form
 
 
 def test_evaluate_takes_config_as_its_scenarios(tmp_path, capsys):
@@ -139,26 +123,10 @@ def test_an_unknown_config_name_is_one_line_naming_it_and_the_shipped_ones(argv,
 # ---------------------------------------------------------------- compare_drivers.py: one label, one run
 
 
-def _folder(path: Path, returns: list[float]) -> Path:
-    """An evaluation folder of mpc on cruise as `mmpc evaluate` leaves it."""
-    scenario = load_scenario("cruise")
-    path.mkdir()
-    with open(path / "episodes.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, COLUMNS)
-        writer.writeheader()
-        for seed, value in enumerate(returns):
-            row = {column: 0 for column in COLUMNS}
-            row.update(driver="mpc", scenario=scenario.name, seed=seed, status="ok", error="", worker="w",
-                       collision_part="", task_return=value, duration=scenario.duration)
-            writer.writerow(row)
-    check_inputs(path, [scenario], ("mpc",))
-    return path
-
-
 def test_compare_refuses_two_runs_of_one_label(tmp_path, capsys):
-    reference = _folder(tmp_path / "reference", [300.0, 290.0, 310.0])
-    first = _folder(tmp_path / "first", [301.0, 291.0, 311.0])
-    second = _folder(tmp_path / "second", [250.0, 240.0, 260.0])
+    reference = evaluation_folder(tmp_path / "reference", load_scenario("cruise"), [300.0, 290.0, 310.0])
+    first = evaluation_folder(tmp_path / "first", load_scenario("cruise"), [301.0, 291.0, 311.0])
+    second = evaluation_folder(tmp_path / "second", load_scenario("cruise"), [250.0, 240.0, 260.0])
     for others, label in (([f"agent={first}", f"agent={second}"], "agent"),
                           ([str(first), str(second)], "mpc on cruise")):  # the default labels
         assert compare([str(reference), *others, "--out", str(tmp_path / "out")]) == 2

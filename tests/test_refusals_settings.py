@@ -288,11 +288,12 @@ def test_the_readme_says_where_the_ngsim_data_comes_from_and_goes():
 # ---------------------------------------------------------------- item 20: every driver spec in --help
 
 
-def test_drive_help_lists_every_driver_spec(monkeypatch, capsys):
+@pytest.mark.parametrize("verb", ["drive", "evaluate"])
+def test_the_help_of_a_driving_verb_lists_every_driver_spec(verb, monkeypatch, capsys):
     monkeypatch.setitem(registry._registered, "probe-driver", lambda scenario, argument: None)
     monkeypatch.setenv("COLUMNS", "2000")  # argparse wraps the help at hyphens otherwise
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["drive", "--help"])
+        build_parser().parse_args([verb, "--help"])
     text = capsys.readouterr().out
     for name in registry.driver_names():
         assert name in text, name
