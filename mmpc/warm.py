@@ -1,12 +1,14 @@
 """Warm starts from one control step to the next, per environment, for every receding-horizon
-user of the MPC (the MPC driver, the safety layer, the mode proposer's driver).
+user of the MPC (the MPC driver, the safety layer's decision solves, the mode proposer's driver,
+DAgger's ranking labeller).
 
 Consecutive problems of an environment differ by one control step: its last solve's final
 iterates, moved one step on (:meth:`mmpc.BatchOptimizer.shifted`), start the next solve near the
 answer, which then runs only the last :attr:`mmpc.MPCConfig.warm_iterations` iterations of the
 schedule. An environment solves cold instead
 
-- at its first solve (or when it newly joins the batch, or after :meth:`WarmStarts.forget`),
+- at its first solve, when it was not in the last solve (it joined the batch, or skipped a solve),
+  and after :meth:`WarmStarts.forget` (a new episode),
 - when it solves a goal its last solve did not (a solver of a subset of the goal set names the
   goals by their slots in the whole set),
 - at the solve after one that found no feasible goal (its plan was a fallback),
