@@ -42,6 +42,8 @@ class StepRecord(NamedTuple):
         task_reward: highway-env's reward after this step's frame (``HighwayEnv``'s defaults:
             collision -1, right lane 0.1, 0.4 over 20-30 m/s forward speed, normalised onto [0, 1]),
             a task reward no driver's meta cost encodes (:func:`mmpc.sim.reward.highway_reward`).
+        verified: the command kept a verified way out (``None``: the driver is not verified, :mod:`mmpc.verify`).
+        failsafe: no candidate verified and a fail-safe drove.
     """
 
     step: int
@@ -68,6 +70,8 @@ class StepRecord(NamedTuple):
     crashed: bool
     on_road: bool
     task_reward: float
+    verified: Optional[bool] = None
+    failsafe: bool = False
 
 
 #: Lane discipline: an ego farther than OFF_CENTRE from its nearest lane's centre is off-centre
@@ -121,7 +125,8 @@ def episode_metrics(
         ``right_lane_distance_mean`` (mean |y - y_right| [m]), ``lin_acc_mean`` (mean |a|
         [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``, ``iterations_mean`` (optimizer
         iterations per step; ``None`` where the driver reports none),
-        ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``min_clearance``,
+        ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``verified_share`` (share
+        of steps whose command verified; ``None`` for a driver not verified), ``failsafe_steps``, ``min_clearance``,
         ``off_centre_share`` (share of steps farther than :data:`OFF_CENTRE` from the nearest
         lane centre), ``lane_change_s_mean`` (mean of :func:`lane_change_durations`; ``None`` without one).
     """
@@ -153,6 +158,8 @@ def episode_metrics(
         iterations_mean=_mean(iterations) if (iterations := [r.iterations for r in records if r.iterations >= 0]) else None,
         lane_changes=sum(a.lane != b.lane for a, b in zip(records, records[1:])),
         fallback_steps=sum(r.fallback for r in records),
+        verified_share=_mean([float(r.verified) for r in records]) if records[0].verified is not None else None,
+        failsafe_steps=sum(r.failsafe for r in records),
         min_clearance=min(r.clearance for r in records),
         off_centre_share=_mean([float(abs(r.y - r.lane * lane_width) > OFF_CENTRE) for r in records]),
     )

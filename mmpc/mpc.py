@@ -713,6 +713,20 @@ class MPC:
         )
         return acceleration, self.steering(ego, heading_rate), heading_rate
 
+    def candidate_commands(self, ego: torch.Tensor, trajectories: Trajectories) -> tuple[torch.Tensor, torch.Tensor]:
+        """The commands that would start executing each of G candidates of E problems, as
+        :meth:`command` executes a feasible one: (acceleration [m/s^2], steering [rad]), (E, G) each.
+
+        Args:
+            ego: (E, 6) current states.
+            trajectories: the candidates, every field (E, G, N).
+        """
+        num_problems, num_goals = trajectories.x.shape[:2]
+        flat = Trajectories(trajectories.times, *(field.flatten(0, 1) for field in trajectories[1:]))
+        acceleration, heading_rate = self._command(flat)
+        steering = self.steering(ego.repeat_interleave(num_goals, dim=0), heading_rate)
+        return acceleration.view(num_problems, num_goals), steering.view(num_problems, num_goals)
+
     def steering(self, ego: torch.Tensor, heading_rate: torch.Tensor) -> torch.Tensor:
         """(E,) steering angle ``atan(L psidot / v)`` [rad] that turns the (E, 6) egos at
         ``heading_rate`` (E,) [rad/s], clamped to ``max_steering`` (speeds below 1 m/s count as 1)."""

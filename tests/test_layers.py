@@ -21,6 +21,7 @@ LAYERS = (
     ("configs", ("mmpc.configs",)),
     ("core", ("mmpc",)),
     ("sim", ("mmpc.sim",)),
+    ("verify", ("mmpc.verify",)),
     ("drivers", ("mmpc.drivers",)),
     ("highway", ("mmpc.highway",)),
     ("evaluate", ("mmpc.evaluate",)),

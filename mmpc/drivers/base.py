@@ -85,6 +85,9 @@ class Decision(NamedTuple):
         plan: the MPC's full :class:`mmpc.Plan` (MPC drivers only).
         iterations: (E,) long, optimizer iterations run for each environment's solve, the mean over
             its candidates (warm starts and early exit run fewer); ``None``: not reported.
+        verified: (E,) bool, the command kept a verified way out (:mod:`mmpc.verify`); ``None``:
+            the driver is not verified.
+        failsafe: (E,) bool, no candidate verified and a fail-safe drove; ``None``: not verified.
     """
 
     acceleration: torch.Tensor
@@ -97,6 +100,8 @@ class Decision(NamedTuple):
     candidates: Optional[Candidates] = None
     plan: Optional[Plan] = None
     iterations: Optional[torch.Tensor] = None
+    verified: Optional[torch.Tensor] = None
+    failsafe: Optional[torch.Tensor] = None
 
     def commands_to(self, device: torch.device | str) -> "Decision":
         """The decision with its per-environment fields (commands, goal, counts, fallback, cost,
@@ -104,8 +109,9 @@ class Decision(NamedTuple):
         plan stay where the driver computed them (fields there already are not copied)."""
         fields = ("acceleration", "steering", "goal_index", "feasible_goals", "fallback", "plan_cost")
         moved = {name: getattr(self, name).to(device) for name in fields}
-        if self.iterations is not None:
-            moved["iterations"] = self.iterations.to(device)
+        for name in ("iterations", "verified", "failsafe"):
+            if getattr(self, name) is not None:
+                moved[name] = getattr(self, name).to(device)
         if self.candidates is not None:
             goals = None if self.candidates.goals is None else self.candidates.goals.to(device)
             moved["candidates"] = self.candidates._replace(feasible=self.candidates.feasible.to(device),

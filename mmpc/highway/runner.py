@@ -86,6 +86,8 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
         [-1] * rows if decision.iterations is None else decision.iterations.tolist(),
         scenario.objective.stage_cost(speed, lateral, road).tolist(), decision.plan_cost.tolist(),
         _clearances(ego, observation.vehicles, observation.vehicle_mask, ellipse).tolist(),
+        [None] * rows if decision.verified is None else decision.verified.tolist(),
+        [False] * rows if decision.failsafe is None else decision.failsafe.tolist(),
     )
     frequency = scenario.frequency
     return [
@@ -94,10 +96,10 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
             command_acceleration=command_a, command_steering=command_steering, goal_index=goal_index, goal_x=xy[0],
             goal_y=xy[1], feasible_goals=feasible, fallback=fallback, meta_cost=meta, plan_cost=plan_cost,
             solve_ms=decision.solve_ms, iterations=iterations, clearance=clearance, crashed=bool(episode.ego.crashed),
-            on_road=bool(episode.ego.on_road), task_reward=float(episode.reward),
+            on_road=bool(episode.ego.on_road), task_reward=float(episode.reward), verified=verified, failsafe=failsafe,
         )
         for step, episode, (x, y, psi, v, a, psidot, lane, command_a, command_steering, goal_index, xy, feasible, fallback,
-                            iterations, meta, plan_cost, clearance) in zip(steps, episodes, columns)
+                            iterations, meta, plan_cost, clearance, verified, failsafe) in zip(steps, episodes, columns)
     ]
 
 

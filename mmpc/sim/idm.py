@@ -139,19 +139,28 @@ def idm_acceleration(state: VehicleState, lane: torch.Tensor, config: SimConfig,
 
 
 def lane_keeping_steering(state: VehicleState, config: SimConfig) -> torch.Tensor:
-    """(E, V) steering [rad] to the target lane's centre (``ControlledVehicle.steering_control``
-    on a straight lane along +x): a lateral speed ``-kp_lateral * offset`` becomes a heading
-    reference (within +-pi/4), a heading rate ``kp_heading * (reference - heading)`` a slip angle
-    and that a steering angle, clipped to +-max_steering."""
-    offset = state.y - state.target_lane.to(state.y.dtype) * config.lane_width
-    speed = not_zero(state.speed)
+    """(E, V) steering [rad] of every vehicle to its target lane's centre (:func:`steering_to_lane`)."""
+    return steering_to_lane(state.y, state.heading, state.speed, state.length,
+                            state.target_lane.to(state.y.dtype) * config.lane_width, config)
+
+
+def steering_to_lane(y: torch.Tensor, heading: torch.Tensor, speed: torch.Tensor, length: torch.Tensor | float,
+                     target_y: torch.Tensor, config: SimConfig, max_steering: float | None = None) -> torch.Tensor:
+    """Steering [rad] to the lane centre ``target_y`` [m] (``ControlledVehicle.steering_control``
+    on a straight lane along +x), any shape (broadcast): a lateral speed ``-kp_lateral * offset``
+    becomes a heading reference (within +-pi/4), a heading rate ``kp_heading * (reference -
+    heading)`` a slip angle and that a steering angle, clipped to +-``max_steering`` (default:
+    ``config.max_steering``, the IDM vehicles')."""
+    offset = y - target_y
+    speed = not_zero(speed)
     lateral_speed = -config.kp_lateral * offset
     heading_reference = torch.asin((lateral_speed / speed).clamp(-1, 1)).clamp(-torch.pi / 4, torch.pi / 4)
-    heading_rate = config.kp_heading * wrap_to_pi(heading_reference - state.heading)
-    sin_slip = (state.length / 2 / speed * heading_rate).clamp(-1, 1)
+    heading_rate = config.kp_heading * wrap_to_pi(heading_reference - heading)
+    sin_slip = (length / 2 / speed * heading_rate).clamp(-1, 1)
     # atan(2 tan(asin(s))) written with atan2: tan(asin(+-1)) in float32 can come out with the wrong sign
     steering = torch.atan2(2 * sin_slip, torch.sqrt(1 - sin_slip * sin_slip))
-    return steering.clamp(-config.max_steering, config.max_steering)
+    bound = config.max_steering if max_steering is None else max_steering
+    return steering.clamp(-bound, bound)
 
 
 def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:

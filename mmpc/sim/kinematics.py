@@ -34,6 +34,16 @@ def limit_command(
     return acceleration, steering
 
 
+def bicycle_frame(x: torch.Tensor, y: torch.Tensor, heading: torch.Tensor, speed: torch.Tensor,
+                  length: torch.Tensor | float, acceleration: torch.Tensor, steering: torch.Tensor,
+                  dt: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One frame of the bicycle (module docstring) for any shape of tensors (broadcast): the new
+    (x, y [m], heading [rad], speed [m/s]), without command limits or collision pushes."""
+    beta = torch.atan(0.5 * torch.tan(steering))
+    return (x + speed * torch.cos(heading + beta) * dt, y + speed * torch.sin(heading + beta) * dt,
+            heading + speed * torch.sin(beta) / (length / 2) * dt, speed + acceleration * dt)
+
+
 def bicycle_step(
     state: VehicleState, acceleration: torch.Tensor, steering: torch.Tensor, config: SimConfig
 ) -> VehicleState:
@@ -48,16 +58,12 @@ def bicycle_step(
         The state after the frame: pending collision pushes applied (those vehicles marked
         crashed), lanes updated; padding slots unchanged.
     """
-    dt = config.dt
     acceleration, steering = limit_command(state, acceleration, steering, config)
-    beta = torch.atan(0.5 * torch.tan(steering))
-    x = state.x + state.speed * torch.cos(state.heading + beta) * dt
-    y = state.y + state.speed * torch.sin(state.heading + beta) * dt
+    x, y, heading, speed = bicycle_frame(state.x, state.y, state.heading, state.speed, state.length,
+                                         acceleration, steering, config.dt)
     pushed = state.impact_pending & state.alive
     x = torch.where(pushed, x + state.impact[..., 0], x)
     y = torch.where(pushed, y + state.impact[..., 1], y)
-    heading = state.heading + state.speed * torch.sin(beta) / (state.length / 2) * dt
-    speed = state.speed + acceleration * dt
     alive = state.alive
     return state._replace(
         x=torch.where(alive, x, state.x),

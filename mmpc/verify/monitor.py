@@ -1,0 +1,98 @@
+"""The assumption monitor: did each car's actual motion stay inside the set predicted for it?
+
+Every step it predicts, from the present observation, the set each car may cover until the next
+step (:func:`mmpc.verify.occupancy`) and, at the next observation, checks each car's actual
+footprint against it. A car outside its set broke :class:`TrafficAssumptions`: no verification
+holds against it, and a collision with it is not a defect of the verification.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+
+from mmpc.road import Road
+from mmpc.verify.assumptions import TrafficAssumptions
+from mmpc.verify.occupancy import Occupancy, counted_lanes, occupancy
+
+
+class Footprints(NamedTuple):
+    """Axis-aligned bounds of the cars' actual footprints, (E, M) each [m] (heading from the velocity)."""
+
+    x_low: torch.Tensor
+    x_high: torch.Tensor
+    y_low: torch.Tensor
+    y_high: torch.Tensor
+
+
+def footprints(vehicles: torch.Tensor, assumptions: TrafficAssumptions) -> Footprints:
+    """The footprint bounds of (E, M, 4) cars (x, y [m], vx, vy [m/s]), bodies of the assumed size."""
+    x, y, vx, vy = vehicles.unbind(dim=-1)
+    heading = torch.atan2(vy, vx)
+    cos, sin = torch.cos(heading).abs(), torch.sin(heading).abs()
+    half_length, half_width = 0.5 * assumptions.length, 0.5 * assumptions.width
+    along = half_length * cos + half_width * sin
+    across = half_length * sin + half_width * cos
+    return Footprints(x - along, x + along, y - across, y + across)
+
+
+def outside(sets: Occupancy, interval: int, later: torch.Tensor, held: torch.Tensor, assumptions: TrafficAssumptions,
+            tolerance: float = 1e-4) -> torch.Tensor:
+    """(E, M) bool: a car's footprint in ``later`` (E, M, 4), at the end of interval ``interval``
+    of ``sets``, is not inside that interval's box of the variant ``held`` (E,) long (which of
+    the ego's lanes it held, :data:`mmpc.verify.occupancy.HELD_VARIANTS`)."""
+    actual = footprints(later, assumptions)
+    rows = torch.arange(held.shape[0], device=held.device)
+    y_low, y_high = sets.y_low[rows, held, :, interval], sets.y_high[rows, held, :, interval]
+    return ((actual.x_low < sets.x_low[..., interval] - tolerance) | (actual.x_high > sets.x_high[..., interval] + tolerance)
+            | (actual.y_low < y_low - tolerance) | (actual.y_high > y_high + tolerance))
+
+
+def held_variant(ego_lanes: torch.Tensor, y: torch.Tensor, road: Road, assumptions: TrafficAssumptions) -> torch.Tensor:
+    """(E,) long variant: which of ``ego_lanes`` (E, 2) (the ego's lanes when the sets were made)
+    the ego, now at lateral positions ``y`` (E,) [m], still counts on."""
+    now = counted_lanes(y, road, assumptions.lane_margin)  # (E, 2)
+    held = [((now == ego_lanes[:, j, None]).any(dim=-1) & (ego_lanes[:, j] >= 0)).long() for j in range(2)]
+    return held[0] + 2 * held[1]
+
+
+class AssumptionMonitor:
+    """Counts, per environment, the cars that left the set predicted for them one step before.
+
+    Args:
+        road: the road.
+        period: time between two observations [s].
+        assumptions: the assumptions checked.
+
+    Use: :meth:`observe` every step with the environments' ids and observation; it returns the
+    (E,) violations found since the last observation of each environment (0 at its first).
+    """
+
+    def __init__(self, road: Road, period: float, assumptions: TrafficAssumptions = TrafficAssumptions()) -> None:
+        self.road, self.period, self.assumptions = road, period, assumptions
+        self._last: dict[int, tuple[Occupancy, torch.Tensor]] = {}
+
+    def reset(self) -> None:
+        self._last = {}
+
+    def observe(self, ids: list[int], ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor]) -> torch.Tensor:
+        """(E,) long: cars of each environment outside their set since its last observation.
+
+        Args:
+            ids: the E environments' ids (stable over an episode; slots of ``vehicles`` name the same car).
+            ego: (E, 6) ego states; vehicles (E, M, 4); mask (E, M) bool (``None``: all present).
+        """
+        mask = torch.ones(vehicles.shape[:2], dtype=torch.bool) if mask is None else mask
+        times = torch.tensor([0.0, self.period], dtype=vehicles.dtype)
+        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False)
+        counts = torch.zeros(len(ids), dtype=torch.long)
+        for row, env in enumerate(ids):
+            last = self._last.get(env)
+            if last is not None and last[0].x_low.shape[1] == vehicles.shape[1]:
+                previous, previous_mask = last
+                held = held_variant(previous.ego_lanes, ego[row:row + 1, 1], self.road, self.assumptions)
+                gone = outside(previous, 0, vehicles[row:row + 1], held, self.assumptions)[0]
+                counts[row] = int((gone & previous_mask & mask[row]).sum())
+            self._last[env] = (Occupancy(*(field[row:row + 1] for field in sets)), mask[row])
+        return counts

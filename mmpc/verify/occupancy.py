@@ -1,0 +1,162 @@
+"""Occupancy sets: the road space each other car may cover under :class:`TrafficAssumptions`.
+
+On the straight road a set is an axis-aligned box per car and time interval, bounding the car's
+whole footprint (not its centre). Along the road: braking at ``max_deceleration`` to rest (less
+what turning across the road takes from the path's progress) and speeding up at
+``max_acceleration`` to ``max(v, speed_limit)``. Across: the footprint's edges swing out by a
+turn to ``max_heading``, then move at most ``lateral_speed``, and stay within ``lane_overreach``
+of the outermost lane centres the car may reach; the lane-change rule cuts that band where the
+ego holds a lane:
+
+- a car ahead of the moving ego, with no car between them on a lane the ego counts on for the
+  whole manoeuvre checked, stays out of that lane unless it is changing into it already
+  (``TrafficAssumptions.mobil_safety``). The rule binds while the ego is behind the car: one the
+  ego overtakes may enter behind it, where the fault rule below takes over;
+- a car behind the ego answers for its own distance (the evaluation's fault rule): one on a lane
+  the ego counts on now is left out; one elsewhere is not counted entering the ego's lanes (it
+  would enter behind the ego), even where it is changing towards them already.
+
+The ego's lanes are those it counts on now (at most two, halfway between); each set comes in the
+four variants of which of them the manoeuvre holds (:data:`HELD_VARIANTS`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from mmpc.problem import EGO_X, EGO_Y
+from mmpc.road import Road
+from mmpc.verify.assumptions import TrafficAssumptions
+
+#: Variants of the lateral bounds: bit 0 set where the manoeuvre holds the ego's nearest lane,
+#: bit 1 where it holds the other lane it counts on (none: the variants repeat).
+HELD_VARIANTS = 4
+
+
+class Occupancy(NamedTuple):
+    """Footprint boxes of M cars over T intervals ``[times[k], times[k + 1]]`` [m].
+
+    Fields:
+        x_low, x_high: (E, M, T) along the road.
+        y_low, y_high: (E, H, M, T) across, per variant of :data:`HELD_VARIANTS`.
+        relevant: (E, M) bool, present cars the ego answers for (not left out by the fault rule).
+        ego_lanes: (E, 2) long, the ego's nearest lane and the other lane it counts on (-1: none).
+    """
+
+    x_low: torch.Tensor
+    x_high: torch.Tensor
+    y_low: torch.Tensor
+    y_high: torch.Tensor
+    relevant: torch.Tensor
+    ego_lanes: torch.Tensor
+
+
+def counted_lanes(y: torch.Tensor, road: Road, margin: float) -> torch.Tensor:
+    """(..., 2) long: the nearest lane of lateral positions ``y`` (...) [m] and the other lane
+    whose centre lies within ``lane_width / 2 + margin`` (-1 where none): the lanes MOBIL counts
+    a vehicle on."""
+    nearest = road.lane_index(y)
+    offset = y - nearest.to(y.dtype) * road.lane_width
+    side = torch.where(offset >= 0, 1, -1)
+    other = nearest + side
+    counts = (offset.abs() >= road.lane_width / 2 - margin) & (other >= 0) & (other < road.num_lanes)
+    return torch.stack([nearest, torch.where(counts, other, -1)], dim=-1)
+
+
+def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, road: Road, times: torch.Tensor,
+              assumptions: TrafficAssumptions, *, fault_rule: bool = True) -> Occupancy:
+    """The occupancy sets of E environments' cars over the intervals of ``times``.
+
+    Args:
+        ego: (E, 6) ego states now (:data:`mmpc.EGO_FIELDS`).
+        vehicles: (E, M, 4) other cars' x, y [m], vx, vy [m/s] now.
+        mask: (E, M) bool, present cars.
+        road: the road.
+        times: (T + 1,) increasing times from now, ``times[0] = 0`` [s].
+        assumptions: what the cars may do.
+        fault_rule: leave out, and keep out of the ego's lanes, the cars behind the ego (what the
+            verification may do); ``False``: the sets of the traffic's rules alone (what the
+            monitor checks).
+
+    Returns:
+        The :class:`Occupancy` (T intervals).
+    """
+    a = assumptions
+    dtype = vehicles.dtype
+    x, y, vx, vy = vehicles.unbind(dim=-1)  # (E, M)
+    speed = torch.hypot(vx, vy)
+    ends = times[1:].to(dtype)  # (T,)
+    width = road.lane_width
+
+    # Along the road: speed bounds at the end of each interval, integrated by right sums (the
+    # lower bound falls, the upper rises, so both sums bound the motion of the continuous and the
+    # frame-stepped car alike); a turned car covers its path less tan(heading / 2) x its lateral travel.
+    steps = (times[1:] - times[:-1]).to(dtype)
+    slow = (speed[..., None] - a.max_deceleration * ends).clamp_min(0.0)
+    fast = torch.minimum(speed[..., None] + a.max_acceleration * ends, speed.clamp_min(a.speed_limit)[..., None])
+    crossing = math.tan(0.5 * a.max_heading) * (a.lateral_speed * ends).clamp_max(a.lateral_travel)
+    x_low = x[..., None] - a.half_length - crossing + torch.cumsum(slow * steps, dim=-1) - slow * steps
+    x_high = x[..., None] + a.half_length + torch.cumsum(fast * steps, dim=-1)
+
+    # Across: the footprint's edges now (heading from the velocity; at rest any heading), swung
+    # out at once by a turn to ``max_heading`` (the body turns within a frame or two), then moved
+    # at ``lateral_speed``.
+    heading = torch.atan2(vy, vx)
+    moving = speed > 1e-3
+    turned = 0.5 * a.length * math.sin(a.max_heading) + 0.5 * a.width * math.cos(a.max_heading)
+    reach = torch.where(moving, 0.5 * a.length * torch.sin(heading).abs() + 0.5 * a.width * torch.cos(heading).abs(),
+                        torch.full_like(speed, a.half_length))
+    swing = (turned - reach).clamp_min(0.0)
+    edge_low, edge_high = y - reach, y + reach
+    spread = swing[..., None] + a.lateral_speed * ends  # (E, M, T)
+
+    lane = road.lane_index(y)  # (E, M)
+    offset = y - lane.to(dtype) * width
+    toward = torch.where(vy.abs() > a.change_speed, vy.sign(), torch.where(offset.abs() >= a.change_offset,
+                                                                           offset.sign(), torch.zeros_like(vy)))
+    # a car changing lane is bound for the next lane on its way (the nearest, once past halfway)
+    target = torch.where((toward != 0) & (offset * toward >= 0), lane + toward.long(), lane)
+    ego_lanes = counted_lanes(ego[:, EGO_Y], road, a.lane_margin)  # (E, 2)
+    car_lanes = counted_lanes(y, road, a.lane_margin)  # (E, M, 2)
+    on_ego_lane = ((car_lanes[..., :, None] == ego_lanes[:, None, None, :]) & (ego_lanes[:, None, None, :] >= 0))  # (E, M, 2, 2)
+    on_ego_lane = on_ego_lane.any(dim=2)  # (E, M, 2): counted on the ego's lane j
+    behind = (x < ego[:, EGO_X, None]) & fault_rule
+    relevant = mask & ~(behind & on_ego_lane.any(dim=-1))
+
+    # Lane bands: the whole road, cut on the car's side of each lane it may not enter.
+    last = road.num_lanes - 1
+    low_lane = torch.zeros_like(lane)
+    high_lane = torch.full_like(lane, last)
+    ego_x = ego[:, EGO_X, None]
+    y_low, y_high = [], []
+    for variant in range(HELD_VARIANTS):
+        low_cut, high_cut = low_lane, high_lane
+        for j in range(2):
+            blocked_lane = ego_lanes[:, j, None].expand_as(lane)  # (E, M)
+            exists = blocked_lane >= 0
+            held = bool(variant >> j & 1)
+            # ahead of the ego with nobody between on that lane, not yet heading there
+            between = _cars_between(x, car_lanes, mask, ego_x, blocked_lane)
+            ahead = x >= ego_x
+            ahead_rule = ahead & ~between & (held and a.mobil_safety)
+            bound_there = (toward != 0) & (target == blocked_lane)  # decided before now: the rule no longer holds it
+            keeps_out = exists & mask & ~on_ego_lane[..., j] & ((ahead_rule & ~bound_there) | behind)  # behind: fault rule
+            above = blocked_lane > lane  # the blocked lane lies on the car's +y side
+            high_cut = torch.where(keeps_out & above, torch.minimum(high_cut, blocked_lane - 1), high_cut)
+            low_cut = torch.where(keeps_out & ~above, torch.maximum(low_cut, blocked_lane + 1), low_cut)
+        band_low = torch.minimum(low_cut.to(dtype) * width - a.lane_overreach, edge_low)
+        band_high = torch.maximum(high_cut.to(dtype) * width + a.lane_overreach, edge_high)
+        y_low.append(torch.maximum(band_low[..., None], edge_low[..., None] - spread))
+        y_high.append(torch.minimum(band_high[..., None], edge_high[..., None] + spread))
+    return Occupancy(x_low, x_high, torch.stack(y_low, dim=1), torch.stack(y_high, dim=1), relevant, ego_lanes)
+
+
+def _cars_between(x: torch.Tensor, car_lanes: torch.Tensor, mask: torch.Tensor, ego_x: torch.Tensor,
+                  lane: torch.Tensor) -> torch.Tensor:
+    """(E, M) bool: another present car counts on ``lane`` (E, M) with its x between the ego's and car m's."""
+    on_lane = ((car_lanes[:, None, :, :] == lane[..., None, None]).any(dim=-1)) & mask[:, None, :]  # (E, M, M'): m' on m's lane
+    inside = (x[:, None, :] > ego_x[..., None]) & (x[:, None, :] < x[:, :, None])
+    return (on_lane & inside).any(dim=-1)

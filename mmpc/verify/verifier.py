@@ -1,0 +1,159 @@
+"""The check: does a command keep a way out, whatever the other cars may do?
+
+A candidate command of an environment is *verified* when the ego, after the command's control
+period, has a fail-safe (:mod:`mmpc.verify.failsafe`) whose whole path, to rest, meets no
+occupancy set (:mod:`mmpc.verify.occupancy`) of a car it answers for, the command's own period
+included. Every environment, candidate, fail-safe, car and time step is one tensor program.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from mmpc.road import Road
+from mmpc.sim.config import SimConfig
+from mmpc.verify.assumptions import TrafficAssumptions
+from mmpc.verify.failsafe import Body, FailSafes, drive, ego_body, failsafe_command, failsafe_table, rollout
+from mmpc.verify.geometry import rectangle_meets_box
+from mmpc.verify.occupancy import Occupancy, counted_lanes, occupancy
+
+
+class Verdict(NamedTuple):
+    """The check of K candidate commands in E environments.
+
+    Fields:
+        verified: (E, K) bool, some fail-safe from the command's end verifies.
+        lane: (E, K) long, the first such fail-safe's target lane (-1 where none).
+        deceleration: (E, K), its deceleration [m/s^2] (NaN where none).
+    """
+
+    verified: torch.Tensor
+    lane: torch.Tensor
+    deceleration: torch.Tensor
+
+
+class Verifier:
+    """Checks commands against the occupancy sets of the cars around each ego.
+
+    Args:
+        road: the road.
+        sim: the worlds' constants (the ego's command path, the lane-change controller).
+        assumptions: what the other cars may do.
+        failsafes: the fail-safes tried from each end state.
+        ego_size: the ego's (length, width) [m].
+        margin: kept between the ego's footprint and every set [m].
+        max_horizon: the longest fail-safe checked [s] (one that has not come to rest by then fails).
+    """
+
+    def __init__(self, road: Road, sim: SimConfig = SimConfig(), assumptions: TrafficAssumptions = TrafficAssumptions(),
+                 failsafes: FailSafes = FailSafes(), ego_size: tuple[float, float] = (5.0, 2.0), margin: float = 0.1,
+                 max_horizon: float = 12.0) -> None:
+        if not (margin >= 0 and max_horizon > 0):
+            raise ValueError(f"Verifier: `margin` must be >= 0 m and `max_horizon` > 0 s; got {margin!r}, {max_horizon!r}")
+        self.road, self.sim, self.assumptions, self.failsafes = road, sim, assumptions, failsafes
+        self.length, self.width = ego_size
+        self.margin = margin
+        self.period = 1.0 / sim.policy_frequency
+        self.max_frames = max(1, math.ceil(max_horizon / self.period))
+
+    def body(self, ego: torch.Tensor) -> Body:
+        """(E,) bodies of (E, 6) ego states."""
+        return ego_body(ego, self.length)
+
+    def failsafe_command(self, ego: torch.Tensor, lane: torch.Tensor, deceleration: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E,) each: the fail-safe (``lane`` (E,) long, ``deceleration`` (E,)) law's command at the (E, 6) ``ego``."""
+        return failsafe_command(self.body(ego), lane, deceleration.to(ego.dtype), self.length, self.road, self.sim)
+
+    def failsafe_candidates(self, ego: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first commands of every fail-safe from the (E, 6) ``ego``: (acceleration, steering), (E, F) each."""
+        body = self.body(ego)
+        lanes, decelerations = failsafe_table(body, self.road, self.failsafes)
+        wide = Body(*(field[:, None].expand(lanes.shape) for field in body))
+        return failsafe_command(wide, lanes, decelerations, self.length, self.road, self.sim)
+
+    def frames(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor) -> int:
+        """Fail-safe frames that bring every ego and every car's slowest motion to rest (at most the horizon)."""
+        fastest = ego[:, 3].amax() if ego.shape[0] else ego.new_zeros(())
+        if mask.any():
+            fastest_car = torch.hypot(vehicles[..., 2], vehicles[..., 3])[mask].amax()
+            rest = torch.maximum(fastest / min(self.failsafes.decelerations), fastest_car / self.assumptions.max_deceleration)
+        else:
+            rest = fastest / min(self.failsafes.decelerations)
+        return min(self.max_frames, int(math.ceil(float(rest) / self.period)) + 2)
+
+    @torch.no_grad()
+    def check(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
+              steering: torch.Tensor) -> Verdict:
+        """Verify K candidate commands per environment.
+
+        Args:
+            ego: (E, 6) ego states now.
+            vehicles: (E, M, 4) other cars' x, y [m], vx, vy [m/s] now.
+            mask: (E, M) bool, present cars.
+            acceleration, steering: (E, K) candidate commands [m/s^2], [rad].
+
+        Returns:
+            The :class:`Verdict`.
+        """
+        num_envs, num_candidates = acceleration.shape
+        frames = self.frames(ego, vehicles, mask)
+        times = torch.arange(frames + 2, dtype=ego.dtype, device=ego.device) * self.period
+        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions)
+        now = self.body(ego)
+        end = drive(Body(*(field[:, None].expand(num_envs, num_candidates) for field in now)), acceleration, steering,
+                    self.length, self.sim)
+        lanes, decelerations = failsafe_table(end, self.road, self.failsafes)  # (E, K, F)
+        count = lanes.shape[-1]
+        start = Body(*(field[..., None].expand(*lanes.shape) for field in end))
+        path = rollout(start, lanes, decelerations, frames, self.length, self.road, self.sim)  # (E, K, F, frames)
+        poses = Body(*(torch.cat([a[:, None, None, None].expand(num_envs, num_candidates, count, 1),
+                                  b[..., None, None].expand(num_envs, num_candidates, count, 1), c], dim=-1)
+                       for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times
+        meets = self._meets(poses, sets)  # (E, K, F)
+        verified_f = ~meets
+        verified = verified_f.any(dim=-1)
+        first = verified_f.int().argmax(dim=-1, keepdim=True)
+        lane = torch.where(verified, lanes.gather(-1, first)[..., 0], -1)
+        deceleration = torch.where(verified, decelerations.gather(-1, first)[..., 0],
+                                   torch.full_like(decelerations[..., 0], float("nan")))
+        return Verdict(verified, lane, deceleration)
+
+    def _meets(self, poses: Body, sets: Occupancy) -> torch.Tensor:
+        """(E, K, F) bool: a path of ``poses`` (E, K, F, T + 1) meets a relevant set of ``sets`` (T
+        intervals). Pose i is checked against the hull of the intervals it bounds, i - 1 and i;
+        only the (environment, car, pose) triples whose bounding boxes overlap get the exact test."""
+        counted = counted_lanes(poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F, T + 1, 2)
+        held = [((counted == sets.ego_lanes[:, None, None, None, j, None]).any(dim=-1)
+                 & (sets.ego_lanes[:, None, None, None, j] >= 0)).all(dim=-1) for j in range(2)]
+        variant = held[0].long() + 2 * held[1].long()  # (E, K, F)
+        hull = [_pose_hull(bound) for bound in (sets.x_low, sets.x_high, sets.y_low, sets.y_high)]
+        x_low, x_high = torch.minimum(*hull[0]), torch.maximum(*hull[1])  # (E, M, T + 1)
+        y_low, y_high = torch.minimum(*hull[2]), torch.maximum(*hull[3])  # (E, H, M, T + 1)
+        half_length, half_width = 0.5 * self.length + self.margin, 0.5 * self.width + self.margin
+        reach = math.hypot(half_length, half_width)
+        flat = [field.flatten(1, 2) for field in poses[:2]]  # (E, K F, T + 1)
+        near = ((flat[0].amin(dim=1)[:, None] - reach <= x_high) & (flat[0].amax(dim=1)[:, None] + reach >= x_low)
+                & (flat[1].amin(dim=1)[:, None] - reach <= y_high.amax(dim=1))
+                & (flat[1].amax(dim=1)[:, None] + reach >= y_low.amin(dim=1)) & sets.relevant[..., None])
+        env, car, pose = near.nonzero(as_tuple=True)  # (P,)
+        meets = torch.zeros(variant.shape, dtype=torch.int32, device=variant.device)
+        if env.numel():
+            x, y, heading = (field[env, ..., pose] for field in poses[:3])  # (P, K, F)
+            chosen = variant[env]  # (P, K, F)
+            rows = torch.arange(env.numel(), device=env.device)[:, None, None]
+            y_low_p = y_low[env, :, car, pose][rows, chosen]
+            y_high_p = y_high[env, :, car, pose][rows, chosen]
+            hit = rectangle_meets_box(x, y, heading, half_length, half_width, x_low[env, car, pose, None, None],
+                                      x_high[env, car, pose, None, None], y_low_p, y_high_p)
+            meets.index_add_(0, env, hit.int())
+        return meets > 0
+
+
+def _pose_hull(bound: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bounds (..., T) of T intervals as seen from the T + 1 poses between them: for pose i
+    those of intervals i - 1 and i (the first and last pose: their one interval, twice)."""
+    return torch.cat([bound[..., :1], bound], dim=-1), torch.cat([bound, bound[..., -1:]], dim=-1)
