@@ -30,11 +30,12 @@ class FailSafes:
     """The fail-safe manoeuvres tried from each state.
 
     Attributes:
-        decelerations: braking levels [m/s^2], strongest first (the ego's range ends at 5).
+        decelerations: braking levels [m/s^2], strongest first (the ego's range ends at 5; a
+            milder second level verified no more steps and doubled the check's time).
         lanes: lanes either side of the nearest one steered to (1: abort and complete).
     """
 
-    decelerations: tuple[float, ...] = (5.0, 3.0)
+    decelerations: tuple[float, ...] = (5.0,)
     lanes: int = 1
 
     def __post_init__(self) -> None:
@@ -84,9 +85,12 @@ def failsafe_command(body: Body, lane: torch.Tensor, deceleration: torch.Tensor,
 
 
 def failsafe_table(body: Body, road: Road, failsafes: FailSafes) -> tuple[torch.Tensor, torch.Tensor]:
-    """The fail-safes tried from ``body`` (...): target lanes (..., F) long and decelerations (..., F) [m/s^2]."""
+    """The fail-safes tried from ``body`` (...), in order of preference (the nearest lane, then
+    the neighbours; each lane at every deceleration): target lanes (..., F) long and
+    decelerations (..., F) [m/s^2]."""
     nearest = road.lane_index(body.y)
-    offsets = torch.arange(-failsafes.lanes, failsafes.lanes + 1, device=nearest.device)
+    sides = [offset for step in range(1, failsafes.lanes + 1) for offset in (-step, step)]
+    offsets = torch.tensor([0, *sides], device=nearest.device)  # braking in lane first
     lanes = (nearest[..., None] + offsets).clamp(0, road.num_lanes - 1)  # an edge lane repeats: harmless
     decelerations = torch.tensor(failsafes.decelerations, dtype=body.x.dtype, device=body.x.device)
     count = len(failsafes.decelerations)

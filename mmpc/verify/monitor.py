@@ -2,7 +2,7 @@
 
 Every step it predicts, from the present observation, the set each car may cover until the next
 step (:func:`mmpc.verify.occupancy`) and, at the next observation, checks each car's actual
-footprint against it. A car outside its set broke :class:`TrafficAssumptions`: no verification
+footprint against it and its speed against the acceleration bounds. A car outside its set broke :class:`TrafficAssumptions`: no verification
 holds against it, and a collision with it is not a defect of the verification.
 """
 
@@ -64,14 +64,20 @@ class AssumptionMonitor:
         road: the road.
         period: time between two observations [s].
         assumptions: the assumptions checked.
+        reach: only cars within this distance of the ego along the road, at both observations,
+            are checked [m] (the batched world moves cars that drift out of its window to its
+            other end: a new car in an old slot).
 
     Use: :meth:`observe` every step with the environments' ids and observation; it returns the
     (E,) violations found since the last observation of each environment (0 at its first).
     """
 
-    def __init__(self, road: Road, period: float, assumptions: TrafficAssumptions = TrafficAssumptions()) -> None:
-        self.road, self.period, self.assumptions = road, period, assumptions
-        self._last: dict[int, tuple[Occupancy, torch.Tensor]] = {}
+    def __init__(self, road: Road, period: float, assumptions: TrafficAssumptions = TrafficAssumptions(),
+                 reach: float = 100.0) -> None:
+        if not (period > 0 and reach > 0):
+            raise ValueError(f"AssumptionMonitor: `period` and `reach` must be > 0; got {period!r}, {reach!r}")
+        self.road, self.period, self.assumptions, self.reach = road, period, assumptions, reach
+        self._last: dict[int, tuple[Occupancy, torch.Tensor, torch.Tensor]] = {}
 
     def reset(self) -> None:
         self._last = {}
@@ -84,15 +90,21 @@ class AssumptionMonitor:
             ego: (E, 6) ego states; vehicles (E, M, 4); mask (E, M) bool (``None``: all present).
         """
         mask = torch.ones(vehicles.shape[:2], dtype=torch.bool) if mask is None else mask
+        mask = mask & ((vehicles[..., 0] - ego[:, None, 0]).abs() <= self.reach)
         times = torch.tensor([0.0, self.period], dtype=vehicles.dtype)
         sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False)
+        speed = torch.hypot(vehicles[..., 2], vehicles[..., 3])
+        a, tolerance = self.assumptions, 1e-3
         counts = torch.zeros(len(ids), dtype=torch.long)
         for row, env in enumerate(ids):
             last = self._last.get(env)
             if last is not None and last[0].x_low.shape[1] == vehicles.shape[1]:
-                previous, previous_mask = last
+                previous, previous_mask, previous_speed = last
                 held = held_variant(previous.ego_lanes, ego[row:row + 1, 1], self.road, self.assumptions)
                 gone = outside(previous, 0, vehicles[row:row + 1], held, self.assumptions)[0]
+                gone |= speed[row] < previous_speed - a.max_deceleration * self.period - tolerance
+                gone |= speed[row] > torch.minimum(previous_speed + a.max_acceleration * self.period,
+                                                   previous_speed.clamp_min(a.speed_limit)) + tolerance
                 counts[row] = int((gone & previous_mask & mask[row]).sum())
-            self._last[env] = (Occupancy(*(field[row:row + 1] for field in sets)), mask[row])
+            self._last[env] = (Occupancy(*(field[row:row + 1] for field in sets)), mask[row], speed[row])
         return counts

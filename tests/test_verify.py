@@ -1,0 +1,198 @@
+"""Legal safety (mmpc.verify): the assumptions are the worlds' rules, the batched simulator's cars
+keep them, the check refuses what can end in a collision, and verified driving never collides
+with traffic that keeps them, however adversarial."""
+
+import math
+
+import pytest
+import torch
+
+import mmpc
+from mmpc.drivers import make_driver
+from mmpc.drivers.base import Decision, Driver, Observation
+from mmpc.drivers.verified import VerifiedDriver
+from mmpc.highway.runner import run_lockstep
+from mmpc.road import Road
+from mmpc.scenario import load_scenario
+from mmpc.sim import SimConfig, SimEpisodes
+from mmpc.verify import AssumptionMonitor, TrafficAssumptions, Verifier, counted_lanes, occupancy
+from mmpc.verify.failsafe import Body, drive
+from mmpc.verify.geometry import rectangle_meets_box
+from mmpc.verify.monitor import held_variant, outside
+
+ROAD = Road(num_lanes=4)
+
+
+def check(ego, cars, acceleration=0.0, steering=0.0, **assumptions):
+    """Whether one command of one ego verifies among ``cars`` [(x, y, vx, vy)]."""
+    verifier = Verifier(ROAD, assumptions=TrafficAssumptions(**assumptions))
+    vehicles = torch.tensor([cars], dtype=torch.float32).reshape(1, -1, 4)
+    mask = torch.ones(vehicles.shape[:2], dtype=torch.bool)
+    verdict = verifier.check(ego.reshape(1, 6), vehicles, mask, torch.tensor([[acceleration]]), torch.tensor([[steering]]))
+    return bool(verdict.verified[0, 0])
+
+
+def test_the_assumptions_are_the_worlds_rules():
+    from highway_env.vehicle.behavior import IDMVehicle
+
+    assumptions, sim = TrafficAssumptions(), SimConfig()
+    assert assumptions.max_deceleration == sim.acc_max == IDMVehicle.ACC_MAX
+    assert assumptions.max_acceleration == sim.comfort_acc_max == IDMVehicle.COMFORT_ACC_MAX
+    assert assumptions.speed_limit == sim.speed_limit
+    assert assumptions.lane_margin == sim.lane_margin
+    assert assumptions.max_heading > math.pi / 4  # the controller's heading reference clip, with its overshoot
+    with pytest.raises(ValueError, match="max_deceleration"):
+        TrafficAssumptions(max_deceleration=0.0)
+
+
+def test_the_batched_simulators_cars_stay_in_their_sets():
+    """Naturalistic traffic of both scenarios, 16 episodes x 12 s: no car that stays near the ego
+    leaves the set predicted for it one step, five steps or one second ahead. The ego holds its
+    speed and may run into cars: a crashed car (braking at -v per second, pushed) has left the
+    assumptions and is not checked."""
+    for name in ("high_speed", "cruise"):
+        scenario = load_scenario(name, {"sim": "batched", "duration": 12.0})
+        episodes = SimEpisodes(scenario, seeds=list(range(900, 916)))
+        monitor = AssumptionMonitor(scenario.road, scenario.period)
+        times = torch.arange(11) * scenario.period
+        assumptions = TrafficAssumptions()
+        history, checked = [], 0
+        for step in range(int(12.0 * scenario.frequency)):
+            ego, vehicles, mask = episodes.road_state()
+            mask = mask & ~episodes.state.crashed[:, 1:]
+            assert int(monitor.observe(list(range(16)), ego, vehicles, mask).sum()) == 0, (name, step)
+            near = mask & ((vehicles[..., 0] - ego[:, None, 0]).abs() < 80.0)
+            sets = occupancy(ego, vehicles, near, scenario.road, times, assumptions, fault_rule=False)
+            for ago, (old_sets, old_near, old_x) in enumerate(reversed(history), start=1):
+                if ago not in (5, 10):
+                    continue
+                held = held_variant(old_sets.ego_lanes, ego[:, 1], scenario.road, assumptions)
+                same = (vehicles[..., 0] - old_x).abs() < 45.0 * ago * scenario.period  # not moved by the window
+                kept = old_near & same & mask  # crashed is for good: a car crashed since is not checked
+                gone = outside(old_sets, ago - 1, vehicles, held, assumptions) & kept
+                assert not bool(gone.any()), (name, step, ago)
+                checked += int(kept.sum())
+            history = (history + [(sets, near, vehicles[..., 0].clone())])[-10:]
+            episodes.step(torch.zeros(16, 2))
+        assert checked > 5000
+
+
+def test_a_monitor_flags_a_car_that_brakes_harder_than_assumed():
+    monitor = AssumptionMonitor(ROAD, 0.1)
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0).reshape(1, 6)
+    before = torch.tensor([[[30.0, 4.0, 20.0, 0.0], [30.0, 8.0, 20.0, 0.0]]])
+    assert monitor.observe([0], ego, before, None).tolist() == [0]
+    # car 0 stops dead (a crashed car's -v per second), car 1 brakes at 5 m/s^2
+    after = torch.tensor([[[31.0, 4.0, 0.0, 0.0], [31.975, 8.0, 19.5, 0.0]]])
+    ego_after = mmpc.ego_state(2.0, 4.0, 0.0, 20.0).reshape(1, 6)
+    assert monitor.observe([0], ego_after, after, None).tolist() == [1]
+
+
+def test_the_check_keeps_the_stopping_distance_to_a_car_ahead():
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
+    # The ego stops in 40 m at 5 m/s^2; the car ahead at 20 m/s in 33 m at 6 m/s^2.
+    assert check(ego, [[40.0, 4.0, 20.0, 0.0]])
+    assert not check(ego, [[12.0, 4.0, 20.0, 0.0]])
+    assert not check(ego, [[45.0, 4.0, 0.0, 0.0]])  # stopped traffic within the stopping distance
+    assert check(ego, [[80.0, 4.0, 0.0, 0.0]])
+    # Speeding up towards it is refused where holding the speed is not.
+    assert check(ego, [[21.0, 4.0, 20.0, 0.0]])
+    assert not check(ego, [[21.0, 4.0, 20.0, 0.0]], acceleration=5.0)
+
+
+def test_a_car_beside_may_not_cut_in_ahead_of_the_moving_ego_unless_it_is_changing_lane_already():
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
+    beside = [5.0, 8.0, 20.0, 0.0]
+    assert check(ego, [beside])  # MOBIL's safety criterion keeps it in its lane
+    assert not check(ego, [beside], mobil_safety=False)
+    assert not check(ego, [[5.0, 7.0, 20.0, -2.0]])  # decided before now: it comes
+    assert check(ego, [[5.0, 9.0, 20.0, 2.0]])  # changing away
+
+
+def test_a_car_behind_answers_for_its_own_distance():
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
+    assert check(ego, [[-8.0, 4.0, 30.0, 0.0]])  # in the ego's lane
+    assert check(ego, [[-8.0, 8.0, 30.0, -2.0]])  # entering the ego's lane behind it
+
+
+def test_the_check_is_refused_nothing_on_an_empty_road():
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 25.0).reshape(1, 6)
+    verifier = Verifier(ROAD)
+    verdict = verifier.check(ego, torch.zeros(1, 0, 4), torch.zeros(1, 0, dtype=torch.bool), torch.tensor([[5.0]]),
+                             torch.tensor([[0.0]]))
+    assert verdict.verified.tolist() == [[True]]
+    assert verdict.lane.tolist() == [[1]] and verdict.deceleration.tolist() == [[5.0]]
+
+
+class Reckless(Driver):
+    """Asks for full acceleration, straight ahead, always."""
+
+    name = "reckless"
+
+    def decide(self, observation: Observation) -> Decision:
+        count = observation.ego.shape[0]
+        return Decision.command_only(torch.full((count,), 5.0), torch.zeros(count), 0.0)
+
+
+def adversarial_traffic(verified: bool) -> tuple[torch.Tensor, float]:
+    """A reckless driver behind the check, 32 environments x 12 s: a leader that brakes as hard as
+    allowed at random moments, cars beside that accelerate and brake at random, and a car in the
+    next lane that, once ahead of the ego, cuts in as soon as it is no longer the ego's leader
+    by the rule. Returns which environments collided and the ego's mean speed [m/s]."""
+    generator = torch.Generator().manual_seed(0)
+    envs, sim = 32, SimConfig(lanes=4)
+    verifier = Verifier(ROAD, sim)
+    driver = VerifiedDriver(Reckless(), verifier) if verified else Reckless()
+    driver.reset(envs)
+    body = Body(torch.zeros(envs), torch.full((envs,), 4.0), torch.zeros(envs), torch.full((envs,), 20.0))
+    # cars: leader in the ego's lane, two in lane 0 and 2 around the ego, one far in lane 2
+    x = torch.stack([torch.full((envs,), 40.0), torch.full((envs,), -10.0), torch.full((envs,), 25.0),
+                     torch.full((envs,), 60.0)], dim=1) + torch.rand(envs, 4, generator=generator) * 10
+    y = torch.tensor([4.0, 0.0, 8.0, 8.0]).expand(envs, 4).clone()
+    speed = torch.tensor([18.0, 22.0, 19.0, 15.0]).expand(envs, 4).clone()
+    vy = torch.zeros(envs, 4)
+    collided = torch.zeros(envs, dtype=torch.bool)
+    period, speeds = 0.1, []
+    for step in range(120):
+        ego = torch.stack([body.x, body.y, body.heading, body.speed, torch.zeros(envs), torch.zeros(envs)], dim=1)
+        vehicles = torch.stack([x, y, speed, vy], dim=2)
+        decision = driver.decide(Observation(ego, vehicles, torch.ones(envs, 4, dtype=torch.bool)))
+        # traffic within the assumptions: accelerations in [-6, 3], no reversing; lateral moves
+        # only into a lane where the ego is not the nearest follower (the rule), at 2 m/s
+        brake = torch.rand(envs, 4, generator=generator) < 0.05
+        acceleration = torch.where(brake, torch.full((envs, 4), -6.0), torch.rand(envs, 4, generator=generator) * 9 - 6)
+        acceleration[:, 3] = -6.0  # the far car brakes to rest: a wall
+        ego_on_lane_1 = (counted_lanes(body.y, ROAD, 1.0) == 1).any(dim=1)  # as MOBIL counts it
+        cut_in = (x[:, 2] > body.x + 6) & ~ego_on_lane_1 & (y[:, 2] > 4.0)  # the ego not its follower there: may enter
+        vy = torch.zeros(envs, 4)
+        vy[:, 2] = torch.where(cut_in | ((y[:, 2] < 8.0) & (y[:, 2] > 4.0)), -2.0, 0.0)
+        y = torch.clamp(y + vy * period, min=torch.tensor([4.0, 0.0, 4.0, 8.0]))
+        x = x + speed * period
+        speed = (speed + acceleration * period).clamp_min(0.0)
+        body = drive(body, decision.acceleration, decision.steering, verifier.length, sim)
+        hits = rectangle_meets_box(body.x[:, None], body.y[:, None], body.heading[:, None], 2.5, 1.0, x - 2.5, x + 2.5,
+                                   y - 1.0, y + 1.0)
+        collided |= hits.any(dim=1)
+        speeds.append(body.speed.mean())
+    return collided, float(torch.stack(speeds).mean())
+
+
+def test_verified_driving_never_collides_with_adversarial_traffic_within_the_assumptions():
+    collided, speed = adversarial_traffic(verified=True)
+    assert not bool(collided.any())
+    assert speed > 5.0  # it drives
+    reckless, _ = adversarial_traffic(verified=False)
+    assert int(reckless.sum()) > len(reckless) // 2  # the traffic is a threat
+
+
+def test_the_verified_spec_wraps_any_driver_and_fills_the_new_columns():
+    scenario = load_scenario("high_speed", {"sim": "batched", "duration": 1.0})
+    driver = make_driver("verified:frenet", scenario)
+    assert isinstance(driver, VerifiedDriver) and driver.name == "verified:frenet"
+    (result,) = run_lockstep(scenario, [3], driver=driver)
+    assert 0.0 <= result.metrics["verified_share"] <= 1.0
+    assert result.metrics["failsafe_steps"] >= 0
+    (plain,) = run_lockstep(scenario, [3], driver=make_driver("frenet", scenario))
+    assert plain.metrics["verified_share"] is None and plain.metrics["failsafe_steps"] == 0
+    with pytest.raises(ValueError, match="verified:mpc"):
+        make_driver("verified", scenario)
