@@ -124,6 +124,13 @@ def crash_scene(
     )
 
 
+def collider_index(ego: tuple[float, float, float], others: Sequence[Sequence[float]], vehicle: tuple[float, float]) -> Optional[int]:
+    """Which of ``others`` (x, y, ...) :func:`crash_scene` takes for the collider of the ego at
+    (x, y, psi): the nearest in footprint units; ``None`` without others."""
+    nearest = _nearest(ego, others, vehicle)
+    return None if nearest is None else nearest[0]
+
+
 def _nearest(
     ego: tuple[float, float, float], others: Sequence[Sequence[float]], vehicle: tuple[float, float]
 ) -> Optional[tuple[int, float, float]]:

@@ -60,7 +60,7 @@ def test_the_batched_simulators_cars_stay_in_their_sets():
         for step in range(int(12.0 * scenario.frequency)):
             ego, vehicles, mask = episodes.road_state()
             mask = mask & ~episodes.state.crashed[:, 1:]
-            assert int(monitor.observe(list(range(16)), ego, vehicles, mask).sum()) == 0, (name, step)
+            assert not bool(monitor.observe(torch.arange(16), ego, vehicles, mask).any()), (name, step)
             near = mask & ((vehicles[..., 0] - ego[:, None, 0]).abs() < 80.0)
             sets = occupancy(ego, vehicles, near, scenario.road, times, assumptions, fault_rule=False)
             for ago, (old_sets, old_near, old_x) in enumerate(reversed(history), start=1):
@@ -81,11 +81,13 @@ def test_a_monitor_flags_a_car_that_brakes_harder_than_assumed():
     monitor = AssumptionMonitor(ROAD, 0.1)
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0).reshape(1, 6)
     before = torch.tensor([[[30.0, 4.0, 20.0, 0.0], [30.0, 8.0, 20.0, 0.0]]])
-    assert monitor.observe([0], ego, before, None).tolist() == [0]
+    assert monitor.observe(torch.tensor([0]), ego, before, None).tolist() == [[False, False]]
     # car 0 stops dead (a crashed car's -v per second), car 1 brakes at 5 m/s^2
     after = torch.tensor([[[31.0, 4.0, 0.0, 0.0], [31.975, 8.0, 19.5, 0.0]]])
     ego_after = mmpc.ego_state(2.0, 4.0, 0.0, 20.0).reshape(1, 6)
-    assert monitor.observe([0], ego_after, after, None).tolist() == [1]
+    assert monitor.observe(torch.tensor([0]), ego_after, after, None).tolist() == [[True, False]]
+    # another environment's first observation: nothing to compare with
+    assert monitor.observe(torch.tensor([1]), ego_after, after, None).tolist() == [[False, False]]
 
 
 def test_the_check_keeps_the_stopping_distance_to_a_car_ahead():
@@ -192,7 +194,36 @@ def test_the_verified_spec_wraps_any_driver_and_fills_the_new_columns():
     (result,) = run_lockstep(scenario, [3], driver=driver)
     assert 0.0 <= result.metrics["verified_share"] <= 1.0
     assert result.metrics["failsafe_steps"] >= 0
+    assert result.metrics["assumption_violations"] == 0 and result.metrics["crash_collider_outside"] is None
     (plain,) = run_lockstep(scenario, [3], driver=make_driver("frenet", scenario))
     assert plain.metrics["verified_share"] is None and plain.metrics["failsafe_steps"] == 0
     with pytest.raises(ValueError, match="verified:mpc"):
         make_driver("verified", scenario)
+
+
+def test_the_check_refuses_bad_input():
+    verifier = Verifier(ROAD)
+    ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0).reshape(1, 6)
+    cars, mask, command = torch.zeros(1, 2, 4), torch.ones(1, 2, dtype=torch.bool), torch.zeros(1, 1)
+    with pytest.raises(ValueError, match=r"`ego` must be \(E, 6\)"):
+        verifier.check(ego[0], cars, mask, command, command)
+    with pytest.raises(ValueError, match="`vehicles` must be"):
+        verifier.check(ego, cars[..., :2], mask, command, command)
+    with pytest.raises(ValueError, match="`mask` must be a bool"):
+        verifier.check(ego, cars, mask.float(), command, command)
+    with pytest.raises(ValueError, match="must be finite"):
+        verifier.check(ego, cars.clone().fill_(float("nan")), mask, command, command)
+    with pytest.raises(ValueError, match="commands must be finite"):
+        verifier.check(ego, cars, mask, command + float("inf"), command)
+    absent = cars.clone().fill_(float("nan"))  # an absent car's row is not read
+    assert verifier.check(ego, absent, ~mask, command, command).verified.tolist() == [[True]]
+
+
+def test_a_crash_says_whether_the_collider_had_left_its_set():
+    """A reckless ego runs into the traffic ahead: the car it hits kept its assumptions."""
+    scenario = load_scenario("high_speed", {"sim": "batched", "duration": 20.0})
+    results = run_lockstep(scenario, [3, 4, 5, 6], driver=Reckless())
+    crashed = [result for result in results if result.metrics["collisions"]]
+    assert crashed
+    assert all(result.metrics["crash_collider_outside"] == 0 for result in crashed)
+    assert all(result.metrics["assumption_violations"] >= 0 for result in results)

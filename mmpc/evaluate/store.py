@@ -45,7 +45,8 @@ METRIC_COLUMNS = (
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
-                          "lane_changes", "fallback_steps", "failsafe_steps", "crash_fallback_steps"})
+                          "lane_changes", "fallback_steps", "failsafe_steps", "crash_fallback_steps",
+                          "assumption_violations", "crash_collider_outside"})
 _TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker", "collision_part"})
 #: The metrics that are numbers (all but the part a collision struck).
 NUMBER_COLUMNS = tuple(column for column in METRIC_COLUMNS if column not in _TEXT_COLUMNS)

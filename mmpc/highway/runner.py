@@ -19,7 +19,7 @@ from typing import NamedTuple, Optional, Sequence
 
 import torch
 
-from mmpc.collisions import CRASH_COLUMNS, Crash, crash_scene, is_ego_fault
+from mmpc.collisions import CRASH_COLUMNS, Crash, collider_index, crash_scene, is_ego_fault
 from mmpc.drivers import Decision, Driver, Observation, make_driver
 from mmpc.footprint import ellipse_distance_squared
 from mmpc.highway.episode import HighwayEpisode
@@ -28,6 +28,7 @@ from mmpc.metrics import StepRecord, episode_metrics
 from mmpc.plotting import plot_episode
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
 from mmpc.scenario import CruiseObjective, ScenarioConfig
+from mmpc.verify import AssumptionMonitor
 
 logger = logging.getLogger(__name__)
 
@@ -103,13 +104,16 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
     ]
 
 
-def _crash_scene(impact: Observation, scenario: ScenarioConfig) -> Optional[Crash]:
+def _crash_scene(impact: Observation, scenario: ScenarioConfig) -> tuple[Optional[Crash], Optional[int]]:
     """The scene of a collision (:func:`mmpc.collisions.crash_scene`), from the state at its impact (E = 1,
-    :meth:`mmpc.highway.worlds.World.observe_impact`)."""
+    :meth:`mmpc.highway.worlds.World.observe_impact`), and the collider's slot in the observation (``None``: no car)."""
     ego = impact.ego[0]
-    vehicles = impact.vehicles[0] if impact.vehicle_mask is None else impact.vehicles[0][impact.vehicle_mask[0]]
-    return crash_scene((float(ego[EGO_X]), float(ego[EGO_Y]), float(ego[EGO_PSI]), float(ego[EGO_V])),
-                       vehicles.tolist(), scenario.vehicle, scenario.road.lane_width)
+    slots = torch.arange(impact.vehicles.shape[1]) if impact.vehicle_mask is None else impact.vehicle_mask[0].nonzero().squeeze(1)
+    vehicles = impact.vehicles[0][slots].tolist()
+    pose = (float(ego[EGO_X]), float(ego[EGO_Y]), float(ego[EGO_PSI]))
+    crash = crash_scene((*pose, float(ego[EGO_V])), vehicles, scenario.vehicle, scenario.road.lane_width)
+    index = collider_index(pose, vehicles, scenario.vehicle)
+    return crash, None if index is None else int(slots[index])
 
 
 def _crash_metrics(crash: Optional[Crash], records: list[StepRecord], frequency: float) -> dict:
@@ -125,8 +129,10 @@ def _crash_metrics(crash: Optional[Crash], records: list[StepRecord], frequency:
     }
 
 
-def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], crash: Optional[Crash]) -> EpisodeResult:
-    """The episode's result; ``crash``: its collision's scene (``None``: no collision, or no car found)."""
+def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], crash: Optional[Crash],
+            monitored: "_Monitored") -> EpisodeResult:
+    """The episode's result; ``crash``: its collision's scene (``None``: no collision, or no car found);
+    ``monitored``: what the assumption monitor found in it."""
     v_cruise = scenario.objective.v_cruise if isinstance(scenario.objective, CruiseObjective) else None
     metrics = episode_metrics(records, dt=scenario.period, right_lane_y=scenario.road.right_lane_y, v_cruise=v_cruise,
                               lane_width=scenario.road.lane_width)
@@ -135,10 +141,32 @@ def _result(scenario: ScenarioConfig, seed: int, records: list[StepRecord], cras
     metrics["collision_part"] = part
     metrics["ego_fault_collisions"] = int(crashed and (part is None or is_ego_fault(part)))  # unknown: the ego's
     metrics.update(_crash_metrics(crash if crashed else None, records, scenario.frequency))
+    metrics["assumption_violations"] = monitored.violations
+    metrics["crash_collider_outside"] = monitored.collider_outside if crashed else None
     if crashed:
         logger.warning("scenario %s seed %d: collision at t = %.1f s (%s struck)", scenario.name, seed, records[-1].time,
                        part or "no car found")
     return EpisodeResult(scenario, seed, records, {"scenario": scenario.name, "seed": seed, **metrics})
+
+
+class _Monitored:
+    """What :class:`mmpc.verify.AssumptionMonitor` found in one episode: how many times a car left
+    its set, which cars did in the last second, and whether the collider was one of them."""
+
+    def __init__(self, frequency: float) -> None:
+        self.violations = 0
+        self.recent: list[torch.Tensor] = []  # (M,) bool per step of the last second
+        self.window = max(1, round(frequency))
+        self.collider_outside: Optional[int] = None
+
+    def add(self, broke: torch.Tensor) -> None:
+        self.violations += int(broke.sum())
+        self.recent = (self.recent + [broke])[-self.window:]
+
+    def crashed_with(self, slot: Optional[int]) -> None:
+        """The collider is car ``slot`` (``None``: unknown): 1 if it left its set in the last second, else 0."""
+        if slot is not None:
+            self.collider_outside = int(any(slot < len(broke) and bool(broke[slot]) for broke in self.recent))
 
 
 class Step(NamedTuple):
@@ -277,6 +305,8 @@ def run_lockstep(
     world: Optional[World] = None
     records: list[list[StepRecord]] = [[] for _ in seeds]
     crashes: dict[int, Optional[Crash]] = {}  # environment -> its collision's scene
+    monitor = AssumptionMonitor(scenario.road, scenario.period)
+    monitored = [_Monitored(scenario.frequency) for _ in seeds]
     try:
         if video is not None:
             observers.insert(0, _VideoObserver(video, scenario.frequency))
@@ -295,6 +325,9 @@ def run_lockstep(
             decision = driver.decide(observation.to(driver.device))
             # Records and observers read the host: one copy of each per-environment field per step.
             observation, decision = observation.to("cpu"), decision.commands_to("cpu")
+            broke = monitor.observe(torch.tensor(active), observation.ego, observation.vehicles, observation.vehicle_mask)
+            for row, i in enumerate(active):
+                monitored[i].add(broke[row])
             for observer in observers:
                 observer.decided(observation, decision, active)
             world.apply(active, decision.acceleration, decision.steering)
@@ -309,7 +342,8 @@ def run_lockstep(
                         observer.applied(step)
                 if ended[i]:
                     if episodes[i].ego.crashed:
-                        crashes[i] = _crash_scene(world.observe_impact(i), scenario)
+                        crashes[i], collider = _crash_scene(world.observe_impact(i), scenario)
+                        monitored[i].crashed_with(collider)
                     for observer in observers:
                         observer.finished(i, episodes[i])
             active = [i for i in active if not ended[i]]
@@ -318,7 +352,7 @@ def run_lockstep(
             observer.close()
         if world is not None:
             world.close()
-    return [_result(scenario, seed, rows, crashes.get(i)) for i, (seed, rows) in enumerate(zip(seeds, records))]
+    return [_result(scenario, seed, rows, crashes.get(i), monitored[i]) for i, (seed, rows) in enumerate(zip(seeds, records))]
 
 
 def write_outputs(result: EpisodeResult, out: Path) -> list[Path]:

@@ -58,7 +58,7 @@ def held_variant(ego_lanes: torch.Tensor, y: torch.Tensor, road: Road, assumptio
 
 
 class AssumptionMonitor:
-    """Counts, per environment, the cars that left the set predicted for them one step before.
+    """Finds, every step, the cars that left the set predicted for them one step before.
 
     Args:
         road: the road.
@@ -68,8 +68,8 @@ class AssumptionMonitor:
             are checked [m] (the batched world moves cars that drift out of its window to its
             other end: a new car in an old slot).
 
-    Use: :meth:`observe` every step with the environments' ids and observation; it returns the
-    (E,) violations found since the last observation of each environment (0 at its first).
+    Use: :meth:`observe` every step with the environments' ids and observation; it returns
+    which cars broke the assumptions since the last observation of their environment.
     """
 
     def __init__(self, road: Road, period: float, assumptions: TrafficAssumptions = TrafficAssumptions(),
@@ -77,16 +77,18 @@ class AssumptionMonitor:
         if not (period > 0 and reach > 0):
             raise ValueError(f"AssumptionMonitor: `period` and `reach` must be > 0; got {period!r}, {reach!r}")
         self.road, self.period, self.assumptions, self.reach = road, period, assumptions, reach
-        self._last: dict[int, tuple[Occupancy, torch.Tensor, torch.Tensor]] = {}
+        self._last: Optional[tuple[torch.Tensor, Occupancy, torch.Tensor, torch.Tensor]] = None  # ids, sets, mask, speed
 
     def reset(self) -> None:
-        self._last = {}
+        self._last = None
 
-    def observe(self, ids: list[int], ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor]) -> torch.Tensor:
-        """(E,) long: cars of each environment outside their set since its last observation.
+    @torch.no_grad()
+    def observe(self, ids: torch.Tensor, ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor]) -> torch.Tensor:
+        """(E, M) bool: the cars outside their set (footprint or speed) since the last observation
+        of their environment (False at its first, or where its number of slots changed).
 
         Args:
-            ids: the E environments' ids (stable over an episode; slots of ``vehicles`` name the same car).
+            ids: (E,) long environment ids, stable over an episode (slots of ``vehicles`` name the same car).
             ego: (E, 6) ego states; vehicles (E, M, 4); mask (E, M) bool (``None``: all present).
         """
         mask = torch.ones(vehicles.shape[:2], dtype=torch.bool) if mask is None else mask
@@ -94,17 +96,20 @@ class AssumptionMonitor:
         times = torch.tensor([0.0, self.period], dtype=vehicles.dtype)
         sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False)
         speed = torch.hypot(vehicles[..., 2], vehicles[..., 3])
+        broke = torch.zeros_like(mask)
+        last, self._last = self._last, (ids, sets, mask, speed)
+        if last is None or last[1].x_low.shape[1] != vehicles.shape[1]:
+            return broke
+        last_ids, previous, previous_mask, previous_speed = last
+        match = ids[:, None] == last_ids[None, :]
+        seen = match.any(dim=1)
+        rows = match.int().argmax(dim=1)
+        previous = Occupancy(*(field[rows] for field in previous))
         a, tolerance = self.assumptions, 1e-3
-        counts = torch.zeros(len(ids), dtype=torch.long)
-        for row, env in enumerate(ids):
-            last = self._last.get(env)
-            if last is not None and last[0].x_low.shape[1] == vehicles.shape[1]:
-                previous, previous_mask, previous_speed = last
-                held = held_variant(previous.ego_lanes, ego[row:row + 1, 1], self.road, self.assumptions)
-                gone = outside(previous, 0, vehicles[row:row + 1], held, self.assumptions)[0]
-                gone |= speed[row] < previous_speed - a.max_deceleration * self.period - tolerance
-                gone |= speed[row] > torch.minimum(previous_speed + a.max_acceleration * self.period,
-                                                   previous_speed.clamp_min(a.speed_limit)) + tolerance
-                counts[row] = int((gone & previous_mask & mask[row]).sum())
-            self._last[env] = (Occupancy(*(field[row:row + 1] for field in sets)), mask[row], speed[row])
-        return counts
+        held = held_variant(previous.ego_lanes, ego[:, 1], self.road, a)
+        previous_speed = previous_speed[rows]
+        broke = outside(previous, 0, vehicles, held, a)
+        broke |= speed < previous_speed - a.max_deceleration * self.period - tolerance
+        broke |= speed > torch.minimum(previous_speed + a.max_acceleration * self.period,
+                                       previous_speed.clamp_min(a.speed_limit)) + tolerance
+        return broke & previous_mask[rows] & mask & seen[:, None]

@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import torch
 
+from mmpc.problem import EGO_V
 from mmpc.road import Road
 from mmpc.sim.config import SimConfig
 from mmpc.verify.assumptions import TrafficAssumptions
@@ -77,7 +78,7 @@ class Verifier:
 
     def frames(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor) -> int:
         """Fail-safe frames that bring every ego and every car's slowest motion to rest (at most the horizon)."""
-        fastest = ego[:, 3].amax() if ego.shape[0] else ego.new_zeros(())
+        fastest = ego[:, EGO_V].amax() if ego.shape[0] else ego.new_zeros(())
         if mask.any():
             fastest_car = torch.hypot(vehicles[..., 2], vehicles[..., 3])[mask].amax()
             rest = torch.maximum(fastest / min(self.failsafes.decelerations), fastest_car / self.assumptions.max_deceleration)
@@ -98,7 +99,11 @@ class Verifier:
 
         Returns:
             The :class:`Verdict`.
+
+        Raises:
+            ValueError: shapes other than these, or a NaN/inf state or command of a present car.
         """
+        _check_inputs(ego, vehicles, mask, acceleration, steering)
         num_envs, num_candidates = acceleration.shape
         frames = self.frames(ego, vehicles, mask)
         times = torch.arange(frames + 2, dtype=ego.dtype, device=ego.device) * self.period
@@ -157,3 +162,22 @@ def _pose_hull(bound: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The bounds (..., T) of T intervals as seen from the T + 1 poses between them: for pose i
     those of intervals i - 1 and i (the first and last pose: their one interval, twice)."""
     return torch.cat([bound[..., :1], bound], dim=-1), torch.cat([bound, bound[..., -1:]], dim=-1)
+
+
+def _check_inputs(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
+                  steering: torch.Tensor) -> None:
+    """:meth:`Verifier.check`'s inputs: shapes that agree and finite values, or a ValueError saying what came."""
+    envs = ego.shape[0] if ego.dim() == 2 else -1
+    if ego.dim() != 2 or ego.shape[1] != 6:
+        raise ValueError(f"`ego` must be (E, 6) ego states; got shape {tuple(ego.shape)}")
+    if vehicles.dim() != 3 or vehicles.shape[0] != envs or vehicles.shape[2] != 4:
+        raise ValueError(f"`vehicles` must be (E={envs}, M, 4) x, y, vx, vy; got shape {tuple(vehicles.shape)}")
+    if mask.shape != vehicles.shape[:2] or mask.dtype != torch.bool:
+        raise ValueError(f"`mask` must be a bool tensor of shape {tuple(vehicles.shape[:2])}; got {mask.dtype} {tuple(mask.shape)}")
+    if acceleration.dim() != 2 or acceleration.shape[0] != envs or steering.shape != acceleration.shape:
+        raise ValueError(f"`acceleration` and `steering` must be (E={envs}, K) each; got {tuple(acceleration.shape)} "
+                         f"and {tuple(steering.shape)}")
+    if not bool(ego.isfinite().all()) or not bool(vehicles[mask].isfinite().all()):
+        raise ValueError("the ego states and the present cars must be finite; got NaN or inf")
+    if not (bool(acceleration.isfinite().all()) and bool(steering.isfinite().all())):
+        raise ValueError("the candidate commands must be finite; got NaN or inf")
