@@ -187,6 +187,19 @@ def test_verified_driving_never_collides_with_adversarial_traffic_within_the_ass
     assert int(reckless.sum()) > len(reckless) // 2  # the traffic is a threat
 
 
+def test_an_evaluation_writes_the_verification_columns(tmp_path):
+    from mmpc.evaluate import evaluate
+    from mmpc.evaluate.store import read_episodes
+    from mmpc.evaluate.tasks import EvaluationConfig
+
+    scenario = load_scenario("high_speed", {"sim": "batched", "duration": 1.0})
+    evaluate([scenario], tmp_path, EvaluationConfig(drivers=("verified:frenet", "frenet"), seeds=(3,), report=False))
+    rows = {row["driver"]: row for row in read_episodes(tmp_path / "episodes.csv")}
+    assert 0.0 <= rows["verified:frenet"]["verified_share"] <= 1.0 and rows["frenet"]["verified_share"] is None
+    assert rows["verified:frenet"]["assumption_violations"] == 0 and rows["frenet"]["failsafe_steps"] == 0
+    assert rows["frenet"]["crash_collider_outside"] is None
+
+
 def test_the_verified_spec_wraps_any_driver_and_fills_the_new_columns():
     scenario = load_scenario("high_speed", {"sim": "batched", "duration": 1.0})
     driver = make_driver("verified:frenet", scenario)

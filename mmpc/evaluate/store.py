@@ -35,13 +35,15 @@ KEY_COLUMNS = ("driver", "scenario", "seed")
 RUN_COLUMNS = ("status", "error", "group", "group_size", "worker", "wall_s")
 #: The episode metrics (:func:`mmpc.metrics.episode_metrics`; empty where a scenario has none),
 #: what a collision struck and whose fault it was (:class:`mmpc.highway.runner.EpisodeResult`),
-#: ``solve_ms_per_episode_mean``: each decision's time divided by the episodes it served, and the
-#: crash's scene (:data:`mmpc.collisions.CRASH_COLUMNS`; empty without a collision).
+#: ``solve_ms_per_episode_mean``: each decision's time divided by the episodes it served, the
+#: crash's scene (:data:`mmpc.collisions.CRASH_COLUMNS`; empty without a collision), and what the
+#: assumption monitor saw (:class:`mmpc.verify.AssumptionMonitor`: cars that left their sets; whether the collider had).
 METRIC_COLUMNS = (
     "steps", "duration", "collisions", "collision_part", "ego_fault_collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
     "task_return", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "iterations_mean", "lane_changes", "fallback_steps", "verified_share",
-    "failsafe_steps", "min_clearance", "off_centre_share", "lane_change_s_mean", *CRASH_COLUMNS,
+    "failsafe_steps", "min_clearance", "off_centre_share", "lane_change_s_mean", "assumption_violations", *CRASH_COLUMNS,
+    "crash_collider_outside",
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
