@@ -2,8 +2,9 @@
 
 Scenes of :mod:`mmpc.highway.stopped_traffic` (a wall of stopped cars across a 3-lane road, one stopped
 car on a 1-lane road, a car that cuts in and brakes hard; ego speeds 10-30 m/s; gaps of 1.3-5x
-the braking distance at the optimizer's acceleration bound), each driven by the MPC, the Frenet
-baseline (whose fallback is the MPC's) and the safe RL layer under a uniformly random agent.
+the braking distance at the optimizer's acceleration bound), each driven by the MPC, the MPC behind
+the verification (``verified:mpc``), the Frenet baseline (whose fallback is the MPC's) and the safe RL
+layer under a uniformly random agent.
 Prints a table and writes JSON.
 
     python scripts/bench_stopped_traffic.py --out benchmarks/bench_stopped_traffic.json
@@ -24,7 +25,7 @@ from mmpc.highway.runner import run_episode
 from mmpc.scenario import load_scenario
 from mmpc.highway.stopped_traffic import LAYOUTS, stopped_traffic_grid, stopped_traffic_scene
 
-DRIVERS = ("mpc", "frenet", "safe_rl_random")
+DRIVERS = ("mpc", "verified:mpc", "frenet", "safe_rl_random")
 
 
 def drive_random_agent(scenario, seed: int) -> dict:
