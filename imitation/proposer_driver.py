@@ -231,7 +231,6 @@ def make_proposer_driver(scenario: ScenarioConfig, argument: Optional[str]) -> D
     return ProposerDriver(build_mpc(scenario), proposer_from_checkpoint(checkpoint), keep=keep, name=f"proposer:{argument}")
 
 
-
 def proposer_files(argument: Optional[str]) -> tuple[Path, ...]:
     """The file the driver of ``proposer:ARGUMENT`` reads (:func:`mmpc.drivers.driver_files`); none where it names none."""
     path = proposer_checkpoint(argument) if argument else None

@@ -18,7 +18,8 @@ from mmpc.sim import SimConfig, SimEpisodes
 from mmpc.verify import AssumptionMonitor, TrafficAssumptions, Verifier, counted_lanes, occupancy
 from mmpc.verify.failsafe import Body, drive
 from mmpc.verify.geometry import rectangle_meets_box
-from mmpc.verify.monitor import held_variant, outside
+from mmpc.verify.monitor import outside
+from mmpc.verify.occupancy import held_variant
 
 ROAD = Road(num_lanes=4)
 
@@ -66,7 +67,7 @@ def test_the_batched_simulators_cars_stay_in_their_sets():
             for ago, (old_sets, old_near, old_x) in enumerate(reversed(history), start=1):
                 if ago not in (5, 10):
                     continue
-                held = held_variant(old_sets.ego_lanes, ego[:, 1], scenario.road, assumptions)
+                held = held_variant(old_sets.ego_lanes, ego[:, 1, None], scenario.road, assumptions.lane_margin)
                 same = (vehicles[..., 0] - old_x).abs() < 45.0 * ago * scenario.period  # not moved by the window
                 kept = old_near & same & mask  # crashed is for good: a car crashed since is not checked
                 gone = outside(old_sets, ago - 1, vehicles, held, assumptions) & kept

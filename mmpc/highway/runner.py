@@ -159,8 +159,9 @@ class _Monitored:
         self.window = max(1, round(frequency))
         self.collider_outside: Optional[int] = None
 
-    def add(self, broke: torch.Tensor) -> None:
-        self.violations += int(broke.sum())
+    def add(self, count: int, broke: torch.Tensor) -> None:
+        """A step's (M,) bool cars outside their sets, ``count`` of them."""
+        self.violations += count
         self.recent = (self.recent + [broke])[-self.window:]
 
     def crashed_with(self, slot: Optional[int]) -> None:
@@ -326,8 +327,8 @@ def run_lockstep(
             # Records and observers read the host: one copy of each per-environment field per step.
             observation, decision = observation.to("cpu"), decision.commands_to("cpu")
             broke = monitor.observe(torch.tensor(active), observation.ego, observation.vehicles, observation.vehicle_mask)
-            for row, i in enumerate(active):
-                monitored[i].add(broke[row])
+            for i, count, cars in zip(active, broke.sum(dim=1).tolist(), broke):
+                monitored[i].add(count, cars)
             for observer in observers:
                 observer.decided(observation, decision, active)
             world.apply(active, decision.acceleration, decision.steering)

@@ -12,9 +12,10 @@ from typing import NamedTuple, Optional
 
 import torch
 
+from mmpc.problem import EGO_X, EGO_Y
 from mmpc.road import Road
 from mmpc.verify.assumptions import TrafficAssumptions
-from mmpc.verify.occupancy import Occupancy, counted_lanes, occupancy
+from mmpc.verify.occupancy import Occupancy, body_reach, held_variant, occupancy
 
 
 class Footprints(NamedTuple):
@@ -29,11 +30,7 @@ class Footprints(NamedTuple):
 def footprints(vehicles: torch.Tensor, assumptions: TrafficAssumptions) -> Footprints:
     """The footprint bounds of (E, M, 4) cars (x, y [m], vx, vy [m/s]), bodies of the assumed size."""
     x, y, vx, vy = vehicles.unbind(dim=-1)
-    heading = torch.atan2(vy, vx)
-    cos, sin = torch.cos(heading).abs(), torch.sin(heading).abs()
-    half_length, half_width = 0.5 * assumptions.length, 0.5 * assumptions.width
-    along = half_length * cos + half_width * sin
-    across = half_length * sin + half_width * cos
+    along, across = body_reach(vx, vy, assumptions)
     return Footprints(x - along, x + along, y - across, y + across)
 
 
@@ -47,14 +44,6 @@ def outside(sets: Occupancy, interval: int, later: torch.Tensor, held: torch.Ten
     y_low, y_high = sets.y_low[rows, held, :, interval], sets.y_high[rows, held, :, interval]
     return ((actual.x_low < sets.x_low[..., interval] - tolerance) | (actual.x_high > sets.x_high[..., interval] + tolerance)
             | (actual.y_low < y_low - tolerance) | (actual.y_high > y_high + tolerance))
-
-
-def held_variant(ego_lanes: torch.Tensor, y: torch.Tensor, road: Road, assumptions: TrafficAssumptions) -> torch.Tensor:
-    """(E,) long variant: which of ``ego_lanes`` (E, 2) (the ego's lanes when the sets were made)
-    the ego, now at lateral positions ``y`` (E,) [m], still counts on."""
-    now = counted_lanes(y, road, assumptions.lane_margin)  # (E, 2)
-    held = [((now == ego_lanes[:, j, None]).any(dim=-1) & (ego_lanes[:, j] >= 0)).long() for j in range(2)]
-    return held[0] + 2 * held[1]
 
 
 class AssumptionMonitor:
@@ -92,7 +81,7 @@ class AssumptionMonitor:
             ego: (E, 6) ego states; vehicles (E, M, 4); mask (E, M) bool (``None``: all present).
         """
         mask = torch.ones(vehicles.shape[:2], dtype=torch.bool) if mask is None else mask
-        mask = mask & ((vehicles[..., 0] - ego[:, None, 0]).abs() <= self.reach)
+        mask = mask & ((vehicles[..., 0] - ego[:, None, EGO_X]).abs() <= self.reach)
         times = torch.tensor([0.0, self.period], dtype=vehicles.dtype)
         sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False)
         speed = torch.hypot(vehicles[..., 2], vehicles[..., 3])
@@ -106,7 +95,7 @@ class AssumptionMonitor:
         rows = match.int().argmax(dim=1)
         previous = Occupancy(*(field[rows] for field in previous))
         a, tolerance = self.assumptions, 1e-3
-        held = held_variant(previous.ego_lanes, ego[:, 1], self.road, a)
+        held = held_variant(previous.ego_lanes, ego[:, EGO_Y, None], self.road, a.lane_margin)
         previous_speed = previous_speed[rows]
         broke = outside(previous, 0, vehicles, held, a)
         broke |= speed < previous_speed - a.max_deceleration * self.period - tolerance

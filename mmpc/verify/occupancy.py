@@ -66,6 +66,25 @@ def counted_lanes(y: torch.Tensor, road: Road, margin: float) -> torch.Tensor:
     return torch.stack([nearest, torch.where(counts, other, -1)], dim=-1)
 
 
+def held_variant(ego_lanes: torch.Tensor, path_y: torch.Tensor, road: Road, margin: float) -> torch.Tensor:
+    """Which of the ego's lanes a manoeuvre holds, as a :data:`HELD_VARIANTS` index: bit j set where
+    the ego, at every lateral position of ``path_y`` (E, ..., P) [m], counts on ``ego_lanes[:, j]``
+    ((E, 2), -1: none; :func:`counted_lanes` with ``margin``). Returns (E, ...) long."""
+    counted = counted_lanes(path_y, road, margin)  # (E, ..., P, 2)
+    lanes = ego_lanes.view(ego_lanes.shape[0], *[1] * (path_y.dim() - 1), 2)  # (E, 1, ..., 1, 2)
+    held = ((counted[..., :, None] == lanes[..., None, :]).any(dim=-2) & (lanes >= 0)).all(dim=-2)  # (E, ..., 2)
+    return held[..., 0].long() + 2 * held[..., 1].long()
+
+
+def body_reach(vx: torch.Tensor, vy: torch.Tensor, assumptions: TrafficAssumptions) -> tuple[torch.Tensor, torch.Tensor]:
+    """Half extents (along, across the road) [m] of bodies of the assumed size heading along their
+    velocity (vx, vy) [m/s], any shape."""
+    heading = torch.atan2(vy, vx)
+    cos, sin = torch.cos(heading).abs(), torch.sin(heading).abs()
+    half_length, half_width = 0.5 * assumptions.length, 0.5 * assumptions.width
+    return half_length * cos + half_width * sin, half_length * sin + half_width * cos
+
+
 def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, road: Road, times: torch.Tensor,
               assumptions: TrafficAssumptions, *, fault_rule: bool = True) -> Occupancy:
     """The occupancy sets of E environments' cars over the intervals of ``times``.
@@ -104,11 +123,8 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
     # Across: the footprint's edges now (heading from the velocity; at rest any heading), swung
     # out at once by a turn to ``max_heading`` (the body turns within a frame or two), then moved
     # at ``lateral_speed``.
-    heading = torch.atan2(vy, vx)
-    moving = speed > 1e-3
     turned = 0.5 * a.length * math.sin(a.max_heading) + 0.5 * a.width * math.cos(a.max_heading)
-    reach = torch.where(moving, 0.5 * a.length * torch.sin(heading).abs() + 0.5 * a.width * torch.cos(heading).abs(),
-                        torch.full_like(speed, a.half_length))
+    reach = torch.where(speed > 1e-3, body_reach(vx, vy, a)[1], torch.full_like(speed, a.half_length))
     swing = (turned - reach).clamp_min(0.0)
     edge_low, edge_high = y - reach, y + reach
     spread = swing[..., None] + a.lateral_speed * ends  # (E, M, T)
@@ -123,28 +139,29 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
     car_lanes = counted_lanes(y, road, a.lane_margin)  # (E, M, 2)
     on_ego_lane = ((car_lanes[..., :, None] == ego_lanes[:, None, None, :]) & (ego_lanes[:, None, None, :] >= 0))  # (E, M, 2, 2)
     on_ego_lane = on_ego_lane.any(dim=2)  # (E, M, 2): counted on the ego's lane j
-    behind = (x < ego[:, EGO_X, None]) & fault_rule
+    ego_x = ego[:, EGO_X, None]
+    behind = (x < ego_x) & fault_rule
     relevant = mask & ~(behind & on_ego_lane.any(dim=-1))
 
+    # Per lane j of the ego: the cars the rule keeps out of it where the manoeuvre holds it (ahead
+    # of the ego with nobody between, not bound there already) and those the fault rule always does.
+    cuts = []
+    for j in range(2):
+        blocked_lane = ego_lanes[:, j, None].expand_as(lane)  # (E, M)
+        eligible = (blocked_lane >= 0) & mask & ~on_ego_lane[..., j]
+        bound_there = (toward != 0) & (target == blocked_lane)  # decided before now: the rule no longer holds it
+        by_rule = (eligible & (x >= ego_x) & ~_cars_between(x, car_lanes, mask, ego_x, blocked_lane) & ~bound_there
+                   & a.mobil_safety)
+        cuts.append((blocked_lane, blocked_lane > lane, by_rule, eligible & behind))  # above: on the car's +y side
+
     # Lane bands: the whole road, cut on the car's side of each lane it may not enter.
-    last = road.num_lanes - 1
     low_lane = torch.zeros_like(lane)
-    high_lane = torch.full_like(lane, last)
-    ego_x = ego[:, EGO_X, None]
+    high_lane = torch.full_like(lane, road.num_lanes - 1)
     y_low, y_high = [], []
     for variant in range(HELD_VARIANTS):
         low_cut, high_cut = low_lane, high_lane
-        for j in range(2):
-            blocked_lane = ego_lanes[:, j, None].expand_as(lane)  # (E, M)
-            exists = blocked_lane >= 0
-            held = bool(variant >> j & 1)
-            # ahead of the ego with nobody between on that lane, not yet heading there
-            between = _cars_between(x, car_lanes, mask, ego_x, blocked_lane)
-            ahead = x >= ego_x
-            ahead_rule = ahead & ~between & (held and a.mobil_safety)
-            bound_there = (toward != 0) & (target == blocked_lane)  # decided before now: the rule no longer holds it
-            keeps_out = exists & mask & ~on_ego_lane[..., j] & ((ahead_rule & ~bound_there) | behind)  # behind: fault rule
-            above = blocked_lane > lane  # the blocked lane lies on the car's +y side
+        for j, (blocked_lane, above, by_rule, by_fault) in enumerate(cuts):
+            keeps_out = (by_rule | by_fault) if variant >> j & 1 else by_fault
             high_cut = torch.where(keeps_out & above, torch.minimum(high_cut, blocked_lane - 1), high_cut)
             low_cut = torch.where(keeps_out & ~above, torch.maximum(low_cut, blocked_lane + 1), low_cut)
         band_low = torch.minimum(low_cut.to(dtype) * width - a.lane_overreach, edge_low)

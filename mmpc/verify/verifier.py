@@ -19,7 +19,7 @@ from mmpc.sim.config import SimConfig
 from mmpc.verify.assumptions import TrafficAssumptions
 from mmpc.verify.failsafe import Body, FailSafes, drive, ego_body, failsafe_command, failsafe_table, rollout
 from mmpc.verify.geometry import rectangle_meets_box
-from mmpc.verify.occupancy import Occupancy, counted_lanes, occupancy
+from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
 
 
 class Verdict(NamedTuple):
@@ -131,10 +131,7 @@ class Verifier:
         """(E, K, F) bool: a path of ``poses`` (E, K, F, T + 1) meets a relevant set of ``sets`` (T
         intervals). Pose i is checked against the hull of the intervals it bounds, i - 1 and i;
         only the (environment, car, pose) triples whose bounding boxes overlap get the exact test."""
-        counted = counted_lanes(poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F, T + 1, 2)
-        held = [((counted == sets.ego_lanes[:, None, None, None, j, None]).any(dim=-1)
-                 & (sets.ego_lanes[:, None, None, None, j] >= 0)).all(dim=-1) for j in range(2)]
-        variant = held[0].long() + 2 * held[1].long()  # (E, K, F)
+        variant = held_variant(sets.ego_lanes, poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F)
         hull = [_pose_hull(bound) for bound in (sets.x_low, sets.x_high, sets.y_low, sets.y_high)]
         x_low, x_high = torch.minimum(*hull[0]), torch.maximum(*hull[1])  # (E, M, T + 1)
         y_low, y_high = torch.minimum(*hull[2]), torch.maximum(*hull[3])  # (E, H, M, T + 1)

@@ -5,7 +5,8 @@ from mmpc.scenario import load_scenario
 from mmpc.highway.runner import run_lockstep, Observer
 from mmpc.drivers import make_driver
 from mmpc.verify import TrafficAssumptions, occupancy
-from mmpc.verify.monitor import footprints, held_variant
+from mmpc.verify.monitor import footprints
+from mmpc.verify.occupancy import held_variant
 torch.set_num_threads(1)
 a = TrafficAssumptions()
 name = sys.argv[1]; n = int(sys.argv[2]); dur = float(sys.argv[3]); first = int(sys.argv[4])
@@ -27,7 +28,7 @@ class Cal(Observer):
                 h = self.step - k
                 if h < 1 or h > H: continue
                 i = h - 1
-                held = held_variant(old.ego_lanes, obs.ego[row:row+1, 1], road, a)
+                held = held_variant(old.ego_lanes, obs.ego[row:row+1, 1, None], road, a.lane_margin)
                 m = oldmask & obs.vehicle_mask[row]
                 jump = (obs.vehicles[row, :, 0] - oldx).abs() > 45.0 * h * scen.period + 5.0
                 near = (oldx - oldego).abs() < 100.0
