@@ -223,6 +223,43 @@ Objective = Union[CruiseObjective, HighSpeedObjective]
 
 
 @dataclass(frozen=True)
+class Threats:
+    """Traffic that threatens the ego as much as the rules allow (the batched simulator only).
+
+    Every car near the ego keeps IDM, MOBIL and the lane-change controller, except that, within
+    ``reach`` of the ego along the road (:mod:`mmpc.sim.threats`):
+
+    - a car ahead brakes as hard as IDM may (``SimConfig.acc_max``, to rest) in a random share of
+      time windows;
+    - a car ahead that MOBIL keeps on its lane at a decision (once a second) moves instead into a
+      lane the ego holds or is moving into wherever MOBIL's safety criterion allows it, gain or not:
+      two such cars can enter the ego's target lane from both sides; with the ego as the new follower
+      the criterion refuses, so the latest legal moment is just before the ego counts on the lane;
+    - a car behind in a lane beside the ego's speeds up as fast as IDM may, to pass and cut in.
+
+    Attributes:
+        reach: cars within this distance of the ego along the road threaten it [m].
+        brake_window: braking comes in windows of this length [s].
+        brake_share: share of a car's windows in which it brakes [-].
+        cut_in: probability that a car free to cut in at a MOBIL decision does [-].
+        overtake: whether cars behind speed up beside the ego.
+    """
+
+    reach: float = 60.0
+    brake_window: float = 2.0
+    brake_share: float = 0.3
+    cut_in: float = 1.0
+    overtake: bool = True
+
+    def __post_init__(self) -> None:
+        require_field_types(self)
+        require_positive("traffic threats", reach=self.reach, brake_window=self.brake_window)
+        for name in ("brake_share", "cut_in"):
+            value = getattr(self, name)
+            require(0.0 <= value <= 1.0, f"traffic threats: `{name}` must lie in [0, 1]; got {value!r}")
+
+
+@dataclass(frozen=True)
 class IDMTraffic:
     """highway-env's IDM/MOBIL traffic, optionally slowed down and kept around the ego.
 
@@ -238,6 +275,8 @@ class IDMTraffic:
             lane (or half of it behind) are moved away [m].
         lane_changes: whether the vehicles change lanes (MOBIL); without, each keeps its lane
             (IDM only).
+        threats: the cars near the ego threaten it within the rules (:class:`Threats`; the
+            batched simulator only); ``None``: naturalistic traffic.
     """
 
     kind: ClassVar[str] = "idm"
@@ -247,6 +286,7 @@ class IDMTraffic:
     window: Optional[tuple[float, float]] = (60.0, 200.0)
     initial_clearance: float = 25.0
     lane_changes: bool = True
+    threats: Optional[Threats] = None
 
     def __post_init__(self) -> None:
         require_field_types(self)
@@ -481,6 +521,9 @@ class ScenarioConfig:
         if self.sim == "batched":
             reason = batched_unsupported(self)
             require(reason is None, f"{where}: {reason}")
+        require(self.sim == "batched" or getattr(self.traffic, "threats", None) is None,
+                f"{where}: threatening traffic (`traffic.threats`) runs on the batched simulator only; got sim "
+                f"{self.sim!r}: set `sim: batched` (--sim batched)")
         require(self.ego.lane is None or self.ego.lane < self.lanes,
                  f"{where}: `ego.lane` must be < lanes={self.lanes}; got {self.ego.lane}")
         if isinstance(self.traffic, ScriptedTraffic):

@@ -173,6 +173,10 @@ class SafeEnvConfig:
             ``hypot(dv / intervention_speed_scale, dy / lane_width)``: a lane weighs like this
             speed difference [m/s].
         kinematics_vehicles: rows of highway-env's ``Kinematics`` observation (ego first).
+        verify: every frame's command is taken only if it keeps a verified way out
+            (:class:`mmpc.verify.Guard`: else braking, the plan's other feasible candidates, a
+            fail-safe); an override counts as an intervention. The batched simulator's
+            environments and the safe-agent drivers; highway-env's training environments refuse it.
     """
 
     decision_frames: int = 5
@@ -188,6 +192,7 @@ class SafeEnvConfig:
     intervention_penalty: float = 0.1
     intervention_speed_scale: float = 5.0
     kinematics_vehicles: int = 5
+    verify: bool = False
 
     def __post_init__(self) -> None:
         where = "env"

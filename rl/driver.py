@@ -106,12 +106,11 @@ class SafeAgentDriver(Driver):
 
     def __init__(self, run: "TrainedRun", scenario: "ScenarioConfig") -> None:
         from mmpc.rl.safety import SafetyLayer
-        from mmpc.scenario import build_mpc
 
         self.model = run.model
         self.continuous = run.continuous
         self.config = run.config.env
-        self.layer = SafetyLayer(build_mpc(scenario), self.config)
+        self.layer = SafetyLayer.for_scenario(scenario, self.config)
         self.period = scenario.period
         self.steps: dict[int, tuple["AgentStep", int]] = {}  # environment id -> its agent step, its row in it
         #: frames the layer overrode the agent (another candidate or the fallback drove), per
@@ -125,6 +124,7 @@ class SafeAgentDriver(Driver):
 
     def reset(self, num_envs: int) -> None:
         self.steps.clear()
+        self.layer.forget()
         self.intervention_frames = dict.fromkeys(range(num_envs), 0)
 
     def _choose(self, observation: Observation, due: list[int]) -> tuple[Observation, Optional["DecisionSolve"], torch.Tensor]:
@@ -172,6 +172,9 @@ class SafeAgentDriver(Driver):
         count, device = len(ids), self.device
         decision = Decision.command_only(torch.zeros(count, dtype=self.layer.mpc.optimizer.dtype, device=device),
                                          torch.zeros(count, dtype=self.layer.mpc.optimizer.dtype, device=device), 0.0)
+        if self.layer.guard is not None:
+            decision = decision._replace(verified=torch.zeros(count, dtype=torch.bool, device=device),
+                                         failsafe=torch.zeros(count, dtype=torch.bool, device=device))
         plans = []
         for step, rows, members in groups.values():
             index = torch.as_tensor(rows, dtype=torch.long, device=device)
@@ -182,6 +185,8 @@ class SafeAgentDriver(Driver):
             decision.steering[index] = control.steering.to(decision.steering.dtype)
             decision.fallback[index] = control.fallback
             decision.feasible_goals[index] = control.feasible_goals
+            if control.verified is not None:
+                decision.verified[index], decision.failsafe[index] = control.verified, control.failsafe
             for row, intervened in zip(rows, control.intervention.tolist()):
                 self.intervention_frames[ids[row]] = self.intervention_frames.get(ids[row], 0) + intervened
             if control.plan is not None:
@@ -189,7 +194,7 @@ class SafeAgentDriver(Driver):
                 decision.plan_cost[index] = control.plan.plan.selection.cost.to(decision.plan_cost.dtype)
             plans.append(control.plan)
         solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
-        if len(plans) == 1 and plans[0] is not None:  # every row executes one fresh plan: the whole of it
+        if len(plans) == 1 and plans[0] is not None and self.layer.guard is None:  # one fresh plan executed: the whole of it
             return _plan_decision(plans[0], solve_ms)
         return decision._replace(solve_ms=solve_ms)
 

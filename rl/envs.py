@@ -216,6 +216,7 @@ class SafeHighwayEnv(gym.Env):
             raise ValueError(f"`render_mode` must be None or 'rgb_array'; got {render_mode!r}")
         self.render_mode = render_mode
         self.continuous = bool(continuous)
+        refuse_verify(self.config)
         # no warm starts: environments reset one by one are solved alone, numbered from 0 (no ids to keep them apart)
         self.layer = layer if layer is not None else SafetyLayer(build_mpc(scenario), self.config, warm_starts=False)
         if self.layer.config != self.config:
@@ -282,6 +283,14 @@ class SafeHighwayEnv(gym.Env):
         layer = envs[0].layer
         solve = layer.decision_solve(stack_observations([env.road_state() for env in envs], range(len(envs))))
         return list(layer.features(solve)), solve.scored.solve_ms
+
+
+def refuse_verify(config: SafeEnvConfig) -> None:
+    """highway-env's training environments run without ``verify`` (``ValueError`` saying where it runs)."""
+    if config.verify:
+        raise ValueError("env `verify` runs on the batched simulator's environments (--sim batched) and in the "
+                         "safe-agent drivers; highway-env's training environments number their environments from 0 "
+                         "as they reset, with no ids to keep the stored fail-safes apart")
 
 
 def reset_many(envs: Sequence[SafeHighwayEnv], seeds: Sequence[Optional[int]]) -> list[tuple[np.ndarray, dict]]:

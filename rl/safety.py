@@ -38,16 +38,22 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Observation
+from mmpc.drivers.verified import cheapest_goals
 from mmpc.mpc import MPC, Plan, Scored, Selector
 from mmpc.problem import EGO_X, EGO_Y, ProblemBatch
 from mmpc.ranking import Selection
 from mmpc.result import SolveResult, Trajectories
 from mmpc.rl.config import SafeEnvConfig
+from mmpc.scenario import ScenarioConfig, build_mpc
 from mmpc.tracking import needs_replan, plan_clearance, track
+from mmpc.verify import Guard, Verifier
 from mmpc.warm import WarmStarts
 
 #: Solver features per goal of the grid: feasible flag, squashed meta cost, clearance.
 FEATURES_PER_GOAL = 3
+#: With ``verify``, at most this many of a fresh plan's other feasible candidates are tried where
+#: the executed one does not verify (as :class:`mmpc.drivers.verified.VerifiedDriver`).
+VERIFIED_ALTERNATIVES = 8
 
 
 def follow_agent(agent_index: torch.Tensor, goals: torch.Tensor, speed_scale: float, horizon: float, lane_width: float) -> Selector:
@@ -167,6 +173,8 @@ class FrameControl(NamedTuple):
         held: the plans to hold for the next frame.
         plan: the plan every row executes when all of them execute a fresh one (``None`` where
             some tracked a held plan).
+        verified, failsafe: (E,) bool, with ``verify``: the command executed verified; nothing
+            verified and the stored fail-safe drove (``None`` without ``verify``).
     """
 
     acceleration: torch.Tensor
@@ -180,13 +188,15 @@ class FrameControl(NamedTuple):
     solve_ms: float
     held: HeldPlan
     plan: Optional[SafePlan] = None
+    verified: Optional[torch.Tensor] = None
+    failsafe: Optional[torch.Tensor] = None
 
     def host(self) -> "FrameControl":
         """The per-environment fields (commands, flags, counts, residuals) on the CPU, one copy
         each; ``held`` stays where the layer computes."""
         names = ("acceleration", "steering", "intervention", "fallback", "agent_feasible", "feasible_goals", "residuals",
-                 "solved")
-        return self._replace(**{name: getattr(self, name).cpu() for name in names})
+                 "solved", "verified", "failsafe")
+        return self._replace(**{name: getattr(self, name).cpu() for name in names if getattr(self, name) is not None})
 
 
 def observation_rows(observation: Observation, rows: torch.Tensor) -> Observation:
@@ -208,7 +218,10 @@ class SafetyLayer:
             MPC's config asks for warm starts; one decision period apart: ``decision_frames`` x
             the MPC's control period). The caller then names its environments consistently
             (:attr:`mmpc.drivers.Observation.env_ids`), solves every one at each decision and
-            calls :meth:`mmpc.warm.WarmStarts.forget` for those that start a new episode.
+            calls :meth:`forget` for those that start a new episode.
+        verifier: the check of ``config.verify`` (:meth:`mmpc.verify.Verifier.for_scenario`);
+            the caller names its environments consistently (the stored fail-safes are kept per id)
+            and calls :meth:`forget` as for warm starts. :meth:`for_scenario` makes both.
 
     The layer computes on its MPC's device (:attr:`device`): the observations, egos, actions and
     commands it is given elsewhere (highway-env's CPU tensors, SB3's numpy actions) are moved
@@ -229,9 +242,14 @@ class SafetyLayer:
         (True, (8.0, 15.0))
     """
 
-    def __init__(self, mpc: MPC, config: SafeEnvConfig, *, warm_starts: bool = True) -> None:
+    def __init__(self, mpc: MPC, config: SafeEnvConfig, *, warm_starts: bool = True,
+                 verifier: Optional[Verifier] = None) -> None:
+        if config.verify and verifier is None:
+            raise ValueError("`config.verify` needs the scenario's `verifier` (SafetyLayer.for_scenario builds it)")
         self.mpc = mpc
         self.config = config
+        #: the check of every frame's command (``config.verify``); ``None`` without
+        self.guard = Guard(verifier) if config.verify else None
         period = None if mpc.control_period is None else mpc.control_period * config.decision_frames
         #: the decision solves' warm starts; ``None`` where the caller asked for none
         self.warm_starts = WarmStarts(mpc, period) if warm_starts and mpc.config.warm_iterations else None
@@ -241,6 +259,20 @@ class SafetyLayer:
         device = mpc.optimizer.device
         self._grid_offsets = torch.as_tensor(offsets.reshape(-1), dtype=torch.long, device=device)  # (A,)
         self._grid_speeds = torch.as_tensor(speeds.reshape(-1), dtype=mpc.optimizer.dtype, device=device)  # (A,)
+
+    @classmethod
+    def for_scenario(cls, scenario: ScenarioConfig, config: SafeEnvConfig, *, warm_starts: bool = True) -> "SafetyLayer":
+        """The layer of ``scenario``'s MPC, with its verifier where ``config.verify`` asks for one."""
+        verifier = Verifier.for_scenario(scenario) if config.verify else None
+        return cls(build_mpc(scenario), config, warm_starts=warm_starts, verifier=verifier)
+
+    def forget(self, ids: Optional[torch.Tensor] = None) -> None:
+        """Environments ``ids`` (long tensor; ``None``: all) start new episodes: their warm starts
+        and stored fail-safes are dropped."""
+        if self.warm_starts is not None:
+            self.warm_starts.reset() if ids is None else self.warm_starts.forget(ids)
+        if self.guard is not None:
+            self.guard.reset() if ids is None else self.guard.forget(ids.tolist())
 
     @property
     def device(self) -> torch.device:
@@ -439,10 +471,29 @@ class SafetyLayer:
         observation, commands = observation.to(self.device), torch.as_tensor(commands, device=self.device)
         if held is None or self.config.replan == "frame":
             safe = decided if held is None and decided is not None else self.plan(observation, commands)
-            return self._control(safe, now)
-        return self._follow(observation, commands, now, held)
+            control = self._control(safe, now)
+        else:
+            control = self._follow(observation, commands, now, held)
+        return control if self.guard is None else self._guarded(observation, control)
 
     # ------------------------------------------------------------------ frame pieces
+
+    def _guarded(self, observation: Observation, control: FrameControl) -> FrameControl:
+        """``control`` with each command taken only where it verifies (:class:`mmpc.verify.Guard`;
+        a fresh plan's other feasible candidates are the alternatives); an override is an intervention."""
+        host = observation.to("cpu")
+        mask = host.vehicle_mask if host.vehicle_mask is not None else torch.ones(host.vehicles.shape[:2], dtype=torch.bool)
+        alternatives = None
+        if control.plan is not None:
+            plan = control.plan.plan
+            alternatives = lambda rows: cheapest_goals(plan, self.mpc, rows, VERIFIED_ALTERNATIVES)  # noqa: E731
+        asked = control.acceleration.cpu(), control.steering.cpu()
+        guarded = self.guard.choose(host.ego, host.vehicles, mask, host.ids().tolist(), *asked, alternatives)
+        acceleration, steering = guarded.acceleration.to(asked[0].dtype), guarded.steering.to(asked[1].dtype)
+        changed = ((acceleration != asked[0]) | (steering != asked[1])).to(self.device)
+        return control._replace(acceleration=acceleration.to(self.device), steering=steering.to(self.device),
+                                intervention=control.intervention | changed, verified=guarded.verified.to(self.device),
+                                failsafe=guarded.failsafe.to(self.device))
 
     def _selector(self, agent_index: torch.Tensor, problem: ProblemBatch) -> Selector:
         return follow_agent(agent_index, problem.goals, self.config.intervention_speed_scale, self.horizon, self.road.lane_width)

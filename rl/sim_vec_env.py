@@ -30,7 +30,7 @@ from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.agent_step import AgentStep, StepTally, run_agent_step
 from mmpc.rl.envs import WallTime, action_space, action_tensor, check_action, observation_space, observation_vectors
 from mmpc.rl.safety import DecisionSolve, SafetyLayer
-from mmpc.scenario import ScenarioConfig, batched_unsupported, build_mpc
+from mmpc.scenario import ScenarioConfig, batched_unsupported
 from mmpc.sim import SimEpisodes
 from mmpc.sim.observation import kinematics_observation
 from mmpc.sim.reward import highway_reward
@@ -91,7 +91,7 @@ class SafeSimBatch:
         self.reward = reward
         self.continuous = bool(continuous)
         action_space(config, self.continuous)  # refuses settings the action type cannot have
-        self.layer = SafetyLayer(build_mpc(scenario), config)
+        self.layer = SafetyLayer.for_scenario(scenario, config)
         self.dtype = self.layer.mpc.optimizer.dtype
         self.device = self.layer.device
         self.rng = np.random.default_rng(seed)
@@ -137,8 +137,7 @@ class SafeSimBatch:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
         episode_seeds = self._seeds(seeds)
         self.sim = SimEpisodes(self.scenario, episode_seeds, device=self.device)
-        if self.layer.warm_starts is not None:
-            self.layer.warm_starts.reset()
+        self.layer.forget()
         observations, self._decision = self._observations(torch.arange(self.num_envs, device=self.device))
         solve_ms = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
         return observations, [{"solve_ms": solve_ms, "episode_seed": s} for s in episode_seeds]
@@ -184,8 +183,7 @@ class SafeSimBatch:
                 solve_ms.append(last_solve.scored.solve_ms)
             episode_seeds = self._seeds([None] * finished.numel())
             self.sim.reset(finished, episode_seeds)
-            if self.layer.warm_starts is not None:
-                self.layer.warm_starts.forget(finished)
+            self.layer.forget(finished)
             reset_infos = {row: {"episode_seed": seed} for row, seed in zip(finished.tolist(), episode_seeds)}
         observations, self._decision = self._observations(everyone)
         if self._decision is not None:

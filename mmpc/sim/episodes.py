@@ -4,7 +4,8 @@ per environment per control step, the traffic window, time limits and per-enviro
 What highway-env's project path does per episode (:class:`mmpc.highway.HighwayEpisode`), for
 all environments at once: each control step applies the ego's command for the scenario's
 frame (:class:`mmpc.sim.HighwaySimulator`), then moves the vehicles that left the window
-(:func:`mmpc.sim.traffic.keep_in_window`); an episode is over when the ego crashed or its time
+(:func:`mmpc.sim.traffic.keep_in_window`); with the scenario's ``traffic.threats`` the cars near
+the ego threaten it (:mod:`mmpc.sim.threats`); an episode is over when the ego crashed or its time
 reached the scenario's duration.
 """
 
@@ -19,7 +20,7 @@ import torch
 from mmpc.problem import require_on_device, usable_device
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim.ego import ego_action
-from mmpc.sim.simulator import HighwaySimulator, check_command
+from mmpc.sim.simulator import HighwaySimulator, ThreatDraws, check_command
 from mmpc.sim.state import VehicleState, check_state, on_road
 from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim_config
 
@@ -53,7 +54,7 @@ class SimEpisodes:
         check_supported(scenario)
         self.scenario = scenario
         self.config = sim_config(scenario)
-        self.simulator = HighwaySimulator(self.config)
+        self.simulator = HighwaySimulator(self.config, scenario.traffic.threats)
         if device is None:
             device = seeds.device if isinstance(seeds, torch.Tensor) else torch.get_default_device()
         self.seeds = _int_tensor("seeds", seeds, usable_device(device), MAX_SEED)
@@ -114,7 +115,8 @@ class SimEpisodes:
             require_on_device(self.seeds.device, "the episodes' state", running=running)
         before = self.state
         check_command(command, before)  # the state is the simulator's own, checked when it was made
-        after = self.simulator.advance(before, command.to(before.x.dtype))
+        draws = ThreatDraws(self.seeds, self.steps, self.scenario.frequency)
+        after = self.simulator.advance(before, command.to(before.x.dtype), draws)
         window = self.scenario.traffic.window
         if window is not None:
             after = keep_in_window(after, window, self.seeds, self.steps, self.config)

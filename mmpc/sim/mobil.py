@@ -46,6 +46,22 @@ def mobil_accepts(state: VehicleState, candidate: torch.Tensor, config: SimConfi
     """(E, Q) bool: MOBIL recommends lane ``candidate`` (E, Q) int64 (any value; lanes off the
     road, out of reach or a vehicle below 1 m/s are refused) to each vehicle of ``query`` (E, Q)
     int64 slots (default: every slot, Q = V)."""
+    possible, safe, gain = _mobil(state, candidate, config, query)
+    return possible & safe & (gain >= config.lane_change_min_acc_gain)
+
+
+def mobil_safe(state: VehicleState, candidate: torch.Tensor, config: SimConfig,
+               query: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """(E, Q) bool: a change to lane ``candidate`` is possible for each vehicle of ``query`` and
+    passes MOBIL's safety criterion, whatever it gains (arguments as :func:`mobil_accepts`)."""
+    possible, safe, _ = _mobil(state, candidate, config, query)
+    return possible & safe
+
+
+def _mobil(state: VehicleState, candidate: torch.Tensor, config: SimConfig, query: Optional[torch.Tensor]
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """MOBIL's three parts, (E, Q) each: the change is possible (lane on the road, within reach,
+    the vehicle moving), it is safe (the new follower brakes no harder than allowed), its gain [m/s^2]."""
     own = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape) if query is None else query
     everyone = torch.ones_like(own, dtype=torch.bool)
     delta = torch.gather(state.idm_delta, 1, own)
@@ -72,7 +88,7 @@ def mobil_accepts(state: VehicleState, candidate: torch.Tensor, config: SimConfi
     safe = new_follower_after >= -config.lane_change_max_braking_imposed
     y, speed = torch.gather(state.y, 1, own), torch.gather(state.speed, 1, own)
     reachable = (y - lane.to(y.dtype) * config.lane_width).abs() <= 2 * config.lane_width
-    return on_road & reachable & (speed.abs() >= 1) & safe & (gain >= config.lane_change_min_acc_gain)
+    return on_road & reachable & (speed.abs() >= 1), safe, gain
 
 
 def abort_blockers(state: VehicleState, config: SimConfig) -> torch.Tensor:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple, Optional
+
 import torch
 
 from mmpc.sim.collision import handle_collisions
@@ -11,6 +13,17 @@ from mmpc.sim.idm import traffic_command
 from mmpc.sim.kinematics import bicycle_step
 from mmpc.sim.mobil import advance_timers, change_lanes
 from mmpc.sim.state import VehicleState, check_state
+from mmpc.sim.threats import threaten_lanes, threaten_speeds
+from mmpc.scenario import Threats
+
+
+class ThreatDraws(NamedTuple):
+    """What names a step's draws of threatening traffic: (E,) int64 episode ``seeds`` and
+    control ``step`` counts, and the scenario's control ``frequency`` [Hz]."""
+
+    seeds: torch.Tensor
+    step: torch.Tensor
+    frequency: float
 
 
 class HighwaySimulator:
@@ -24,6 +37,9 @@ class HighwaySimulator:
 
     Args:
         config: road, model and behaviour constants; ``config.dt`` is the frame.
+        threats: the cars near the ego threaten it within the rules (:mod:`mmpc.sim.threats`:
+            cut-ins after MOBIL's decisions, braking and overtaking over IDM's commands);
+            :meth:`advance` then needs the step's :class:`ThreatDraws`. ``None``: naturalistic.
 
     Example:
         >>> from mmpc.sim import vehicle_state
@@ -35,10 +51,13 @@ class HighwaySimulator:
         (2.0, 20.1)
     """
 
-    def __init__(self, config: SimConfig = SimConfig()) -> None:
+    def __init__(self, config: SimConfig = SimConfig(), threats: Optional[Threats] = None) -> None:
         if not isinstance(config, SimConfig):
             raise TypeError(f"`config` must be a SimConfig; got {type(config).__name__}")
+        if threats is not None and not isinstance(threats, Threats):
+            raise TypeError(f"`threats` must be a mmpc.scenario.Threats or None; got {type(threats).__name__}")
         self.config = config
+        self.threats = threats
 
     def step(self, state: VehicleState, command: torch.Tensor) -> VehicleState:
         """One ego command, held for ``config.frames_per_command`` frames; inputs checked first.
@@ -55,19 +74,29 @@ class HighwaySimulator:
         check_command(command, state)
         return self.advance(state, command.to(state.x.dtype))
 
-    def advance(self, state: VehicleState, command: torch.Tensor) -> VehicleState:
-        """:meth:`step` without the checks (a frame still asks the host how many vehicles change lane or meet)."""
+    def advance(self, state: VehicleState, command: torch.Tensor, draws: Optional[ThreatDraws] = None) -> VehicleState:
+        """:meth:`step` without the checks (a frame still asks the host how many vehicles change lane
+        or meet); ``draws`` name the threats' draws (needed with ``threats``)."""
+        if self.threats is not None and draws is None:
+            raise ValueError("a simulator with `threats` needs the step's ThreatDraws (seeds, step, frequency)")
         acceleration, steering = ego_action(command[:, 0], command[:, 1], state.speed[:, 0], self.config)
         moving_forward = state.speed[:, 0] >= 0
         for _ in range(self.config.frames_per_command):
-            state = self.frame(state, acceleration, steering)
+            state = self.frame(state, acceleration, steering, draws)
         ego_speed = torch.where(moving_forward & (state.speed[:, 0] < 0), 0.0, state.speed[:, 0])
         return state._replace(speed=torch.cat([ego_speed[:, None], state.speed[:, 1:]], dim=1))
 
-    def frame(self, state: VehicleState, ego_acceleration: torch.Tensor, ego_steering: torch.Tensor) -> VehicleState:
+    def frame(self, state: VehicleState, ego_acceleration: torch.Tensor, ego_steering: torch.Tensor,
+              draws: Optional[ThreatDraws] = None) -> VehicleState:
         """One simulation frame with the ego's applied (acceleration [m/s^2], steering [rad]), each (E,)."""
         state = change_lanes(state, self.config)
+        threats = self.threats
+        if threats is not None:
+            state = threaten_lanes(state, threats, draws.seeds, draws.step, self.config)
         acceleration, steering = traffic_command(state, self.config)
+        if threats is not None:
+            acceleration = threaten_speeds(state, acceleration, threats, draws.seeds, draws.step, draws.frequency,
+                                           self.config)
         acceleration = torch.cat([ego_acceleration[:, None], acceleration[:, 1:]], dim=1)
         steering = torch.cat([ego_steering[:, None], steering[:, 1:]], dim=1)
         state = advance_timers(bicycle_step(state, acceleration, steering, self.config), self.config)

@@ -15,7 +15,9 @@ import torch
 
 from mmpc.problem import EGO_V
 from mmpc.road import Road
+from mmpc.scenario import ScenarioConfig
 from mmpc.sim.config import SimConfig
+from mmpc.sim.traffic import sim_config
 from mmpc.verify.assumptions import TrafficAssumptions
 from mmpc.verify.failsafe import Body, FailSafes, drive, ego_body, failsafe_command, failsafe_table, rollout
 from mmpc.verify.geometry import rectangle_meets_box
@@ -59,6 +61,11 @@ class Verifier:
         self.margin = margin
         self.period = 1.0 / sim.policy_frequency
         self.max_frames = max(1, math.ceil(max_horizon / self.period))
+
+    @classmethod
+    def for_scenario(cls, scenario: ScenarioConfig, **settings) -> "Verifier":
+        """The check of a scenario's worlds: its road, command path and vehicle size (``settings``: the other arguments)."""
+        return cls(scenario.road, sim_config(scenario), ego_size=scenario.vehicle, **settings)
 
     def body(self, ego: torch.Tensor) -> Body:
         """(E,) bodies of (E, 6) ego states."""
