@@ -118,6 +118,17 @@ def test_a_car_behind_answers_for_its_own_distance():
     assert check(ego, [[-8.0, 8.0, 30.0, -2.0]])  # entering the ego's lane behind it
 
 
+def test_the_ego_may_not_cut_in_close_in_front_of_a_car_behind():
+    """The scene the threatening traffic found (tests/test_threats.py, seed 503 before the fix): the
+    ego, between lanes 2 and 3 and heading into lane 2, beside a car on lane 2 whose front is
+    alongside the ego's rear. That car does not answer for a gap the ego closes from the side."""
+    entering = mmpc.ego_state(0.0, 10.5, -0.2, 15.0)
+    assert not check(entering, [[-3.0, 8.0, 10.0, 0.0]])  # alongside: the ego's to avoid
+    assert not check(entering, [[-12.0, 8.0, 25.0, 0.0]])  # behind, but too fast to stop behind the ego
+    assert check(entering, [[-40.0, 8.0, 15.0, 0.0]])  # room to stop: it answers for its distance
+    assert check(mmpc.ego_state(0.0, 8.0, 0.0, 15.0), [[-12.0, 8.0, 25.0, 0.0]])  # a follower in the ego's lane answers
+
+
 def test_the_check_is_refused_nothing_on_an_empty_road():
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 25.0).reshape(1, 6)
     verifier = Verifier(ROAD)

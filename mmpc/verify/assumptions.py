@@ -45,6 +45,10 @@ class TrafficAssumptions:
         change_speed, change_offset: a car moving across the road faster than ``change_speed``
             [m/s], or ``change_offset`` [m] or more off its nearest lane centre, is changing lane
             towards that side: it decided before now, so the lane-change rule no longer holds it.
+        follower_reaction: a car behind the ego brakes, as hard as it needs up to ``max_deceleration``,
+            at most this long after the ego does [s] (IDM reacts at the next frame; its braking
+            grows with the square of the closing gap). Only a car with room to stop so answers for
+            its own distance (:func:`mmpc.verify.occupancy.yields`).
         mobil_safety: MOBIL's safety criterion holds: a car does not decide to enter a lane in
             which the moving ego would be its new follower (the ego has no target speed, so MOBIL
             predicts it braking far beyond ``lane_change_max_braking_imposed``); such a car stays
@@ -63,6 +67,7 @@ class TrafficAssumptions:
     lane_margin: float = 1.0
     change_speed: float = 0.5
     change_offset: float = 0.5
+    follower_reaction: float = 0.3
     mobil_safety: bool = True
 
     def __post_init__(self) -> None:
@@ -72,7 +77,8 @@ class TrafficAssumptions:
                          lateral_travel=self.lateral_travel, change_speed=self.change_speed,
                          change_offset=self.change_offset)
         require_non_negative("TrafficAssumptions", max_acceleration=self.max_acceleration, speed_limit=self.speed_limit,
-                             lane_overreach=self.lane_overreach, lane_margin=self.lane_margin)
+                             lane_overreach=self.lane_overreach, lane_margin=self.lane_margin,
+                             follower_reaction=self.follower_reaction)
 
     @property
     def half_length(self) -> float:

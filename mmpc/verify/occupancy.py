@@ -12,9 +12,13 @@ ego holds a lane:
   whole manoeuvre checked, stays out of that lane unless it is changing into it already
   (``TrafficAssumptions.mobil_safety``). The rule binds while the ego is behind the car: one the
   ego overtakes may enter behind it, where the fault rule below takes over;
-- a car behind the ego answers for its own distance (the evaluation's fault rule): one on a lane
-  the ego counts on now is left out; one elsewhere is not counted entering the ego's lanes (it
-  would enter behind the ego), even where it is changing towards them already.
+- a car wholly behind the ego answers for its own distance (the evaluation's fault rule): one on
+  the ego's nearest lane is left out; one on the other lane the ego counts on (the lane it is
+  entering or leaving) only where it has room to stop behind the ego (:func:`yields`: braking at
+  ``max_deceleration`` after ``follower_reaction``, the ego at the fail-safes' hardest), so the
+  ego does not cut in close in front of it; one elsewhere is not counted entering the ego's
+  lanes (it would enter behind the ego), even where it is changing towards them already. A car
+  alongside is never left out.
 
 The ego's lanes are those it counts on now (at most two, halfway between); each set comes in the
 four variants of which of them the manoeuvre holds (:data:`HELD_VARIANTS`).
@@ -27,7 +31,7 @@ from typing import NamedTuple
 
 import torch
 
-from mmpc.problem import EGO_X, EGO_Y
+from mmpc.problem import EGO_V, EGO_X, EGO_Y
 from mmpc.road import Road
 from mmpc.verify.assumptions import TrafficAssumptions
 
@@ -85,8 +89,29 @@ def body_reach(vx: torch.Tensor, vy: torch.Tensor, assumptions: TrafficAssumptio
     return half_length * cos + half_width * sin, half_length * sin + half_width * cos
 
 
+def yields(ego: torch.Tensor, vehicles: torch.Tensor, assumptions: TrafficAssumptions, ego_braking: float) -> torch.Tensor:
+    """(E, M) bool: each car is behind the ego with room to stop behind it: braking at
+    ``max_deceleration`` from ``follower_reaction`` on, it stops behind the ego braking at
+    ``ego_braking`` [m/s^2] now (bodies of the assumed length, bumper to bumper).
+
+    Example: a car 20 m behind (15 m bumper to bumper) at 22 m/s stops behind an ego at 20 m/s, one at 30 m/s does not:
+
+        >>> import torch, mmpc
+        >>> ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
+        >>> cars = torch.tensor([[[-20.0, 8.0, 22.0, 0.0], [-20.0, 8.0, 30.0, 0.0]]])
+        >>> yields(ego, cars, TrafficAssumptions(), 5.0).tolist()
+        [[True, False]]
+    """
+    a = assumptions
+    x, speed = vehicles[..., 0], torch.hypot(vehicles[..., 2], vehicles[..., 3])
+    ego_speed = ego[:, EGO_V, None].clamp_min(0.0)
+    gap = ego[:, EGO_X, None] - x - a.length
+    needed = (speed * a.follower_reaction + speed ** 2 / (2 * a.max_deceleration) - ego_speed ** 2 / (2 * ego_braking))
+    return (gap > 0) & (gap >= needed)
+
+
 def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, road: Road, times: torch.Tensor,
-              assumptions: TrafficAssumptions, *, fault_rule: bool = True) -> Occupancy:
+              assumptions: TrafficAssumptions, *, fault_rule: bool = True, ego_braking: float = 5.0) -> Occupancy:
     """The occupancy sets of E environments' cars over the intervals of ``times``.
 
     Args:
@@ -99,6 +124,7 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
         fault_rule: leave out, and keep out of the ego's lanes, the cars behind the ego (what the
             verification may do); ``False``: the sets of the traffic's rules alone (what the
             monitor checks).
+        ego_braking: the hardest braking of the ego's fail-safes [m/s^2] (:func:`yields`).
 
     Returns:
         The :class:`Occupancy` (T intervals).
@@ -140,8 +166,9 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
     on_ego_lane = ((car_lanes[..., :, None] == ego_lanes[:, None, None, :]) & (ego_lanes[:, None, None, :] >= 0))  # (E, M, 2, 2)
     on_ego_lane = on_ego_lane.any(dim=2)  # (E, M, 2): counted on the ego's lane j
     ego_x = ego[:, EGO_X, None]
-    behind = (x < ego_x) & fault_rule
-    relevant = mask & ~(behind & on_ego_lane.any(dim=-1))
+    behind = (ego_x - x > a.length) & fault_rule  # wholly behind (bodies of the assumed length)
+    answers = behind & (on_ego_lane[..., 0] | (on_ego_lane[..., 1] & yields(ego, vehicles, a, ego_braking)))
+    relevant = mask & ~answers
 
     # Per lane j of the ego: the cars the rule keeps out of it where the manoeuvre holds it (ahead
     # of the ego with nobody between, not bound there already) and those the fault rule always does.

@@ -114,7 +114,8 @@ class Verifier:
         num_envs, num_candidates = acceleration.shape
         frames = self.frames(ego, vehicles, mask)
         times = torch.arange(frames + 2, dtype=ego.dtype, device=ego.device) * self.period
-        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions)
+        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions,
+                         ego_braking=max(self.failsafes.decelerations))
         now = self.body(ego)
         end = drive(Body(*(field[:, None].expand(num_envs, num_candidates) for field in now)), acceleration, steering,
                     self.length, self.sim)
