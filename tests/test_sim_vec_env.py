@@ -11,8 +11,9 @@ import torch
 
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.envs import SafeHighwayEnv
+from mmpc.rl.safety import SafetyLayer
 from mmpc.rl.sim_vec_env import SafeSimVecEnv, SafeSimVectorEnv
-from mmpc.scenario import load_scenario
+from mmpc.scenario import build_mpc, load_scenario
 from mmpc.sim.observation import kinematics_observation
 from mmpc.sim.reward import highway_reward
 
@@ -106,3 +107,43 @@ def test_rl_train_on_the_batched_simulator_records_the_world(tmp_path):
     assert main(argv) == 0
     assert yaml.safe_load((out / "config.yaml").read_text())["config"]["scenario"]["sim"] == "batched"
     assert (out / "model.zip").exists() and any((out / "tb").rglob("events.out.tfevents.*"))
+
+
+def test_the_verified_layer_executes_only_commands_that_keep_a_way_out():
+    """``env.verify``: every frame's executed command verifies at the state it was taken in (or,
+    where none did, the stored fail-safe drove and says so); an override is an intervention."""
+    config = dataclasses.replace(CONFIG, verify=True)
+    venv = SafeSimVecEnv(4, dataclasses.replace(SCENARIO, duration=2.0), config, REWARD, seed=0)
+    layer = venv.layer
+    executed = []
+    guarded = layer._guarded
+
+    def record(observation, control):
+        result = guarded(observation, control)
+        executed.append((observation.to("cpu"), control, result))
+        return result
+
+    layer._guarded = record
+    venv.reset()
+    for _ in range(2):
+        venv.step_async(np.array([11, 0, 11, 3]))  # the grid's fastest goals and its slowest
+        venv.step_wait()
+    assert len(executed) == 2 * config.decision_frames
+    for observation, asked, control in executed:
+        assert bool((control.verified ^ control.failsafe).all())
+        mask = observation.vehicle_mask
+        verdict = layer.guard.verifier.check(observation.ego, observation.vehicles, mask, control.acceleration[:, None].cpu(),
+                                             control.steering[:, None].cpu())
+        assert bool((verdict.verified[:, 0] | control.failsafe.cpu()).all())
+        overridden = (control.acceleration != asked.acceleration) | (control.steering != asked.steering)
+        assert bool((control.intervention | ~overridden).all())
+
+
+def test_verification_needs_its_verifier_and_the_batched_environments():
+    config = dataclasses.replace(CONFIG, verify=True)
+    with pytest.raises(ValueError, match="verifier"):
+        SafetyLayer(build_mpc(SCENARIO), config)
+    with pytest.raises(ValueError, match="batched simulator"):
+        SafeHighwayEnv(SCENARIO, config, REWARD)
+    assert SafetyLayer.for_scenario(SCENARIO, config).guard is not None
+    assert SafetyLayer.for_scenario(SCENARIO, CONFIG).guard is None

@@ -22,6 +22,7 @@ from mmpc.scenario import ScenarioConfig
 from mmpc.sim.ego import ego_action
 from mmpc.sim.simulator import HighwaySimulator, ThreatDraws, check_command
 from mmpc.sim.state import VehicleState, check_state, on_road
+from mmpc.sim.threats import Orders
 from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim_config
 
 Seeds = Union[Sequence[int], torch.Tensor]
@@ -97,7 +98,7 @@ class SimEpisodes:
         """(E,) bool, the ego crashed or the scenario's duration is over."""
         return self.crashed | (self.time >= self.scenario.duration - 1e-9)
 
-    def step(self, command: torch.Tensor, running: Optional[torch.Tensor] = None) -> None:
+    def step(self, command: torch.Tensor, running: Optional[torch.Tensor] = None, orders: Optional[Orders] = None) -> None:
         """Apply one control step's commands.
 
         Args:
@@ -105,6 +106,8 @@ class SimEpisodes:
                 :meth:`mmpc.sim.HighwaySimulator.step` checks it.
             running: (E,) bool tensor on the episodes' device, the environments that move; the
                 others keep their state (finished episodes in a lockstep batch). Default: all.
+            orders: to single cars, (E, V) each, carried out where the rules allow
+                (:class:`mmpc.sim.threats.Orders`); default: none.
         """
         if running is not None:
             if not isinstance(running, torch.Tensor) or running.dtype != torch.bool:
@@ -116,7 +119,10 @@ class SimEpisodes:
         before = self.state
         check_command(command, before)  # the state is the simulator's own, checked when it was made
         draws = ThreatDraws(self.seeds, self.steps, self.scenario.frequency)
-        after = self.simulator.advance(before, command.to(before.x.dtype), draws)
+        if orders is not None and (orders.lane_change.shape != before.x.shape or orders.speed.shape != before.x.shape):
+            raise ValueError(f"`orders` must hold (E, V) = {tuple(before.x.shape)} lane changes and speeds; got "
+                             f"{tuple(orders.lane_change.shape)} and {tuple(orders.speed.shape)}")
+        after = self.simulator.advance(before, command.to(before.x.dtype), draws, orders)
         window = self.scenario.traffic.window
         if window is not None:
             after = keep_in_window(after, window, self.seeds, self.steps, self.config)

@@ -13,7 +13,7 @@ from mmpc.sim.idm import traffic_command
 from mmpc.sim.kinematics import bicycle_step
 from mmpc.sim.mobil import advance_timers, change_lanes
 from mmpc.sim.state import VehicleState, check_state
-from mmpc.sim.threats import threaten_lanes, threaten_speeds
+from mmpc.sim.threats import Orders, obey_lanes, obey_speeds, threaten_lanes, threaten_speeds
 from mmpc.scenario import Threats
 
 
@@ -74,29 +74,35 @@ class HighwaySimulator:
         check_command(command, state)
         return self.advance(state, command.to(state.x.dtype))
 
-    def advance(self, state: VehicleState, command: torch.Tensor, draws: Optional[ThreatDraws] = None) -> VehicleState:
+    def advance(self, state: VehicleState, command: torch.Tensor, draws: Optional[ThreatDraws] = None,
+                orders: Optional[Orders] = None) -> VehicleState:
         """:meth:`step` without the checks (a frame still asks the host how many vehicles change lane
-        or meet); ``draws`` name the threats' draws (needed with ``threats``)."""
+        or meet); ``draws`` name the threats' draws (needed with ``threats``); ``orders`` to single
+        cars are carried out where the rules allow (:mod:`mmpc.sim.threats`)."""
         if self.threats is not None and draws is None:
             raise ValueError("a simulator with `threats` needs the step's ThreatDraws (seeds, step, frequency)")
         acceleration, steering = ego_action(command[:, 0], command[:, 1], state.speed[:, 0], self.config)
         moving_forward = state.speed[:, 0] >= 0
         for _ in range(self.config.frames_per_command):
-            state = self.frame(state, acceleration, steering, draws)
+            state = self.frame(state, acceleration, steering, draws, orders)
         ego_speed = torch.where(moving_forward & (state.speed[:, 0] < 0), 0.0, state.speed[:, 0])
         return state._replace(speed=torch.cat([ego_speed[:, None], state.speed[:, 1:]], dim=1))
 
     def frame(self, state: VehicleState, ego_acceleration: torch.Tensor, ego_steering: torch.Tensor,
-              draws: Optional[ThreatDraws] = None) -> VehicleState:
+              draws: Optional[ThreatDraws] = None, orders: Optional[Orders] = None) -> VehicleState:
         """One simulation frame with the ego's applied (acceleration [m/s^2], steering [rad]), each (E,)."""
         state = change_lanes(state, self.config)
         threats = self.threats
         if threats is not None:
             state = threaten_lanes(state, threats, draws.seeds, draws.step, self.config)
+        if orders is not None:
+            state = obey_lanes(state, orders, self.config)
         acceleration, steering = traffic_command(state, self.config)
         if threats is not None:
             acceleration = threaten_speeds(state, acceleration, threats, draws.seeds, draws.step, draws.frequency,
                                            self.config)
+        if orders is not None:
+            acceleration = obey_speeds(state, acceleration, orders, self.config)
         acceleration = torch.cat([ego_acceleration[:, None], acceleration[:, 1:]], dim=1)
         steering = torch.cat([ego_steering[:, None], steering[:, 1:]], dim=1)
         state = advance_timers(bicycle_step(state, acceleration, steering, self.config), self.config)

@@ -16,12 +16,16 @@ after MOBIL has decided, cars within ``reach`` of the ego:
 - **overtake**: a car behind in a lane beside the ego's speeds up at IDM's largest acceleration
   (``SimConfig.comfort_acc_max``, to the speed limit) wherever IDM would not brake.
 
-Everything stays inside :class:`mmpc.verify.TrafficAssumptions`; the episode runner's
+:class:`Orders` give the same moves to single cars from outside (a red-team agent,
+:mod:`mmpc.rl.red_team`), carried out under the same rules. Everything stays inside
+:class:`mmpc.verify.TrafficAssumptions`; the episode runner's
 :class:`mmpc.verify.AssumptionMonitor` reports any car that leaves its set. The draws come from
 :mod:`mmpc.sim.random`, keyed by the episode's seed, step and the car's slot.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 
@@ -62,14 +66,10 @@ def threaten_lanes(state: VehicleState, threats: Threats, seeds: torch.Tensor, s
             & (state.lane_change_timer == 0)  # MOBIL decided this frame
             & (gap > 0) & (gap < threats.reach))
     aimed = _ego_lanes(state, config)  # (E, L) bool
-    query = slots.expand(num_envs, num_vehicles)
     options = []
     for side in (-1, 1):
-        lane = state.lane + side
-        on_road = (lane >= 0) & (lane < config.lanes)
-        wanted = aimed.gather(1, lane.clamp(0, config.lanes - 1)) & on_road
-        own_braking = idm_acceleration(state, lane, config) >= -config.lane_change_max_braking_imposed
-        options.append(free & wanted & mobil_safe(state, lane, config, query) & own_braking)
+        lane = (state.lane + side).clamp(0, config.lanes - 1)
+        options.append(free & aimed.gather(1, lane) & _may_change(state, side, config))
     left, right = options
     seed = seeds[:, None]
     turns = (left | right) & (uniform(seed, _CUT_IN, step[:, None], slots) < threats.cut_in)
@@ -95,14 +95,70 @@ def threaten_speeds(state: VehicleState, acceleration: torch.Tensor, threats: Th
     window = torch.div(step, max(1, round(threats.brake_window * frequency)), rounding_mode="floor")
     braking = (acting & (gap > 0) & (gap < threats.reach) & _settled(state, config) & _followers_stop(state, config)
                & (uniform(seeds[:, None], _BRAKE, window[:, None], slots) < threats.brake_share))
-    full_stop = torch.maximum(torch.full_like(state.speed, -config.acc_max), -state.speed / config.dt)
-    acceleration = torch.where(braking, full_stop.to(acceleration.dtype), acceleration)
+    acceleration = torch.where(braking, _full_stop(state, config).to(acceleration.dtype), acceleration)
     if threats.overtake:
         beside = (state.lane - state.lane[:, :1]).abs() == 1
         passing = acting & beside & (gap < 0) & (gap > -threats.reach) & (acceleration >= 0)
-        fastest = ((config.speed_limit - state.speed) / config.dt).clamp(0.0, config.comfort_acc_max)
-        acceleration = torch.where(passing, fastest.to(acceleration.dtype), acceleration)
+        acceleration = torch.where(passing, _fastest(state, config).to(acceleration.dtype), acceleration)
     return acceleration
+
+
+class Orders(NamedTuple):
+    """Orders to single cars, carried out only within the rules (:func:`obey_lanes`, :func:`obey_speeds`).
+
+    Fields:
+        lane_change: (E, V) long, -1 / +1: change to the lane on that side at the car's next MOBIL
+            decision, where it is settled and MOBIL's safety criterion allows it; 0: MOBIL decides.
+        speed: (E, V) long, -1: brake as hard as IDM may (settled cars, to rest); +1: speed up as
+            fast as IDM may (where IDM would not brake); 0: IDM.
+    """
+
+    lane_change: torch.Tensor
+    speed: torch.Tensor
+
+
+def obey_lanes(state: VehicleState, orders: Orders, config: SimConfig) -> VehicleState:
+    """Target lanes after the lane orders that are legal this frame (:class:`Orders`), after MOBIL's decisions."""
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
+    free = (state.alive & ~state.crashed & state.lane_change_enabled & (slots > 0) & _settled(state, config)
+            & (state.lane_change_timer == 0))  # MOBIL decided this frame
+    side = orders.lane_change.clamp(-1, 1)
+    turns = torch.zeros_like(free)
+    for wanted in (-1, 1):
+        turns |= free & (side == wanted) & _may_change(state, wanted, config)
+    target = torch.where(turns, state.lane + side, state.target_lane)
+    timer = torch.where(turns, torch.zeros_like(state.lane_change_timer), state.lane_change_timer)
+    return state._replace(target_lane=target, lane_change_timer=timer)
+
+
+def obey_speeds(state: VehicleState, acceleration: torch.Tensor, orders: Orders, config: SimConfig) -> torch.Tensor:
+    """(E, V) accelerations [m/s^2] after the speed orders (:class:`Orders`), from IDM's ``acceleration``."""
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
+    acting = state.alive & ~state.crashed & (slots > 0)
+    braking = acting & (orders.speed < 0) & _settled(state, config)
+    speeding = acting & (orders.speed > 0) & (acceleration >= 0)
+    acceleration = torch.where(braking, _full_stop(state, config).to(acceleration.dtype), acceleration)
+    return torch.where(speeding, _fastest(state, config).to(acceleration.dtype), acceleration)
+
+
+def _may_change(state: VehicleState, side: int, config: SimConfig) -> torch.Tensor:
+    """(E, V) bool: a change to the lane on ``side`` (-1 / +1) is on the road, passes MOBIL's safety
+    criterion, and the car need not brake harder than that criterion allows behind its new leader."""
+    lane = state.lane + side
+    on_road = (lane >= 0) & (lane < config.lanes)
+    query = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape)
+    own_braking = idm_acceleration(state, lane, config) >= -config.lane_change_max_braking_imposed
+    return on_road & mobil_safe(state, lane, config, query) & own_braking
+
+
+def _full_stop(state: VehicleState, config: SimConfig) -> torch.Tensor:
+    """(E, V) IDM's hardest braking, to rest and not beyond [m/s^2]."""
+    return torch.maximum(torch.full_like(state.speed, -config.acc_max), -state.speed / config.dt)
+
+
+def _fastest(state: VehicleState, config: SimConfig) -> torch.Tensor:
+    """(E, V) IDM's largest acceleration, to the speed limit and not beyond [m/s^2]."""
+    return ((config.speed_limit - state.speed) / config.dt).clamp(0.0, config.comfort_acc_max)
 
 
 def _settled(state: VehicleState, config: SimConfig) -> torch.Tensor:

@@ -86,7 +86,7 @@ class AssumptionMonitor:
         sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False)
         speed = torch.hypot(vehicles[..., 2], vehicles[..., 3])
         broke = torch.zeros_like(mask)
-        last, self._last = self._last, (ids, sets, mask, speed)
+        last, self._last = self._last, (ids.clone(), sets, mask, speed)
         if last is None or last[1].x_low.shape[1] != vehicles.shape[1]:
             return broke
         last_ids, previous, previous_mask, previous_speed = last

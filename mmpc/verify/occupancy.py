@@ -12,13 +12,14 @@ ego holds a lane:
   whole manoeuvre checked, stays out of that lane unless it is changing into it already
   (``TrafficAssumptions.mobil_safety``). The rule binds while the ego is behind the car: one the
   ego overtakes may enter behind it, where the fault rule below takes over;
-- a car wholly behind the ego answers for its own distance (the evaluation's fault rule): one on
-  the ego's nearest lane is left out; one on the other lane the ego counts on (the lane it is
-  entering or leaving) only where it has room to stop behind the ego (:func:`yields`: braking at
-  ``max_deceleration`` after ``follower_reaction``, the ego at the fail-safes' hardest), so the
-  ego does not cut in close in front of it; one elsewhere is not counted entering the ego's
-  lanes (it would enter behind the ego), even where it is changing towards them already. A car
-  alongside is never left out.
+- a car behind the ego answers for its own distance (the evaluation's fault rule). One wholly
+  behind on the ego's nearest lane is left out; one wholly behind on the other lane the ego
+  counts on (the lane it is entering or leaving) only where it has room to stop behind the ego
+  (:func:`yields`: braking at ``max_deceleration`` after ``follower_reaction``, the ego at the
+  fail-safes' hardest), so the ego does not cut in close in front of it; a car alongside on a
+  lane the ego counts on is never left out. A car behind (its centre behind the ego's) elsewhere
+  is not counted entering the ego's lanes (it would enter behind or into the side of the ego),
+  even where it is changing towards them already.
 
 The ego's lanes are those it counts on now (at most two, halfway between); each set comes in the
 four variants of which of them the manoeuvre holds (:data:`HELD_VARIANTS`).
@@ -166,8 +167,9 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
     on_ego_lane = ((car_lanes[..., :, None] == ego_lanes[:, None, None, :]) & (ego_lanes[:, None, None, :] >= 0))  # (E, M, 2, 2)
     on_ego_lane = on_ego_lane.any(dim=2)  # (E, M, 2): counted on the ego's lane j
     ego_x = ego[:, EGO_X, None]
-    behind = (ego_x - x > a.length) & fault_rule  # wholly behind (bodies of the assumed length)
-    answers = behind & (on_ego_lane[..., 0] | (on_ego_lane[..., 1] & yields(ego, vehicles, a, ego_braking)))
+    behind = (x < ego_x) & fault_rule
+    wholly_behind = (ego_x - x > a.length) & fault_rule  # bodies of the assumed length
+    answers = wholly_behind & (on_ego_lane[..., 0] | (on_ego_lane[..., 1] & yields(ego, vehicles, a, ego_braking)))
     relevant = mask & ~answers
 
     # Per lane j of the ego: the cars the rule keeps out of it where the manoeuvre holds it (ahead
