@@ -36,7 +36,9 @@ ACTIONS = ((0, 0), (0, -1), (0, 1), (-1, 0), (1, 0))
 ACTION_NAMES = ("follow", "brake", "speed up", "change left", "change right")
 #: The red car is the nearest car ahead of the ego within this distance along the road [m].
 RED_REACH = 60.0
-COLLISION_REWARD = 10.0
+#: Reward of a collision of the ego: above any episode's near-miss reward (100 steps x ``near_miss``),
+#: so a collision, which ends the episode, pays more than circling the ego (at 10 it did not).
+COLLISION_REWARD = 100.0
 #: Bodies closer than this count as a near miss, rewarded in proportion [m].
 NEAR_MISS_GAP = 10.0
 #: Observation: the ego (y, speed, heading), the red car relative to it (dx, dy, speed, lateral

@@ -6,7 +6,8 @@ driver collide; then count its collisions over named seeds (:mod:`mmpc.rl.red_te
     python scripts/red_team.py --driver verified:mpc --model runs/red_team/mpc/model.zip --episodes 1000 --seeds 68096 --out runs/red_team/cross
 
 Any driver spec of ``mmpc evaluate --driver`` can be the target. Prints a table and writes
-``OUT/red_team.json`` (with ``OUT/model.zip`` and TensorBoard files under ``OUT/tb`` when it trains).
+``OUT/red_team.json`` (with ``OUT/model.zip`` and TensorBoard files under ``OUT/tb`` when it trains: the
+episodes' return ``rollout/ep_rew_mean``, 100 per collision).
 """
 
 from __future__ import annotations
@@ -44,13 +45,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--steps, --envs and --episodes must be >= 1")
     torch.set_num_threads(1)
     from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecMonitor
 
     scenario = dataclasses.replace(load_scenario(args.scenario, {"sim": "batched"}), duration=args.duration)
     driver = make_driver(args.driver, scenario)
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     if args.model is None:
-        env = RedTeamVecEnv(driver, scenario, args.envs, seed=args.train_seed, near_miss=args.near_miss)
+        env = VecMonitor(RedTeamVecEnv(driver, scenario, args.envs, seed=args.train_seed, near_miss=args.near_miss))
         model = PPO("MlpPolicy", env, n_steps=128, batch_size=1024, learning_rate=3e-4, seed=args.train_seed,
                     tensorboard_log=str(args.out / "tb"), verbose=0)
         model.learn(total_timesteps=args.steps)

@@ -13,6 +13,8 @@ What it covers:
 - random IDM traffic of a scenario placed as highway-env places it, the window that keeps it
   around the ego (:mod:`mmpc.sim.traffic`, draws by :mod:`mmpc.sim.random`);
 - E episodes of a scenario with time limits and per-environment resets (:class:`SimEpisodes`);
+- threatening traffic within the rules (scenario ``traffic.threats``) and orders to single cars
+  (a red-team agent's), carried out within the rules (:mod:`mmpc.sim.threats`);
 - highway-env's ``Kinematics`` observation and reward of the egos (:mod:`mmpc.sim.observation`,
   :mod:`mmpc.sim.reward`).
 
