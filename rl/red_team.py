@@ -22,10 +22,10 @@ from typing import Any, NamedTuple, Optional, Sequence
 import gymnasium as gym
 import numpy as np
 import torch
-from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from mmpc.drivers import Driver, Observation
+from mmpc.rl.sim_vec_env import TensorVecEnv
 from mmpc.scenario import ScenarioConfig, batched_unsupported
 from mmpc.sim import SimEpisodes
 from mmpc.sim.threats import Orders
@@ -46,7 +46,7 @@ NEAR_MISS_GAP = 10.0
 OBSERVATION_SIZE = 12
 
 
-class RedTeamVecEnv(VecEnv):
+class RedTeamVecEnv(TensorVecEnv):
     """E red-team environments on one :class:`mmpc.sim.SimEpisodes`, a stable-baselines3 ``VecEnv``.
 
     Args:
@@ -193,23 +193,6 @@ class RedTeamVecEnv(VecEnv):
             time_left,
         ], dim=1)
         return features.clamp(-3.0, 3.0).float().numpy()
-
-    # ------------------------------------------------------------------ VecEnv plumbing
-
-    def close(self) -> None:
-        """Nothing to release (tensors only)."""
-
-    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
-        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
-
-    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
-        raise AttributeError(f"RedTeamVecEnv holds its environments as tensors; `{attr_name}` cannot be set per environment")
-
-    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
-        raise AttributeError(f"RedTeamVecEnv holds its environments as tensors; they have no method `{method_name}`")
-
-    def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
-        return [False for _ in self._get_indices(indices)]
 
 
 class RedTeamScore(NamedTuple):

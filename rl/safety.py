@@ -482,13 +482,12 @@ class SafetyLayer:
         """``control`` with each command taken only where it verifies (:class:`mmpc.verify.Guard`;
         a fresh plan's other feasible candidates are the alternatives); an override is an intervention."""
         host = observation.to("cpu")
-        mask = host.vehicle_mask if host.vehicle_mask is not None else torch.ones(host.vehicles.shape[:2], dtype=torch.bool)
         alternatives = None
         if control.plan is not None:
             plan = control.plan.plan
             alternatives = lambda rows: cheapest_goals(plan, self.mpc, rows, VERIFIED_ALTERNATIVES)  # noqa: E731
         asked = control.acceleration.cpu(), control.steering.cpu()
-        guarded = self.guard.choose(host.ego, host.vehicles, mask, host.ids().tolist(), *asked, alternatives)
+        guarded = self.guard.choose(host.ego, host.vehicles, host.vehicle_mask, host.ids().tolist(), *asked, alternatives)
         acceleration, steering = guarded.acceleration.to(asked[0].dtype), guarded.steering.to(asked[1].dtype)
         changed = ((acceleration != asked[0]) | (steering != asked[1])).to(self.device)
         return control._replace(acceleration=acceleration.to(self.device), steering=steering.to(self.device),

@@ -223,7 +223,28 @@ class _SimStepWorld:
         return self.sim.state.speed[rows, 0].double()
 
 
-class SafeSimVecEnv(VecEnv):
+class TensorVecEnv(VecEnv):
+    """A stable-baselines3 ``VecEnv`` whose environments are rows of tensors, not objects: nothing to
+    close, attributes are the whole batch's, no per-environment setters or methods."""
+
+    def close(self) -> None:
+        """Nothing to release (tensors only)."""
+
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        raise AttributeError(f"{type(self).__name__} holds its environments as tensors; `{attr_name}` cannot be set per "
+                             "environment")
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        raise AttributeError(f"{type(self).__name__} holds its environments as tensors; they have no method `{method_name}`")
+
+    def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+
+class SafeSimVecEnv(TensorVecEnv):
     """The safe environments on the batched simulator as a stable-baselines3 ``VecEnv``.
 
     Arguments as :class:`SafeSimBatch`. An environment whose episode ends is reset at once; its
@@ -261,21 +282,6 @@ class SafeSimVecEnv(VecEnv):
                 info["terminal_observation"] = step.final[index]
                 self.reset_infos[index] = step.reset_infos[index]
         return step.observations, step.rewards.astype(np.float32), dones, step.infos
-
-    def close(self) -> None:
-        """Nothing to release (tensors only)."""
-
-    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
-        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
-
-    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
-        raise AttributeError(f"SafeSimVecEnv holds its environments as tensors; `{attr_name}` cannot be set per environment")
-
-    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
-        raise AttributeError(f"SafeSimVecEnv holds its environments as tensors; they have no method `{method_name}`")
-
-    def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
-        return [False for _ in self._get_indices(indices)]
 
 
 class SafeSimVectorEnv(gym.vector.VectorEnv):

@@ -57,15 +57,12 @@ class VerifiedDriver(Driver):
         start = time.perf_counter()
         observation = observation.to("cpu")
         decision = decision.commands_to("cpu")
-        vehicles = observation.vehicles
-        mask = observation.vehicle_mask if observation.vehicle_mask is not None else \
-            torch.ones(vehicles.shape[:2], dtype=torch.bool)
         plan, mpc = decision.plan, getattr(self.driver, "mpc", None)
         alternatives = None
         if plan is not None and mpc is not None and self.alternatives:
             alternatives = lambda rows: cheapest_goals(plan, mpc, rows, self.alternatives)  # noqa: E731
-        guarded = self.guard.choose(observation.ego, vehicles, mask, observation.ids().tolist(), decision.acceleration,
-                                    decision.steering, alternatives)
+        guarded = self.guard.choose(observation.ego, observation.vehicles, observation.vehicle_mask, observation.ids().tolist(),
+                                    decision.acceleration, decision.steering, alternatives)
         acceleration = guarded.acceleration.to(decision.acceleration.dtype)
         steering = guarded.steering.to(decision.steering.dtype)
         changed = (acceleration != decision.acceleration) | (steering != decision.steering)

@@ -59,12 +59,9 @@ def threaten_lanes(state: VehicleState, threats: Threats, seeds: torch.Tensor, s
         seeds, step: (E,) int64 each, the episodes' seeds and control steps (name the draws).
         config: the simulator's constants.
     """
-    num_envs, num_vehicles = state.x.shape
-    slots = torch.arange(num_vehicles, device=state.x.device)
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
     gap = state.x - state.x[:, :1]
-    free = (state.alive & ~state.crashed & state.lane_change_enabled & (slots > 0) & _settled(state, config)
-            & (state.lane_change_timer == 0)  # MOBIL decided this frame
-            & (gap > 0) & (gap < threats.reach))
+    free = _deciding(state, config) & (gap > 0) & (gap < threats.reach)
     aimed = _ego_lanes(state, config)  # (E, L) bool
     options = []
     for side in (-1, 1):
@@ -74,9 +71,7 @@ def threaten_lanes(state: VehicleState, threats: Threats, seeds: torch.Tensor, s
     seed = seeds[:, None]
     turns = (left | right) & (uniform(seed, _CUT_IN, step[:, None], slots) < threats.cut_in)
     go_right = right & (~left | (uniform(seed, _SIDE, step[:, None], slots) < 0.5))
-    target = torch.where(turns, state.lane + torch.where(go_right, 1, -1), state.target_lane)
-    timer = torch.where(turns, torch.zeros_like(state.lane_change_timer), state.lane_change_timer)
-    return state._replace(target_lane=target, lane_change_timer=timer)
+    return _turn(state, turns, torch.where(go_right, 1, -1))
 
 
 def threaten_speeds(state: VehicleState, acceleration: torch.Tensor, threats: Threats, seeds: torch.Tensor,
@@ -88,19 +83,15 @@ def threaten_speeds(state: VehicleState, acceleration: torch.Tensor, threats: Th
         frequency: the scenario's control steps per second [Hz] (sizes the braking windows).
         Others as :func:`threaten_lanes`.
     """
-    num_vehicles = state.x.shape[1]
-    slots = torch.arange(num_vehicles, device=state.x.device)
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
     gap = state.x - state.x[:, :1]
-    acting = state.alive & ~state.crashed & (slots > 0)
     window = torch.div(step, max(1, round(threats.brake_window * frequency)), rounding_mode="floor")
-    braking = (acting & (gap > 0) & (gap < threats.reach) & _settled(state, config) & _followers_stop(state, config)
+    braking = ((gap > 0) & (gap < threats.reach) & _followers_stop(state, config)
                & (uniform(seeds[:, None], _BRAKE, window[:, None], slots) < threats.brake_share))
-    acceleration = torch.where(braking, _full_stop(state, config).to(acceleration.dtype), acceleration)
-    if threats.overtake:
-        beside = (state.lane - state.lane[:, :1]).abs() == 1
-        passing = acting & beside & (gap < 0) & (gap > -threats.reach) & (acceleration >= 0)
-        acceleration = torch.where(passing, _fastest(state, config).to(acceleration.dtype), acceleration)
-    return acceleration
+    passing = (state.lane - state.lane[:, :1]).abs() == 1  # beside the ego's lane, behind it
+    passing &= (gap < 0) & (gap > -threats.reach) & threats.overtake
+    speed = passing.long() - braking.long()  # a car is ahead or behind, never both
+    return obey_speeds(state, acceleration, Orders(torch.zeros_like(speed), speed), config)
 
 
 class Orders(NamedTuple):
@@ -119,16 +110,12 @@ class Orders(NamedTuple):
 
 def obey_lanes(state: VehicleState, orders: Orders, config: SimConfig) -> VehicleState:
     """Target lanes after the lane orders that are legal this frame (:class:`Orders`), after MOBIL's decisions."""
-    slots = torch.arange(state.x.shape[1], device=state.x.device)
-    free = (state.alive & ~state.crashed & state.lane_change_enabled & (slots > 0) & _settled(state, config)
-            & (state.lane_change_timer == 0))  # MOBIL decided this frame
+    free = _deciding(state, config)
     side = orders.lane_change.clamp(-1, 1)
     turns = torch.zeros_like(free)
     for wanted in (-1, 1):
         turns |= free & (side == wanted) & _may_change(state, wanted, config)
-    target = torch.where(turns, state.lane + side, state.target_lane)
-    timer = torch.where(turns, torch.zeros_like(state.lane_change_timer), state.lane_change_timer)
-    return state._replace(target_lane=target, lane_change_timer=timer)
+    return _turn(state, turns, side)
 
 
 def obey_speeds(state: VehicleState, acceleration: torch.Tensor, orders: Orders, config: SimConfig) -> torch.Tensor:
@@ -139,6 +126,21 @@ def obey_speeds(state: VehicleState, acceleration: torch.Tensor, orders: Orders,
     speeding = acting & (orders.speed > 0) & (acceleration >= 0)
     acceleration = torch.where(braking, _full_stop(state, config).to(acceleration.dtype), acceleration)
     return torch.where(speeding, _fastest(state, config).to(acceleration.dtype), acceleration)
+
+
+def _deciding(state: VehicleState, config: SimConfig) -> torch.Tensor:
+    """(E, V) bool: the other cars that MOBIL, at its decision of this frame, kept settled on their lane."""
+    slots = torch.arange(state.x.shape[1], device=state.x.device)
+    return (state.alive & ~state.crashed & state.lane_change_enabled & (slots > 0) & _settled(state, config)
+            & (state.lane_change_timer == 0))  # MOBIL restarts the timer of the cars it evaluated
+
+
+def _turn(state: VehicleState, turns: torch.Tensor, side: torch.Tensor) -> VehicleState:
+    """The cars of ``turns`` (E, V) bool bound for the lane on their ``side`` (E, V), -1 / +1; their
+    timers restart, as after MOBIL's own decision."""
+    target = torch.where(turns, state.lane + side, state.target_lane)
+    timer = torch.where(turns, torch.zeros_like(state.lane_change_timer), state.lane_change_timer)
+    return state._replace(target_lane=target, lane_change_timer=timer)
 
 
 def _may_change(state: VehicleState, side: int, config: SimConfig) -> torch.Tensor:

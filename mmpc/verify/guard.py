@@ -66,18 +66,21 @@ class Guard:
         for env in ids:
             self._stored.pop(int(env), None)
 
-    def choose(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, ids: list[int],
+    def choose(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], ids: list[int],
                acceleration: torch.Tensor, steering: torch.Tensor, alternatives: Optional[Alternatives] = None) -> Guarded:
         """The commands to drive (module docstring).
 
         Args:
-            ego: (E, 6) ego states; vehicles: (E, M, 4) other cars' x, y, vx, vy; mask: (E, M) bool (CPU).
+            ego: (E, 6) ego states; vehicles: (E, M, 4) other cars' x, y, vx, vy; mask: (E, M) bool,
+                the present cars (``None``: all) (CPU).
             ids: E environment ids, stable over an episode (they key the stored fail-safes).
             acceleration, steering: (E,) the commands asked for [m/s^2], [rad].
             alternatives: the caller's other commands for the rows whose own does not verify.
         """
         verifier = self.verifier
         dtype = ego.dtype
+        if mask is None:
+            mask = torch.ones(vehicles.shape[:2], dtype=torch.bool)
         asked_acceleration, asked_steering = acceleration.to(dtype), steering.to(dtype)
         first = verifier.check(ego, vehicles, mask, asked_acceleration[:, None], asked_steering[:, None])
         acceleration, steering = asked_acceleration.clone(), asked_steering.clone()
