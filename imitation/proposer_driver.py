@@ -66,7 +66,7 @@ def subset_problem(problem: ProblemBatch, slots: torch.Tensor) -> ProblemBatch:
 
 
 def problem_rows(problem: ProblemBatch, rows: torch.Tensor) -> ProblemBatch:
-    """The problems of ``rows`` (long indices), their contingency slots kept as such."""
+    """The problems of ``rows`` (long indices)."""
     mask = None if problem.obstacle_mask is None else problem.obstacle_mask[rows]
     axes = None if problem.obstacle_axes is None else problem.obstacle_axes[rows]
     return problem._replace(ego=problem.ego[rows], goals=problem.goals[rows], obstacles=problem.obstacles[rows],

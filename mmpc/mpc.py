@@ -8,7 +8,6 @@ per :meth:`MPC.plan`.
 
 from __future__ import annotations
 
-import functools
 import math
 import time
 from dataclasses import dataclass
@@ -19,12 +18,11 @@ import torch
 from mmpc.config import require, require_field_types, require_int, require_non_negative, require_positive
 from mmpc.footprint import HIGHWAY_VEHICLE, covering_semi_axes
 from mmpc.goals import GoalSampler
-from mmpc.intent import DriverModel, mobil_lane_changes
 from mmpc.meta_costs import MetaCost
 from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
-    EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_lane_change,
-    predict_within_lanes, require_on_device,
+    EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
+    require_on_device,
 )
 from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
 from mmpc.result import SolveResult, Status, Trajectories, WarmStart
@@ -49,8 +47,6 @@ ESCAPE_DEPTH = 0.05
 
 #: Obstacle shapes by :attr:`MPCConfig.obstacle_shape` name.
 OBSTACLE_SHAPES = ("fixed", "heading")
-#: Which cars get a contingency, by :attr:`MPCConfig.contingency_trigger` name.
-CONTINGENCY_TRIGGERS = ("reach", "incentive")
 
 #: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
 #: road) -> (E, M, N, 2)`` centres.
@@ -78,47 +74,10 @@ class MPCConfig:
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
             the horizon and leaves no feasible candidate.
-        contingencies: K contingency slots (:attr:`mmpc.ProblemBatch.contingencies`), each a car
-            ahead (or level) and slower that the ego reaches within ``contingency_window``,
-            starting a lane change now (:func:`mmpc.predict_lane_change`; the cars reached first,
-            chosen by ``contingency_trigger``). The optimizer leaves them out; every selection
-            prefers the feasible candidates that also clear them (:meth:`MPC.preferred`).
-            Traffic that changes lanes by MOBIL does not cut in directly ahead of a car behind
-            it in the target lane, but it does move into a lane the ego is about to enter: most
-            of the expert's high-speed crashes. 0: none.
-        contingency_window: how soon the ego must reach a car for it to get a contingency [s].
-        contingency_trigger: which cars get one: ``"reach"`` those two or more lanes from the
-            ego's, changing toward it; ``"incentive"`` any that MOBIL would move one lane now, in
-            MOBIL's direction, as estimated from the cars seen
-            (:func:`mmpc.intent.mobil_lane_changes`): most slow cars have no reason to change,
-            and the car the ego is about to pass on its own lane may have one.
-        contingency_min_gain: with ``"incentive"``, the acceleration gain [m/s^2] above which a
-            car is expected to change lanes: below MOBIL's own 0.2, it anticipates a car that
-            closes on a slower leader and will soon reach MOBIL's threshold (the gain grows by
-            about 0.2 m/s^2 per second then; at 0.2 the warning came 0.1 s ahead).
-        contingency_lateral_speed: a contingency's speed across the road [m/s].
         obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
             ``ellipse_b`` for every car) or ``"heading"`` (widened across the road to cover the
             car at its direction of motion, :func:`mmpc.footprint.covering_semi_axes`): a car
             changing lanes, turned 10-30 deg, reaches 0.6-1 m beyond the fixed ellipse.
-        passing_margin: defensive passing: the ellipse of a car the ego is faster than grows
-            across the road by this much per m/s of the difference in speed along the road
-            [m per m/s = s], at most ``max_passing_margin``: the ego passes a slower car near
-            its own lane centre, not astride the lane line beside it, where a car that starts to
-            change lanes leaves no room to react. 0: off.
-        max_passing_margin: the largest such growth [m].
-        closing_margin: the ellipse of a car the ego is faster than grows along the road by
-            this much per m/s of the difference [m per m/s = s], at most ``max_closing_margin``:
-            the ego swerves around a slower car ahead earlier and farther back, instead of
-            reaching its rear corner at full closing speed. 0: off.
-        max_closing_margin: the largest such growth [m].
-        evasive_horizon: with no candidate feasible, the fallback ranks the candidates first by
-            how deep they enter an obstacle's ellipse within this many seconds [s] (the plan is
-            re-made every step: the next seconds decide a collision, the rest of the horizon
-            can still change), and following a candidate's path it also brakes for the cars
-            ahead that come within a vehicle width and a half of that path within that time
-            (the lane-keeping check alone missed cars 2-3 m to the side that the path clipped);
-            0: by the whole horizon's violation alone, braking for the ego's lane only.
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
             rate, so with a window of one 0.1 s control period the lateral loop is underdamped
@@ -161,17 +120,7 @@ class MPCConfig:
     ignore_behind: float = 20.0
     obstacle_lookahead: float = 3.0
     prediction: str = "lanes"
-    contingencies: int = 0
-    contingency_window: float = 4.0
-    contingency_lateral_speed: float = 2.5
-    contingency_trigger: str = "incentive"
-    contingency_min_gain: float = 0.0
     obstacle_shape: str = "fixed"
-    passing_margin: float = 0.0
-    max_passing_margin: float = 1.0
-    closing_margin: float = 0.0
-    max_closing_margin: float = 4.0
-    evasive_horizon: float = 0.0
     command_window: float = 0.3
     tie_tolerance: float = 0.01
     tie_margin: float = 1.0
@@ -191,21 +140,13 @@ class MPCConfig:
                 f"`prediction` must be one of {sorted(PREDICTIONS)}; got {self.prediction!r}")
         require(self.obstacle_shape in OBSTACLE_SHAPES,
                 f"`obstacle_shape` must be one of {list(OBSTACLE_SHAPES)}; got {self.obstacle_shape!r}")
-        require(self.contingency_trigger in CONTINGENCY_TRIGGERS,
-                f"`contingency_trigger` must be one of {list(CONTINGENCY_TRIGGERS)}; got {self.contingency_trigger!r}")
-        require_int("", low=0, num_obstacles=self.num_obstacles, contingencies=self.contingencies,
-                    warm_iterations=self.warm_iterations)
+        require_int("", low=0, num_obstacles=self.num_obstacles, warm_iterations=self.warm_iterations)
         require_int("", low=1, warm_cold_every=self.warm_cold_every)
         require(0.0 <= self.warm_keep_share <= 1.0,
                 f"`warm_keep_share` must be in [0, 1]; got {self.warm_keep_share!r}")
-        require_positive("", contingency_window=self.contingency_window,
-                         contingency_lateral_speed=self.contingency_lateral_speed)
         names = ("ignore_behind", "command_window", "brake_deceleration", "max_deceleration", "max_steering")
         require_positive("", **{name: getattr(self, name) for name in names})
         require_non_negative("", obstacle_lookahead=self.obstacle_lookahead, road_margin=self.road_margin,
-                             passing_margin=self.passing_margin, max_passing_margin=self.max_passing_margin,
-                             closing_margin=self.closing_margin, max_closing_margin=self.max_closing_margin,
-                             evasive_horizon=self.evasive_horizon,
                              tie_tolerance=self.tie_tolerance, tie_margin=self.tie_margin, stop_gap=self.stop_gap)
         require(self.stop_lanes is None or self.stop_lanes >= 0,
                 f"`stop_lanes` must be null (no stop goals) or an int >= 0; got {self.stop_lanes!r}")
@@ -252,8 +193,6 @@ class Scored(NamedTuple):
         violation: (E, G) ranking of infeasible candidates, drivable ones first (lower is better).
         solve_ms: wall time of the optimizer call [ms], less ``compile_ms``.
         compile_ms: what the call spent compiling new layouts [ms].
-        exposed: (E, G) bool, the candidate enters the ellipse of one of the problem's
-            contingencies (:attr:`mmpc.ProblemBatch.contingencies`); ``None`` without any.
     """
 
     result: SolveResult
@@ -261,7 +200,6 @@ class Scored(NamedTuple):
     violation: torch.Tensor
     solve_ms: float
     compile_ms: float = 0.0
-    exposed: Optional[torch.Tensor] = None
 
 
 def nearest_obstacles(
@@ -314,16 +252,6 @@ def nearest_obstacles(
         states = torch.cat([states, states.new_zeros(num_problems, pad, 4)], dim=1)
         mask = torch.cat([mask, mask.new_zeros(num_problems, pad)], dim=1)
     return states, mask
-
-
-def _speed_along_road(ego: torch.Tensor) -> torch.Tensor:
-    """(E,) the (E, 6) egos' velocity along the road [m/s]."""
-    return ego[:, EGO_V] * torch.cos(ego[:, EGO_PSI])
-
-
-def _speed_advantage(ego: torch.Tensor, states: torch.Tensor) -> torch.Tensor:
-    """(E, M) how much faster along the road each (E, 6) ego moves than its (E, M, 4) obstacles [m/s]."""
-    return _speed_along_road(ego)[:, None] - states[..., 2]
 
 
 def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]) -> None:
@@ -441,84 +369,27 @@ class MPC:
         vehicles = torch.where(vehicle_mask[..., None], vehicles, torch.zeros_like(vehicles))  # absent rows may hold NaN
         states, mask = self.nearest_obstacles(ego, vehicles, vehicle_mask)
         obstacles = self.predict(states, opt.times)
-        solid = states.shape[1]
-        if self.config.contingencies:
-            moving, hypothetical, chosen = self.contingencies(ego, states, mask, vehicles, vehicle_mask)
-            obstacles = torch.cat([obstacles, hypothetical], dim=1)
-            states, mask = torch.cat([states, moving], dim=1), torch.cat([mask, chosen], dim=1)
-        axes = self.obstacle_axes(ego, states)
+        axes = self.obstacle_axes(states)
         goals = self.goal_sampler(ego, self.road)
         if self.config.stop_lanes is not None:
             ellipse = self.ellipse
-            if axes is not None and solid > 0:  # rest behind the longest ellipse of the problem's obstacles
-                longest = torch.where(mask[:, :solid], axes[:, :solid, 0], torch.full_like(axes[:, :solid, 0], ellipse[0]))
+            if axes is not None and axes.shape[1] > 0:  # rest behind the longest ellipse of the problem's obstacles
+                longest = torch.where(mask, axes[..., 0], torch.full_like(axes[..., 0], ellipse[0]))
                 ellipse = (longest.amax(dim=1, keepdim=True).clamp_min(ellipse[0]), ellipse[1])
-            stops = stop_goals(ego, obstacles[:, :solid], mask[:, :solid], self.road, horizon=opt.config.horizon,
+            stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon,
                                ellipse=ellipse, lanes=self.config.stop_lanes, gap=self.config.stop_gap)
             goals = torch.cat([goals, stops], dim=1)
-        return ProblemBatch(ego, goals, obstacles, mask, axes, self.config.contingencies)
+        return ProblemBatch(ego, goals, obstacles, mask, axes)
 
-    def contingencies(
-        self, ego: torch.Tensor, states: torch.Tensor, mask: torch.Tensor, vehicles: torch.Tensor,
-        vehicle_mask: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The :attr:`MPCConfig.contingencies` of the (E, M, 4) obstacles ``states`` around the (E, 6)
-        egos, among every vehicle seen, ``vehicles`` (E, V, 4) (``vehicle_mask`` (E, V) bool).
-
-        Returns:
-            the K contingencies' states as they would move (E, K, 4) (``vy`` the lateral speed,
-            for their ellipses), their predicted centres (E, K, N, 2) and mask (E, K) (False:
-            no obstacle qualified for the slot).
-        """
-        cfg, road = self.config, self.road
-        ahead = states[..., 0] - ego[:, None, EGO_X]
-        closing = _speed_advantage(ego, states)
-        reached = ahead.clamp_min(0.0) / closing.clamp_min(1e-3)  # s until the ego draws level
-        qualifies = mask & (ahead > -self.wheelbase) & (closing > 0) & (reached <= cfg.contingency_window)
-        if cfg.contingency_trigger == "incentive":
-            seen_ego = torch.stack([ego[:, EGO_X], ego[:, EGO_Y], _speed_along_road(ego)], dim=-1)
-            model = DriverModel(min_gain=cfg.contingency_min_gain)
-            side = mobil_lane_changes(states, vehicles, vehicle_mask, seen_ego, road, model).to(states.dtype)
-            qualifies = qualifies & (side != 0)
-            toward = states[..., 1] + side * road.lane_width  # (E, M)
-        else:
-            ego_lane = road.lane_index(ego[:, EGO_Y]).to(states.dtype)  # (E,)
-            lanes_away = (torch.round(states[..., 1] / road.lane_width) - ego_lane[:, None]).abs()
-            qualifies = qualifies & (lanes_away >= 2)
-            toward = ego[:, EGO_Y, None].expand_as(ahead)
-        order = torch.where(qualifies, reached, torch.full_like(reached, float("inf"))).argsort(dim=1)
-        order = order[:, : cfg.contingencies]
-        if order.shape[1] < cfg.contingencies:  # fewer obstacles than slots
-            order = torch.cat([order, order.new_zeros(order.shape[0], cfg.contingencies - order.shape[1])], dim=1)
-        chosen_mask = torch.gather(qualifies, 1, order) if states.shape[1] else torch.zeros_like(order, dtype=torch.bool)
-        chosen = torch.gather(states, 1, order[..., None].expand(-1, -1, 4)) if states.shape[1] else \
-            states.new_zeros(*order.shape, 4)
-        toward = torch.gather(toward, 1, order) if states.shape[1] else chosen[..., 1]
-        centres = predict_lane_change(chosen, self.optimizer.times.to(states.dtype), road, toward,
-                                      cfg.contingency_lateral_speed)
-        direction = torch.sign(toward - chosen[..., 1])
-        moving = torch.cat([chosen[..., :3], (direction * cfg.contingency_lateral_speed)[..., None]], dim=-1)
-        return moving, centres, chosen_mask
-
-    def obstacle_axes(self, ego: torch.Tensor, states: torch.Tensor) -> Optional[torch.Tensor]:
-        """(E, M, 2) ellipse semi-axes [m] of the (E, M, 4) obstacle states around the (E, 6)
-        egos: :attr:`MPCConfig.obstacle_shape`, grown by the passing and closing margins
-        (:attr:`MPCConfig.passing_margin`, ``closing_margin``); ``None`` when all are off (the
-        optimizer's ellipse)."""
-        cfg = self.config
-        if cfg.obstacle_shape == "fixed" and cfg.passing_margin == 0 and cfg.closing_margin == 0:
+    def obstacle_axes(self, states: torch.Tensor) -> Optional[torch.Tensor]:
+        """(E, M, 2) ellipse semi-axes [m] of the (E, M, 4) obstacle states by
+        :attr:`MPCConfig.obstacle_shape`; ``None`` for ``"fixed"`` (the optimizer's ellipse)."""
+        if self.config.obstacle_shape == "fixed":
             return None
-        if cfg.obstacle_shape == "heading":
-            # Below 1 m/s the direction of motion says little about where the car points.
-            moving = torch.hypot(states[..., 2], states[..., 3]) >= 1.0
-            heading = torch.where(moving, torch.atan2(states[..., 3], states[..., 2]), torch.zeros_like(states[..., 2]))
-            axes = covering_semi_axes(heading, self.ellipse, self.optimizer.config.max_heading_deg, self.vehicle)
-        else:
-            axes = states.new_tensor(self.ellipse).expand(*states.shape[:2], 2)
-        faster = _speed_advantage(ego, states).clamp_min(0.0)  # (E, M)
-        along = axes[..., 0] + (cfg.closing_margin * faster).clamp_max(cfg.max_closing_margin)
-        across = axes[..., 1] + (cfg.passing_margin * faster).clamp_max(cfg.max_passing_margin)
-        return torch.stack([along, across], dim=-1)
+        # Below 1 m/s the direction of motion says little about where the car points.
+        moving = torch.hypot(states[..., 2], states[..., 3]) >= 1.0
+        heading = torch.where(moving, torch.atan2(states[..., 3], states[..., 2]), torch.zeros_like(states[..., 2]))
+        return covering_semi_axes(heading, self.ellipse, self.optimizer.config.max_heading_deg, self.vehicle)
 
     @property
     def ellipse(self) -> tuple[float, float]:
@@ -613,58 +484,36 @@ class MPC:
             torch.cuda.synchronize(result.status.device)
         compile_ms = self.optimizer.last_compile_ms
         solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
-        solid, contingencies = problem.split_contingencies()
         result, road_excess = self._keep_on_road(result, problem.ego)
-        result = self._allow_escape(result, solid)
+        result = self._allow_escape(result, problem)
         cost = self.meta_cost(result.trajectories, self.road)
-        exposed = None if contingencies is None else self._exposed(result, contingencies)
-        return Scored(result, cost, self._violation(result, road_excess, solid), solve_ms, compile_ms, exposed)
+        return Scored(result, cost, self._violation(result, road_excess), solve_ms, compile_ms)
 
     def select(self, problem: ProblemBatch, scored: Scored) -> Selection:
         """The MPC's own choice among the candidates of ``problem`` from its :meth:`score`: the
         feasible candidate of lowest meta cost (ties broken as :meth:`tie_break`), else the least
-        violation; where some feasible candidates clear every contingency, only those compete."""
-        result = self.preferred(scored)
+        violation."""
+        result = scored.result
         return select_best(result, scored.cost, self.optimizer.config, violation=scored.violation,
                            **self.tie_break(result.trajectories, problem.ego))
-
-    @staticmethod
-    def preferred(scored: Scored) -> SolveResult:
-        """``scored.result`` with, in each problem where some feasible candidates clear every
-        contingency, only those counted feasible (every selection rule then prefers them)."""
-        result = scored.result
-        if scored.exposed is None:
-            return result
-        safe = result.feasible & ~scored.exposed
-        return result._replace(feasible=torch.where(safe.any(dim=1, keepdim=True), safe, result.feasible))
 
     def _axes(self, problem: ProblemBatch, dtype: torch.dtype) -> tuple[float, float] | torch.Tensor:
         """The ellipse semi-axes ``problem``'s obstacles were solved with: its (E, M, 2)
         :attr:`mmpc.ProblemBatch.obstacle_axes` in ``dtype``, else the optimizer's (a, b)."""
         return self.ellipse if problem.obstacle_axes is None else problem.obstacle_axes.to(dtype)
 
-    def _exposed(self, result: SolveResult, contingencies: ProblemBatch) -> torch.Tensor:
-        """(E, G) bool: the candidate comes inside a present contingency's ellipse (its own axes, or the optimizer's)."""
-        obstacles = contingencies.obstacles.to(result.trajectories.x.dtype)
-        axes = self._axes(contingencies, obstacles.dtype)
-        inside = squared_obstacle_distance(result.trajectories, obstacles, axes).amin(dim=-1) < 1.0  # (E, G, K)
-        if contingencies.obstacle_mask is not None:
-            inside = inside & contingencies.obstacle_mask[:, None, :]
-        return inside.any(dim=-1)
-
     @torch.no_grad()
     def choose(self, problem: ProblemBatch, scored: Scored, selector: Optional[Selector] = None) -> Plan:
         """The :class:`Plan` of ``problem`` from its :meth:`score`: select a candidate per problem
         (``selector``, as :meth:`plan_problem`) and the commands that execute it (:meth:`command`)."""
         result = scored.result
-        selection = self.select(problem, scored) if selector is None else \
-            selector(self.preferred(scored), scored.cost, scored.violation)
+        selection = self.select(problem, scored) if selector is None else selector(result, scored.cost, scored.violation)
         trajectory = result.trajectories.select(selection.index)
         rows = torch.arange(result.status.shape[0], device=result.status.device)
         drivable = (result.status[rows, selection.index] & int(UNDRIVABLE)) == 0
-        solid, _ = problem.split_contingencies()
         acceleration, steering, heading_rate = self.command(
-            problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=solid.obstacles, mask=solid.obstacle_mask
+            problem.ego, trajectory, selection.feasible, drivable=drivable, obstacles=problem.obstacles,
+            mask=problem.obstacle_mask,
         )
         return Plan(
             problem, result, scored.cost, selection, trajectory, acceleration, steering, heading_rate, scored.solve_ms,
@@ -783,32 +632,13 @@ class MPC:
         status = torch.where(escaping, result.status & ~obstacle_bits, result.status)
         return result._replace(status=status, feasible=status == 0)
 
-    def _violation(self, result: SolveResult, road_excess: torch.Tensor, problem: ProblemBatch) -> torch.Tensor:
-        """(E, G) ranking of infeasible candidates: drivable ones first, then (with an
-        :attr:`MPCConfig.evasive_horizon`) the deepest entry into an obstacle's ellipse within
-        it, then the optimizer's :func:`constraint_violation` plus the road excess (a lane width
-        beyond the edge weighs like a full overlap with an obstacle)."""
+    def _violation(self, result: SolveResult, road_excess: torch.Tensor) -> torch.Tensor:
+        """(E, G) ranking of infeasible candidates: drivable ones first, then the optimizer's
+        :func:`constraint_violation` plus the road excess (a lane width beyond the edge weighs like
+        a full overlap with an obstacle)."""
         undrivable = (result.status & int(UNDRIVABLE)) != 0
         violation = constraint_violation(result, self.optimizer.config) + 10.0 * road_excess / self.road.lane_width
-        violation = violation + 1e3 * undrivable.to(violation.dtype)
-        if self.config.evasive_horizon > 0 and not bool(result.feasible.any(dim=1).all()):
-            violation = violation + 1e2 * self._early_penetration(result, problem)
-        return violation
-
-    def _early_penetration(self, result: SolveResult, problem: ProblemBatch) -> torch.Tensor:
-        """(E, G) how deep each candidate enters a present obstacle's ellipse (1 - normalised
-        distance, 0 when clear) within :attr:`MPCConfig.evasive_horizon`."""
-        trajectories = result.trajectories
-        if problem.obstacles.shape[1] == 0:
-            return torch.zeros_like(trajectories.x[..., 0])
-        early = trajectories.times <= self.config.evasive_horizon + 1e-9
-        obstacles = problem.obstacles.to(trajectories.x.dtype)[:, :, early]
-        near = trajectories._replace(**{name: getattr(trajectories, name)[..., early] for name in ("x", "y")})
-        axes = self._axes(problem, obstacles.dtype)
-        distance = squared_obstacle_distance(near, obstacles, axes).amin(dim=-1)  # (E, G, M)
-        if problem.obstacle_mask is not None:
-            distance = torch.where(problem.obstacle_mask[:, None, :], distance, torch.full_like(distance, float("inf")))
-        return (1.0 - distance.amin(dim=-1).sqrt()).clamp_min(0.0)
+        return violation + 1e3 * undrivable.to(violation.dtype)
 
     def _command(self, trajectory: Trajectories) -> tuple[torch.Tensor, torch.Tensor]:
         """Tangential acceleration and heading rate averaged over the command window."""
@@ -837,15 +667,8 @@ class MPC:
         fallback_acceleration = torch.where(drivable, acceleration.clamp_max(0.0), -self.config.brake_deceleration)
         if obstacles is not None and obstacles.shape[1] > 0:
             mask = torch.ones(obstacles.shape[:2], dtype=torch.bool, device=obstacles.device) if mask is None else mask
-            times = trajectory.times
-            brake = functools.partial(conflict_deceleration, ego, obstacles, mask, times,
-                                      standoff=self.wheelbase + self.config.stop_gap,
-                                      max_deceleration=self.config.max_deceleration)
-            needed = brake(half_width=0.5 * self.road.lane_width)
-            if self.config.evasive_horizon > 0:  # the cars the followed path passes within 1.5 widths of
-                on_path = brake(half_width=1.5 * self.vehicle[1], corridor_y=trajectory.y,
-                                within=self.config.evasive_horizon)
-                needed = torch.minimum(needed, torch.where(drivable, on_path, torch.zeros_like(on_path)))
+            needed = conflict_deceleration(ego, obstacles, mask, trajectory.times, standoff=self.wheelbase + self.config.stop_gap,
+                                           max_deceleration=self.config.max_deceleration, half_width=0.5 * self.road.lane_width)
             fallback_acceleration = torch.minimum(fallback_acceleration, needed)
         # Near rest, brake only as much as stops within the command window (never into reverse).
         fallback_acceleration = torch.maximum(fallback_acceleration, -ego[:, EGO_V] / self.config.command_window)

@@ -1266,11 +1266,6 @@ def _validate(
     ego = _check_tensor("ego", problem.ego, 2, f"(E, {len(EGO_FIELDS)})")
     goals = _check_tensor("goals", problem.goals, 3, "(E, G, 2)")
     obstacles = _check_tensor("obstacles", problem.obstacles, 4, f"(E, M, {n}, 2)")
-    if not (isinstance(problem.contingencies, int) and 0 <= problem.contingencies <= obstacles.shape[1]):
-        raise ValueError(f"`contingencies` must be an int in [0, {obstacles.shape[1]}] (obstacle slots); "
-                         f"got {problem.contingencies!r}")
-    problem, _ = problem.split_contingencies()  # predictions to prefer clearing, not constraints
-    obstacles = problem.obstacles
     num_problems = ego.shape[0]
     if ego.shape[1] != len(EGO_FIELDS):
         raise ValueError(

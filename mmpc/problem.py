@@ -34,9 +34,6 @@ class ProblemBatch(NamedTuple):
             e.g. widened for a car that turns (:func:`mmpc.footprint.covering_semi_axes`);
             absent slots may hold any value. ``None``: every obstacle has the optimizer's
             ``ellipse_a``, ``ellipse_b``.
-        contingencies: the last this-many obstacle slots are contingencies, predictions of what
-            a car may do (:meth:`mmpc.MPC.contingencies`): the optimizer leaves them out, and
-            :meth:`mmpc.MPC.select` prefers the candidates that clear them.
     """
 
     ego: torch.Tensor
@@ -44,7 +41,6 @@ class ProblemBatch(NamedTuple):
     obstacles: torch.Tensor
     obstacle_mask: Optional[torch.Tensor] = None
     obstacle_axes: Optional[torch.Tensor] = None
-    contingencies: int = 0
 
     @property
     def num_problems(self) -> int:
@@ -53,19 +49,6 @@ class ProblemBatch(NamedTuple):
     @property
     def num_goals(self) -> int:
         return int(self.goals.shape[1])
-
-    def split_contingencies(self) -> tuple["ProblemBatch", Optional["ProblemBatch"]]:
-        """(the problem without its contingency slots, the contingency slots alone or ``None``)."""
-        if not self.contingencies:
-            return self, None
-        solid = self.obstacles.shape[1] - self.contingencies
-
-        def slots(part: slice) -> "ProblemBatch":
-            pick = lambda t: None if t is None else t[:, part]
-            return self._replace(obstacles=self.obstacles[:, part], obstacle_mask=pick(self.obstacle_mask),
-                                 obstacle_axes=pick(self.obstacle_axes), contingencies=0)
-
-        return slots(slice(0, solid)), slots(slice(solid, None))
 
 
 def ego_state(
@@ -150,44 +133,6 @@ def predict_constant_velocity(states: torch.Tensor, times: torch.Tensor) -> torc
 #: :func:`predict_within_lanes` takes it for changing to the next lane; closer in, its lateral
 #: velocity is taken for settling onto that centre.
 LANE_CHANGE_ONSET = 0.1
-
-
-def predict_lane_change(states: torch.Tensor, times: torch.Tensor, road: Road, toward_y: torch.Tensor,
-                        lateral_speed: float) -> torch.Tensor:
-    """A contingency: each vehicle starts a lane change now, one lane toward ``toward_y``.
-
-    Along the road the centre moves at ``vx``; across it, it moves at ``lateral_speed`` from its
-    lateral position to the centre of the next lane toward ``toward_y`` and stays there.
-
-    Args:
-        states: (E, M, 4) vehicle states (x [m], y [m], vx [m/s], vy [m/s]) in the road frame.
-        times: (N,) prediction instants [s] measured from now.
-        road: the lanes (centres at ``y = k * lane_width``).
-        toward_y: (E, 1) or (E, M) lateral position the change heads for (e.g. the ego's) [m].
-        lateral_speed: speed of the change across the road [m/s], > 0.
-
-    Returns:
-        (E, M, N, 2) predicted centres [m].
-
-    Example:
-        >>> import torch
-        >>> from mmpc.road import Road
-        >>> states = torch.tensor([[[20.0, 16.0, 10.0, 0.0]]])
-        >>> path = predict_lane_change(states, torch.tensor([0.0, 1.0, 2.0]), Road(), torch.tensor([[8.0]]), 2.5)
-        >>> path[0, 0].tolist()
-        [[20.0, 16.0], [30.0, 13.5], [40.0, 12.0]]
-    """
-    if not lateral_speed > 0:
-        raise ValueError(f"`lateral_speed` must be > 0 m/s; got {lateral_speed}")
-    centres = predict_constant_velocity(states, times)
-    y0 = states[..., 1]  # (E, M)
-    direction = torch.sign(toward_y - y0)
-    lane = torch.round(y0 / road.lane_width) + direction
-    target = lane.clamp(0, road.num_lanes - 1) * road.lane_width  # (E, M)
-    moved = y0[..., None] + direction[..., None] * lateral_speed * times.to(states.dtype)  # (E, M, N)
-    low, high = torch.minimum(y0, target)[..., None], torch.maximum(y0, target)[..., None]
-    lateral = torch.minimum(torch.maximum(moved, low), high)
-    return torch.stack([centres[..., 0], lateral], dim=-1)
 
 
 def predict_within_lanes(states: torch.Tensor, times: torch.Tensor, road: Road) -> torch.Tensor:

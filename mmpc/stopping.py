@@ -9,8 +9,6 @@ drives into a vehicle ahead in its lane.
 
 from __future__ import annotations
 
-from typing import Optional
-
 import torch
 
 from mmpc.problem import EGO_V, EGO_X, EGO_Y
@@ -99,15 +97,12 @@ def conflict_deceleration(
     half_width: float,
     standoff: float,
     max_deceleration: float,
-    corridor_y: Optional[torch.Tensor] = None,
-    within: Optional[float] = None,
 ) -> torch.Tensor:
     """(E,) the constant acceleration [m/s^2] (<= 0) that brings the ego down to the speed of
     every vehicle ahead in its lane before it comes within ``standoff`` of it (centre to centre).
 
     A vehicle counts when its predicted centre comes within ``half_width`` of the ego's lateral
-    position (or of ``corridor_y``, a path's) at any sample (up to ``within``): it is in, or
-    enters, the ego's lane or path; its speed is its predicted one
+    position at any sample: it is in, or enters, the ego's lane; its speed is its predicted one
     over the first sample. Already within ``standoff`` while still closing: ``-max_deceleration``.
     The room is measured to contact, not to the planner's ellipse, so a leader a little inside
     the ellipse and closing slowly asks for a little braking, not full braking.
@@ -121,18 +116,11 @@ def conflict_deceleration(
         standoff: centre distance along the road kept to the vehicle ahead [m] (a vehicle length
             plus a gap).
         max_deceleration: the strongest braking asked for [m/s^2].
-        corridor_y: (E, N) lateral positions at ``times`` to measure ``half_width`` from [m]
-            (e.g. the path a fallback follows); ``None``: the ego's y throughout.
-        within: count only the samples up to this time [s]; ``None``: all.
     """
     x0, y0, v0 = ego[:, EGO_X, None], ego[:, EGO_Y, None], ego[:, EGO_V, None]
     dt = (times[1] - times[0]).to(obstacles.dtype)
     speed = (obstacles[:, :, 1, 0] - obstacles[:, :, 0, 0]) / dt  # (E, M)
-    lateral = y0[..., None] if corridor_y is None else corridor_y[:, None, :].to(obstacles.dtype)  # (E, 1, 1 | N)
-    near = (obstacles[..., 1] - lateral).abs() < half_width  # (E, M, N)
-    if within is not None:
-        near = near & (times <= within + 1e-9).to(near.device)
-    in_lane = near.any(dim=-1)
+    in_lane = ((obstacles[..., 1] - y0[..., None]).abs() < half_width).any(dim=-1)  # (E, M)
     relevant = mask & in_lane & (obstacles[:, :, 0, 0] > x0)
     closing = (v0 - speed).clamp_min(0.0)
     room = obstacles[:, :, 0, 0] - x0 - standoff

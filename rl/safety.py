@@ -524,7 +524,7 @@ class SafetyLayer:
             held.trajectory, elapsed, ego, mpc.config.command_window, self.config.tracking)
         vehicles = observation.vehicles.to(ego.dtype)
         states, mask = mpc.nearest_obstacles(ego, vehicles, observation.vehicle_mask)
-        axes = mpc.obstacle_axes(ego, states)  # the ellipses the MPC plans around
+        axes = mpc.obstacle_axes(states)  # the ellipses the MPC plans around
         clearance = plan_clearance(held.trajectory, elapsed, states, mask, mpc.predict, mpc.ellipse if axes is None else axes)
         replan = ~held.valid | needs_replan(clearance, lateral, speed_error, mpc.optimizer.config.obstacle_tolerance,
                                             self.config.tracking)

@@ -1,4 +1,4 @@
-"""Per-obstacle ellipses: covering a turned car, defensive passing, and the optimizer's per-obstacle path."""
+"""Per-obstacle ellipses: covering a turned car, and the optimizer's per-obstacle path."""
 
 import math
 
@@ -108,29 +108,22 @@ def _mpc(max_obstacles: int = 4, **config) -> MPC:
     return MPC(optimizer, mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road(), MPCConfig(**{"num_obstacles": 4, **config}))
 
 
-def test_mpc_obstacle_axes_by_shape_and_passing_margin():
-    ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)
+def test_mpc_obstacle_axes_by_shape():
     turned = math.radians(15.0)
     states = torch.tensor([[[10.0, 4.0, 10.0 * math.cos(turned), 10.0 * math.sin(turned)],  # slower, turning
                             [30.0, 8.0, 25.0, 0.0],  # faster, straight
                             [20.0, 12.0, 0.5, 0.4]]])  # nearly stopped: its velocity says little of its heading
-    assert _mpc().obstacle_axes(ego, states) is None  # the optimizer's own ellipse
+    assert _mpc().obstacle_axes(states) is None  # the optimizer's own ellipse
     a, b = _mpc().ellipse
-    heading = _mpc(obstacle_shape="heading").obstacle_axes(ego, states)[0]
+    heading = _mpc(obstacle_shape="heading").obstacle_axes(states)[0]
     assert heading[0, 1] > b
     torch.testing.assert_close(heading[1:], torch.tensor([[a, b], [a, b]]))
-    passing = _mpc(passing_margin=0.05, max_passing_margin=0.8).obstacle_axes(ego, states)[0]
-    torch.testing.assert_close(passing[:, 1], torch.tensor([b + 0.05 * (20.0 - 10.0 * math.cos(turned)), b, b + 0.8]))
-    both = _mpc(obstacle_shape="heading", passing_margin=0.05).obstacle_axes(ego, states)[0]
-    torch.testing.assert_close(both[0, 1], heading[0, 1] + passing[0, 1] - b)
     with pytest.raises(ValueError, match="obstacle_shape"):
         MPCConfig(obstacle_shape="turned")
-    with pytest.raises(ValueError, match="passing_margin"):
-        MPCConfig(passing_margin=-0.1)
 
 
 def test_mpc_plans_around_the_wider_ellipse_it_builds():
-    mpc = _mpc(obstacle_shape="heading", passing_margin=0.05)
+    mpc = _mpc(obstacle_shape="heading")
     ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
     vehicles = torch.tensor([[[30.0, 8.0, 8.0, 0.0], [20.0, 4.0, 8.0, 1.5]]])
     plan = mpc.plan(ego, vehicles)
@@ -151,66 +144,3 @@ def test_plan_refuses_tensors_on_another_device():
         mpc.plan(torch.zeros(1, 6), torch.zeros(1, 1, 4, device="meta"))
     with pytest.raises(ValueError, match="`stop_lanes` must be an int or null"):
         MPCConfig(stop_lanes=1.5)
-
-
-def test_closing_margin_lengthens_slower_cars_and_the_stop_goals_rest_behind_it():
-    ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)
-    states = torch.tensor([[[40.0, 8.0, 10.0, 0.0], [30.0, 4.0, 25.0, 0.0]]])
-    plain, closing = _mpc(stop_lanes=0), _mpc(stop_lanes=0, closing_margin=0.3, max_closing_margin=2.5)
-    a, b = plain.ellipse
-    axes = closing.obstacle_axes(ego, states)[0]
-    torch.testing.assert_close(axes, torch.tensor([[a + 2.5, b], [a, b]]))  # 0.3 s x 10 m/s, capped; the faster car as is
-    vehicles = torch.tensor([[[40.0, 8.0, 0.0, 0.0]]])  # stopped ahead in the ego's lane
-    stop = lambda mpc: float(mpc.build_problem(ego, vehicles).goals[0, -1, 0])
-    assert stop(closing) == pytest.approx(stop(plain) - min(0.3 * 20.0, 2.5))
-
-
-def test_a_lane_change_contingency_moves_one_lane_toward_the_ego_and_stays():
-    times = torch.tensor([0.0, 1.0, 2.0, 4.0])
-    states = torch.tensor([[[20.0, 16.0, 10.0, 0.0], [0.0, 0.0, 5.0, 0.0], [5.0, 8.0, 5.0, 0.0]]])
-    path = mmpc.predict_lane_change(states, times, mmpc.Road(), torch.tensor([[9.0]]), 2.0)
-    assert path[0, 0, :, 1].tolist() == [16.0, 14.0, 12.0, 12.0]  # lane 4 -> 3, then stays
-    assert path[0, 1, :, 1].tolist() == [0.0, 2.0, 4.0, 4.0]  # lane 0 -> 1
-    assert path[0, 2, :, 1].tolist() == [8.0, 10.0, 12.0, 12.0]  # toward y = 9: lane 2 -> 3
-    assert path[0, 0, :, 0].tolist() == [20.0, 30.0, 40.0, 60.0]
-    with pytest.raises(ValueError, match="lateral_speed"):
-        mmpc.predict_lane_change(states, times, mmpc.Road(), torch.tensor([[9.0]]), 0.0)
-
-
-def test_contingencies_go_to_slower_cars_two_lanes_over_that_the_ego_reaches_soon():
-    mpc = _mpc(max_obstacles=6, contingencies=2, contingency_window=3.0, contingency_trigger="reach", contingency_lateral_speed=2.0,
-               obstacle_shape="heading")
-    ego = mmpc.ego_state(0.0, 9.0, 0.0, 20.0)  # lane 2, toward lane 3
-    vehicles = torch.tensor([[[20.0, 16.0, 10.0, 0.0],   # lane 4, reached in 2 s: a contingency
-                              [25.0, 12.0, 10.0, 0.0],   # lane 3, next to the ego: MOBIL keeps it out of lane 2
-                              [60.0, 0.0, 10.0, 0.0],    # lane 0, reached in 6 s: too late to matter
-                              [10.0, 20.0, 25.0, 0.0]]])  # lane 5 but faster
-    problem = mpc.build_problem(ego, vehicles)
-    assert problem.obstacles.shape[1] == 6 and problem.obstacle_mask[0].tolist() == [True] * 4 + [True, False]
-    contingency = problem.obstacles[0, 4]
-    assert float(contingency[0, 1]) == 16.0 and float(contingency[-1, 1]) == 12.0  # lane 4 -> 3
-    assert float(problem.obstacle_axes[0, 4, 1]) > mpc.ellipse[1]  # the turning car's wider ellipse
-    assert problem.contingencies == 2 and _mpc().build_problem(ego, vehicles).obstacles.shape[1] == 4
-    assert _mpc(contingencies=2).optimizer.config.max_obstacles == 4  # contingencies are not solved for
-
-
-def test_the_mpc_prefers_candidates_that_clear_the_contingencies():
-    ego = mmpc.ego_state(0.0, 8.0, 0.0, 20.0)  # lane 2
-    vehicles = torch.tensor([[[30.0, 16.0, 9.6, 0.0], [45.0, 8.0, 10.0, 0.0]]])  # lane 4, slower; lane 2 ahead
-    plain = _mpc(max_obstacles=6, obstacle_shape="heading")
-    careful = _mpc(max_obstacles=6, obstacle_shape="heading", contingencies=1, contingency_trigger="reach")
-    problem = careful.build_problem(ego, vehicles)
-    scored = careful.score(problem)
-    assert scored.exposed is not None and bool(scored.exposed.any()) and not bool(scored.exposed.all())
-    # the optimizer solved the problem without its contingency slot: the same candidates as without one
-    torch.testing.assert_close(scored.result.trajectories.y, plain.score(plain.build_problem(ego, vehicles)).result.trajectories.y)
-    choice = careful.select(problem, scored)
-    index = int(choice.index[0])
-    assert bool(choice.feasible[0]) and not bool(scored.exposed[0, index])
-    seen = []  # any selection rule (the safe layer's, the proposer's) gets the same preference
-    careful.choose(problem, scored, lambda result, cost, violation: seen.append(result.feasible) or choice)
-    assert bool(seen[0].any()) and not bool((seen[0] & scored.exposed).any())
-    solid, contingency = problem.split_contingencies()
-    assert solid.obstacles.shape[1] == 4 and contingency.obstacles.shape[1] == 1 and solid.contingencies == 0
-    with pytest.raises(ValueError, match="`contingencies` must be an int in"):
-        careful.optimizer(problem._replace(contingencies=9))

@@ -147,11 +147,11 @@ def test_keeping_every_goal_drives_exactly_as_the_mpc(scenario, mpc, states):
     assert torch.equal(full.fallback, expert.fallback)
 
 
-def test_escalated_rows_keep_their_contingency_slots():
+def test_escalated_rows_keep_their_obstacles():
     problem = ProblemBatch(torch.zeros(3, 6), torch.zeros(3, 5, 2), torch.arange(3 * 4 * 2 * 2.0).view(3, 4, 2, 2),
-                           torch.ones(3, 4, dtype=torch.bool), None, contingencies=2)
+                           torch.ones(3, 4, dtype=torch.bool), None)
     rows = problem_rows(problem, torch.tensor([2, 0]))
-    assert rows.contingencies == 2 and rows.obstacle_axes is None
+    assert rows.obstacle_axes is None
     assert torch.equal(rows.obstacles, problem.obstacles[[2, 0]]) and rows.obstacle_mask.shape == (2, 4)
 
 

@@ -72,7 +72,7 @@ def test_drive_refuses_warm_iterations_above_the_schedule_before_any_work(tmp_pa
     ("cruise", {"traffic.target_speeds": [math.inf, math.inf]}, "traffic.target_speeds[0]", "inf"),
     ("high_speed", {"objective.other_distance": math.inf}, "objective.other_distance", "inf"),
     ("high_speed", {"objective.right_lane_distances": [150.0, math.inf]}, "objective.right_lane_distances[1]", "inf"),
-    ("cruise", {"mpc.contingency_min_gain": math.nan}, "mpc.contingency_min_gain", "nan"),
+    ("cruise", {"mpc.tie_margin": math.nan}, "mpc.tie_margin", "nan"),
     ("cruise", {"vehicle_size": [5.0, -math.inf]}, "vehicle_size[1]", "-inf"),
     ("cruise", {"optimizer.heading_target_deg": math.nan}, "optimizer.heading_target_deg", "nan"),  # Optional[float]
 ])
@@ -103,7 +103,7 @@ def test_a_config_built_directly_refuses_non_finite_floats_too():
 
 @pytest.mark.parametrize("argv, verb, key", [
     (["config", "show", "scenario", "cruise", "--set", "ego.speed=.inf"], "config show", "ego.speed"),
-    (["drive", "--set", "mpc.contingency_min_gain=.nan"], "drive", "mpc.contingency_min_gain"),
+    (["drive", "--set", "mpc.tie_margin=.nan"], "drive", "mpc.tie_margin"),
     (["imitate", "bc", "--dataset", "no-such-dataset", "--set", "weight_decay=.inf"], "imitate bc", "weight_decay"),
 ])
 def test_set_refuses_a_non_finite_value_in_one_line(argv, verb, key, tmp_path, capsys):
