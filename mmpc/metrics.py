@@ -44,6 +44,10 @@ class StepRecord(NamedTuple):
             a task reward no driver's meta cost encodes (:func:`mmpc.sim.reward.highway_reward`).
         verified: the command kept a verified way out (``None``: the driver is not verified, :mod:`mmpc.verify`).
         failsafe: no candidate verified and a fail-safe drove.
+        ttc: time to collision with the nearest car ahead whose body overlaps the ego's across
+            the road, both at their speeds along the road [s] (0: touching; inf: none closing).
+        lane_changes_near: cars changing lane near the ego: moving across the road faster than
+            0.5 m/s, within 30 m along the road and one lane of the ego's.
     """
 
     step: int
@@ -72,6 +76,8 @@ class StepRecord(NamedTuple):
     task_reward: float
     verified: Optional[bool] = None
     failsafe: bool = False
+    ttc: float = math.inf
+    lane_changes_near: int = 0
 
 
 #: Lane discipline: an ego farther than OFF_CENTRE from its nearest lane's centre is off-centre
@@ -79,6 +85,8 @@ class StepRecord(NamedTuple):
 #: first step within CENTRED of the new lane's [m].
 OFF_CENTRE = 1.0
 CENTRED = 0.5
+#: A step whose :attr:`StepRecord.ttc` is below this counts in ``short_ttc_steps`` [s].
+SHORT_TTC = 2.0
 
 
 def _mean(values: Sequence[float]) -> float:
@@ -128,7 +136,10 @@ def episode_metrics(
         ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``verified_share`` (share
         of steps whose command verified; ``None`` for a driver not verified), ``failsafe_steps``, ``min_clearance``,
         ``off_centre_share`` (share of steps farther than :data:`OFF_CENTRE` from the nearest
-        lane centre), ``lane_change_s_mean`` (mean of :func:`lane_change_durations`; ``None`` without one).
+        lane centre), ``lane_change_s_mean`` (mean of :func:`lane_change_durations`; ``None`` without one),
+        ``min_ttc`` (smallest :attr:`StepRecord.ttc` [s]; ``None`` where no car ahead was ever closing),
+        ``short_ttc_steps`` (steps with a ttc below :data:`SHORT_TTC`), ``near_lane_change_steps``
+        (the steps' :attr:`StepRecord.lane_changes_near`, summed: car-steps of lane changes near the ego).
     """
     if not records:
         raise ValueError("`records` must hold at least one step")
@@ -165,4 +176,7 @@ def episode_metrics(
     )
     durations = lane_change_durations(records, lane_width, dt)
     metrics["lane_change_s_mean"] = _mean(durations) if durations else None  # None: an empty cell, as NaN != NaN
+    ttc = min(r.ttc for r in records)
+    metrics.update(min_ttc=ttc if math.isfinite(ttc) else None, short_ttc_steps=sum(r.ttc < SHORT_TTC for r in records),
+                   near_lane_change_steps=sum(r.lane_changes_near for r in records))
     return metrics

@@ -1,5 +1,7 @@
-"""Do two evaluations agree? Per (driver, scenario): collisions, mean speed and meta cost with
-their 95 % intervals in each folder, and the 95 % interval of the difference.
+"""Do two evaluations agree? Per (driver, scenario): collisions, the statistics that lead to
+them (fallback and fail-safe steps, the share of verified steps, short times to collision, other
+cars' lane changes near the ego, the closest approach) and the driving (mean speed, meta cost),
+each with its 95 % interval in each folder, and the 95 % interval of the difference.
 
 Made for the batched simulator against highway-env, same driver, scenarios and seeds::
 
@@ -25,7 +27,11 @@ from typing import Optional, Sequence
 from mmpc.evaluate import read_episodes
 
 #: The metrics compared: (episodes.csv column, label).
-METRICS = (("collisions", "episodes with a collision"), ("mean_speed", "mean speed [m/s]"),
+METRICS = (("collisions", "episodes with a collision"), ("fallback_steps", "fallback steps"),
+           ("failsafe_steps", "fail-safe steps"), ("verified_share", "share of steps verified"),
+           ("short_ttc_steps", "steps with time to collision < 2 s"),
+           ("near_lane_change_steps", "car-steps of lane changes near the ego"),
+           ("min_clearance", "closest approach (ellipse-normalised)"), ("mean_speed", "mean speed [m/s]"),
            ("meta_cost_mean", "meta cost (mean per step)"))
 Z95 = 1.959963984540054
 
@@ -54,7 +60,9 @@ def difference_interval(a: Sequence[float], b: Sequence[float]) -> tuple[float, 
 
 
 def compare(reference: Path, other: Path) -> list[dict]:
-    """One row per (driver, scenario, metric) present with ``status == ok`` episodes in both folders."""
+    """One row per (driver, scenario, metric) present with ``status == ok`` episodes in both folders
+    (a metric is left out where an episode has none: ``verified_share`` of a driver not verified,
+    the newer statistics of an evaluation older than them)."""
     def groups(folder: Path) -> dict[tuple[str, str], list[dict]]:
         rows: dict[tuple[str, str], list[dict]] = {}
         for row in read_episodes(folder / "episodes.csv"):
@@ -66,6 +74,8 @@ def compare(reference: Path, other: Path) -> list[dict]:
     results = []
     for key in sorted(set(first) & set(second)):
         for column, label in METRICS:
+            if any(r[column] is None for r in first[key] + second[key]):
+                continue
             a = [float(r[column] > 0) if column == "collisions" else float(r[column]) for r in first[key]]
             b = [float(r[column] > 0) if column == "collisions" else float(r[column]) for r in second[key]]
             if column == "collisions":

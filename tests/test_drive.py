@@ -9,10 +9,11 @@ import re
 
 import imageio.v2 as imageio
 import pytest
+import torch
 
 from mmpc.cli.arguments import seed_list
 from mmpc.cli.main import main
-from mmpc.highway.runner import run_episode, write_outputs
+from mmpc.highway.runner import _traffic_near, run_episode, write_outputs
 from mmpc.evaluate import format_table, read_episodes, summarize
 from mmpc.metrics import StepRecord, episode_metrics, lane_change_durations
 from mmpc.scenario import ScenarioConfig, load_scenario
@@ -48,6 +49,28 @@ def test_episode_metrics_follow_their_definitions():
     assert episode_metrics([record(0, crashed=True)], dt=0.1, right_lane_y=20.0)["collisions"] == 1
     with pytest.raises(ValueError, match="records"):
         episode_metrics([], dt=0.1, right_lane_y=20.0)
+
+
+def test_the_statistics_that_lead_to_crashes_come_from_the_traffic_around_the_ego():
+    ego = torch.tensor([[0.0, 8.0, 0.0, 20.0, 0.0, 0.0]]).repeat(2, 1)
+    vehicles = torch.tensor([[[25.0, 9.0, 10.0, 0.0],  # ahead, overlapping across: 20 m closed at 10 m/s
+                              [10.0, 12.0, 20.0, 1.0],  # changing lane, one lane over
+                              [-20.0, 4.0, 25.0, -2.0],  # changing lane behind, within 30 m
+                              [60.0, 8.0, 30.0, 0.0]],  # ahead but pulling away
+                             [[4.0, 8.5, 25.0, 0.0],  # touching
+                              [50.0, 14.0, 5.0, 0.0],  # ahead two lanes over: not closing on the ego's path
+                              [20.0, 20.0, 5.0, 3.0],  # changing lane three lanes over
+                              [0.0, 0.0, 0.0, 0.0]]])  # absent
+    mask = torch.tensor([[True] * 4, [True, True, True, False]])
+    ttc, changing = _traffic_near(ego, vehicles, mask, load_scenario("high_speed"))
+    assert ttc.tolist() == [2.0, 0.0] and changing.tolist() == [2, 0]
+    _, alone = _traffic_near(ego[:1], vehicles[:1, :0], None, load_scenario("high_speed"))
+    assert alone.tolist() == [0]
+    records = [record(0)._replace(ttc=3.0, lane_changes_near=1), record(1)._replace(ttc=1.5, lane_changes_near=2),
+               record(2)]
+    metrics = episode_metrics(records, dt=0.1, right_lane_y=20.0)
+    assert metrics["min_ttc"] == 1.5 and metrics["short_ttc_steps"] == 1 and metrics["near_lane_change_steps"] == 3
+    assert episode_metrics([record(0)], dt=0.1, right_lane_y=20.0)["min_ttc"] is None  # nobody closing in
 
 
 def test_plan_cost_mean_is_over_the_steps_with_a_plan():

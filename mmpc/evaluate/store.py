@@ -42,12 +42,13 @@ METRIC_COLUMNS = (
     "steps", "duration", "collisions", "collision_part", "ego_fault_collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
     "task_return", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "iterations_mean", "lane_changes", "fallback_steps", "verified_share",
-    "failsafe_steps", "min_clearance", "off_centre_share", "lane_change_s_mean", "assumption_violations", *CRASH_COLUMNS,
-    "crash_collider_outside",
+    "failsafe_steps", "min_clearance", "off_centre_share", "lane_change_s_mean", "min_ttc", "short_ttc_steps",
+    "near_lane_change_steps", "assumption_violations", *CRASH_COLUMNS, "crash_collider_outside",
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
-                          "lane_changes", "fallback_steps", "failsafe_steps", "crash_fallback_steps",
+                          "lane_changes", "fallback_steps", "failsafe_steps", "short_ttc_steps", "near_lane_change_steps",
+                          "crash_fallback_steps",
                           "assumption_violations", "crash_collider_outside"})
 _TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker", "collision_part"})
 #: The metrics that are numbers (all but the part a collision struck).

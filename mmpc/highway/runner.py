@@ -64,6 +64,32 @@ def _clearances(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.
     return squared.amin(dim=1).sqrt()
 
 
+#: A car moving across the road faster than this is changing lane [m/s] (:class:`mmpc.verify.TrafficAssumptions`).
+CHANGING_SPEED = 0.5
+#: How near the ego along the road a lane change counts in :attr:`mmpc.metrics.StepRecord.lane_changes_near` [m].
+NEAR_ALONG = 30.0
+
+
+def _traffic_near(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], scenario: ScenarioConfig
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each ego (A, 6) among its vehicles (A, V, 4): (A,) the time to collision with the nearest
+    car ahead whose body overlaps the ego's across the road (0 where they touch, inf where none
+    closes in) [s], and (A,) the cars changing lane within :data:`NEAR_ALONG` and one lane of it."""
+    length, width = scenario.vehicle
+    lane_width = scenario.road.lane_width
+    present = torch.ones(vehicles.shape[:2], dtype=torch.bool) if mask is None else mask
+    along = vehicles[..., 0] - ego[:, None, EGO_X]
+    across = (vehicles[..., 1] - ego[:, None, EGO_Y]).abs()
+    gap = along - length
+    closing = ego[:, None, EGO_V] * torch.cos(ego[:, None, EGO_PSI]) - vehicles[..., 2]
+    ahead = present & (along > 0) & (across < width)
+    ttc = torch.where(gap > 0, gap / closing.clamp_min(1e-9), torch.zeros_like(gap))
+    ttc = torch.where(ahead & ((closing > 0) | (gap <= 0)), ttc, torch.full_like(ttc, float("inf")))
+    nearest = ttc.amin(dim=1) if ttc.shape[1] else ttc.new_full((ttc.shape[0],), float("inf"))
+    changing = present & (vehicles[..., 3].abs() > CHANGING_SPEED) & (along.abs() < NEAR_ALONG) & (across < 1.5 * lane_width)
+    return nearest, changing.sum(dim=1)
+
+
 def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observation, decision: Decision,
                   scenario: ScenarioConfig) -> list[StepRecord]:
     """The records of one lockstep step, row ``r`` for ``episodes[r]`` at its step ``steps[r]``,
@@ -89,6 +115,7 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
         _clearances(ego, observation.vehicles, observation.vehicle_mask, ellipse).tolist(),
         [None] * rows if decision.verified is None else decision.verified.tolist(),
         [False] * rows if decision.failsafe is None else decision.failsafe.tolist(),
+        *(column.tolist() for column in _traffic_near(ego, observation.vehicles, observation.vehicle_mask, scenario)),
     )
     frequency = scenario.frequency
     return [
@@ -98,9 +125,11 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
             goal_y=xy[1], feasible_goals=feasible, fallback=fallback, meta_cost=meta, plan_cost=plan_cost,
             solve_ms=decision.solve_ms, iterations=iterations, clearance=clearance, crashed=bool(episode.ego.crashed),
             on_road=bool(episode.ego.on_road), task_reward=float(episode.reward), verified=verified, failsafe=failsafe,
+            ttc=ttc, lane_changes_near=changing,
         )
         for step, episode, (x, y, psi, v, a, psidot, lane, command_a, command_steering, goal_index, xy, feasible, fallback,
-                            iterations, meta, plan_cost, clearance, verified, failsafe) in zip(steps, episodes, columns)
+                            iterations, meta, plan_cost, clearance, verified, failsafe, ttc, changing)
+        in zip(steps, episodes, columns)
     ]
 
 
