@@ -1,17 +1,19 @@
 """The red team: a PPO agent drives one car of the batched simulator's traffic, within the rules,
 to make a driver under test collide.
 
-Each episode one car near the ego is the red car (the nearest ahead within :data:`RED_REACH` of
-the ego, else the nearest). Every control step the agent picks one of :data:`ACTIONS` for it,
+The red car is the car ahead of the ego within :data:`RED_REACH` that the ego comes to first,
+counting each lane between them as :data:`LANE_DISTANCE` more road (so mostly the car it follows);
+once the ego has passed it by :data:`PASSED` another is picked, so every episode has a car to use. Every control step the agent picks one of :data:`ACTIONS` for it,
 given as :class:`mmpc.sim.threats.Orders` and carried out only where the rules allow (a lane
 change at the car's MOBIL decision where MOBIL's safety criterion holds, braking and speeding up
 as hard as IDM may), so the red car stays inside :class:`mmpc.verify.TrafficAssumptions`; the
 other cars drive as the scenario's traffic does. The ego is the driver under test, stepped inside
 the environment, so the agent learns against that driver.
 
-Reward per step: :data:`COLLISION_REWARD` when the ego collides, plus ``near_miss`` x (1 - gap /
-:data:`NEAR_MISS_GAP`) while the red car's body is within :data:`NEAR_MISS_GAP` of the ego's, so
-the agent finds the ego before it learns to hit it.
+Reward per step: :data:`COLLISION_REWARD` when the ego collides, plus ``near_miss`` x (1 - ttc /
+:data:`NEAR_MISS_TTC`) while the ego closes on the red car ahead of it with a time to collision ``ttc``
+below :data:`NEAR_MISS_TTC` (a near miss on the gap alone paid for driving beside the ego, and the
+agent never learned to brake ahead of it), so the agent finds the ego before it learns to hit it.
 """
 
 from __future__ import annotations
@@ -34,12 +36,18 @@ from mmpc.verify import AssumptionMonitor
 #: The agent's choices for the red car: (lane change, speed) orders of :class:`mmpc.sim.threats.Orders`.
 ACTIONS = ((0, 0), (0, -1), (0, 1), (-1, 0), (1, 0))
 ACTION_NAMES = ("follow", "brake", "speed up", "change left", "change right")
-#: The red car is the nearest car ahead of the ego within this distance along the road [m].
+#: The red car is a car ahead of the ego within this distance along the road [m] ...
 RED_REACH = 60.0
+#: ... the one the ego comes to first, each lane between them counting as this much more road [m] ...
+LANE_DISTANCE = 30.0
+#: ... and another is picked once the ego is this far past it [m].
+PASSED = 10.0
 #: Reward of a collision of the ego: above any episode's near-miss reward (100 steps x ``near_miss``),
 #: so a collision, which ends the episode, pays more than circling the ego (at 10 it did not).
 COLLISION_REWARD = 100.0
-#: Bodies closer than this count as a near miss, rewarded in proportion [m].
+#: The ego closing on the red car with a time to collision below this is a near miss, rewarded in proportion [s].
+NEAR_MISS_TTC = 3.0
+#: The red car's body within this of the ego's, scaled in the observation [m].
 NEAR_MISS_GAP = 10.0
 #: Observation: the ego (y, speed, heading), the red car relative to it (dx, dy, speed, lateral
 #: speed, gap), the nearest other car relative to the ego (dx, dy, speed difference), time left.
@@ -99,11 +107,24 @@ class RedTeamVecEnv(TensorVecEnv):
         self.ids = self.ids.index_copy(0, rows, torch.arange(self._next_id, self._next_id + count))  # a new tensor: the
         # driver's warm starts and the monitor hold the last one
         self._next_id += count
+        self._pick_red(rows)
+
+    def _pick_red(self, rows: torch.Tensor) -> None:
+        """The red cars of ``rows`` (module docstring): the car ahead within :data:`RED_REACH` the ego
+        comes to first, each lane between them as :data:`LANE_DISTANCE` more road; else the nearest."""
         ego, vehicles, mask = self.sim.road_state()
+        road = self.scenario.road
         dx = vehicles[rows, :, 0] - ego[rows, None, 0]
-        score = torch.where(mask[rows] & (dx > 0) & (dx < RED_REACH), dx, dx.abs() + 1e6)
+        lanes = (road.lane_index(vehicles[rows, :, 1]) - road.lane_index(ego[rows, 1])[:, None]).abs()
+        score = torch.where((dx > 0) & (dx < RED_REACH), dx + LANE_DISTANCE * lanes, dx.abs() + 1e6)
         score = torch.where(mask[rows], score, torch.full_like(score, math.inf))
         self.red[rows] = score.argmin(dim=1) + 1  # a slot of the state (0 is the ego)
+
+    def _passed(self) -> torch.Tensor:
+        """(E,) long: the rows whose ego is :data:`PASSED` beyond its red car, or whose red car left."""
+        state, rows = self.sim.state, torch.arange(self.num_envs)
+        behind = state.x[rows, self.red] < state.x[:, 0] - PASSED
+        return (behind | ~state.alive[rows, self.red]).nonzero()[:, 0]
 
     def reset(self) -> VecEnvObs:
         seeds = self._draw_seeds(self.num_envs)
@@ -142,7 +163,7 @@ class RedTeamVecEnv(TensorVecEnv):
         sim.step(command, orders=Orders(lane_change, speed))
         crashed = sim.crashed.clone()
         gap = self._red_gap()
-        near = (1.0 - gap / NEAR_MISS_GAP).clamp(0.0, 1.0)
+        near = (1.0 - self._red_ttc() / NEAR_MISS_TTC).clamp(0.0, 1.0)
         rewards = (COLLISION_REWARD * crashed.double() + self.near_miss * near.double()).numpy().astype(np.float32)
         red_hit = crashed & (gap <= 0.5)
         done = sim.done.clone()
@@ -162,6 +183,10 @@ class RedTeamVecEnv(TensorVecEnv):
             for row, new_seed in zip(finished.tolist(), seeds):
                 self.episode_seeds[row] = new_seed
             self._start(finished)
+        passed = self._passed()
+        if passed.numel():
+            self._pick_red(passed)
+        if finished.numel() or passed.numel():
             observations = self._observe()
         return observations, rewards, done.numpy(), infos
 
@@ -171,6 +196,18 @@ class RedTeamVecEnv(TensorVecEnv):
         dx = (state.x[rows, self.red] - state.x[:, 0]).abs() - 0.5 * (state.length[rows, self.red] + state.length[:, 0])
         dy = (state.y[rows, self.red] - state.y[:, 0]).abs() - 0.5 * (state.width[rows, self.red] + state.width[:, 0])
         return dx.clamp_min(0.0) + dy.clamp_min(0.0)
+
+    def _red_ttc(self) -> torch.Tensor:
+        """(E,) the ego's time to collision with the red car ahead of it, overlapping across the road,
+        at their speeds along the road [s] (inf where the red car is not ahead or the ego not closing)."""
+        state, rows = self.sim.state, torch.arange(self.num_envs)
+        gap = (state.x[rows, self.red] - state.x[:, 0]) - 0.5 * (state.length[rows, self.red] + state.length[:, 0])
+        overlap = (state.y[rows, self.red] - state.y[:, 0]).abs() < 0.5 * (state.width[rows, self.red] + state.width[:, 0])
+        along = lambda slot: state.speed[rows, slot] * torch.cos(state.heading[rows, slot])  # noqa: E731
+        closing = along(torch.zeros_like(self.red)) - along(self.red)
+        ahead = overlap & (state.x[rows, self.red] > state.x[:, 0]) & (closing > 0)
+        ttc = gap.clamp_min(0.0) / closing.clamp_min(1e-9)
+        return torch.where(ahead, ttc, torch.full_like(ttc, math.inf))
 
     def _observe(self) -> np.ndarray:
         """(E, :data:`OBSERVATION_SIZE`) float32 observations (module docstring), scaled to about [-1, 1]."""
