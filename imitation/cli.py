@@ -45,7 +45,8 @@ def _demos(args: argparse.Namespace) -> int:
 
         try:
             report = generate_demonstrations(scenario, seeds, Path(args.out), workers=args.workers,
-                                             lockstep=args.lockstep, threads=args.threads, on_progress=progress)
+                                             lockstep=args.lockstep, threads=args.threads,
+                                             expert="verified:mpc" if args.verified else "mpc", on_progress=progress)
         except DemonstrationsError as error:
             bar.close()
             print(f"mmpc imitate demos: error: {error}", file=sys.stderr)
@@ -214,6 +215,8 @@ def add_subcommands(sub) -> None:
     demos.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
     demos.add_argument("--lockstep", type=int, default=4,
                        help="episodes per optimizer call (chunk k = seeds with seed // lockstep == k) (default 4)")
+    demos.add_argument("--verified", action="store_true",
+                       help="the MPC behind the check (mmpc.verify): every recorded action keeps a verified way out")
     demos.add_argument("--out", default="runs/demos", help="demonstrations directory (default runs/demos)")
     demos.set_defaults(func=_demos, kept="the finished episodes stay staged in {out}")
 

@@ -72,6 +72,10 @@ def dataset_id(scenario: ScenarioConfig) -> str:
     return f"mmpc/{name}-expert-v0"
 
 
+#: The experts a demonstrations directory may hold (:attr:`Manifest.expert`).
+EXPERTS = ("mpc", "verified:mpc")
+
+
 @dataclasses.dataclass(frozen=True)
 class Manifest:
     """What makes two runs' episodes the same: the scenario (seeds aside), the lockstep chunk size
@@ -84,21 +88,32 @@ class Manifest:
             ``mpc.compile``, ``mpc.wheelbase``) names the same scenario.
         lockstep: episodes per lockstep chunk (chunk k holds seeds ``k * lockstep ...``).
         packages: package versions of the run that created the directory (informative only).
+        expert: who drove: ``"mpc"`` (the scenario's MPC) or ``"verified:mpc"`` (the MPC behind
+            :mod:`mmpc.verify`'s check).
     """
 
     scenario: dict
     lockstep: int
     packages: dict
+    expert: str = "mpc"
+
+    def __post_init__(self) -> None:
+        if self.expert not in EXPERTS:
+            raise ValueError(f"`expert` must be one of {list(EXPERTS)}; got {self.expert!r}")
 
     def identity(self) -> str:
-        """SHA-256 of the scenario and lockstep (what a resumed run must match)."""
+        """SHA-256 of the scenario, lockstep and expert (what a resumed run must match); the MPC's
+        directories hash as before the expert was recorded."""
         scenario = {k: v for k, v in self.scenario.items() if k != "seeds"}
-        text = json.dumps({"scenario": scenario, "lockstep": self.lockstep, "format": FORMAT_VERSION}, sort_keys=True)
-        return hashlib.sha256(text.encode()).hexdigest()
+        fields = {"scenario": scenario, "lockstep": self.lockstep, "format": FORMAT_VERSION}
+        if self.expert != "mpc":
+            fields["expert"] = self.expert
+        return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
     def to_json(self) -> str:
         return json.dumps({"format": FORMAT, "version": FORMAT_VERSION, "identity": self.identity(),
-                           "scenario": self.scenario, "lockstep": self.lockstep, "packages": self.packages}, indent=2)
+                           "scenario": self.scenario, "lockstep": self.lockstep, "expert": self.expert,
+                           "packages": self.packages}, indent=2)
 
     @classmethod
     def read(cls, path: Path) -> "Manifest":
@@ -108,7 +123,7 @@ class Manifest:
                 raise DemonstrationsError(f"{path}: `format` is {values.get('format')!r}, expected {FORMAT!r}")
             if values.get("version") != FORMAT_VERSION:
                 raise DemonstrationsError(f"{path}: format version {values.get('version')!r}; this mmpc reads version {FORMAT_VERSION}")
-            manifest = cls(values["scenario"], int(values["lockstep"]), values.get("packages", {}))
+            manifest = cls(values["scenario"], int(values["lockstep"]), values.get("packages", {}), values.get("expert", "mpc"))
         except (ValueError, KeyError, TypeError) as error:
             raise DemonstrationsError(f"{path} is corrupt ({type(error).__name__}: {error}); "
                                       "remove the directory or choose another --out") from error
@@ -182,6 +197,8 @@ class DemonstrationsDir:
                 changed = [k for k in manifest.scenario if k != "seeds" and manifest.scenario[k] != existing.scenario.get(k)]
                 if existing.lockstep != manifest.lockstep:
                     changed.append("lockstep")
+                if existing.expert != manifest.expert:
+                    changed.append(f"expert ({existing.expert} there, {manifest.expert} asked)")
                 raise DemonstrationsError(
                     f"{self.root} holds demonstrations of another configuration (differs in: {', '.join(changed) or 'format'}); "
                     "re-run with the same scenario and --lockstep to resume, or choose another --out")

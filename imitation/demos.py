@@ -23,6 +23,7 @@ import torch
 
 from mmpc.config import to_dict
 from mmpc.drivers import MPCDriver
+from mmpc.drivers.verified import VerifiedDriver
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import TEMPORARY_PREFIX, atomic_write, exclusive
@@ -40,6 +41,7 @@ from mmpc.imitation.dataset import (
 )
 from mmpc.imitation.rollout import Rollout, rollout_lockstep
 from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.verify import Verifier
 
 logger = logging.getLogger(__name__)
 
@@ -75,12 +77,14 @@ class DemoTask(NamedTuple):
         seeds: every seed of the group (all are driven: they share the optimizer batches).
         missing: the seeds to write (the others are staged already).
         episodes_dir: the staging folder.
+        expert: who drives (:attr:`mmpc.imitation.dataset.Manifest.expert`).
     """
 
     scenario: ScenarioConfig
     seeds: tuple[int, ...]
     missing: tuple[int, ...]
     episodes_dir: Path
+    expert: str = "mpc"
 
     @property
     def label(self) -> str:
@@ -88,8 +92,8 @@ class DemoTask(NamedTuple):
 
 
 def drive_group(task: DemoTask) -> list[int]:
-    """Drive one group with the scenario's MPC and stage the episodes of ``task.missing``;
-    returns the seeds written."""
+    """Drive one group with the scenario's MPC (behind the check for ``verified:mpc``) and stage
+    the episodes of ``task.missing``; returns the seeds written."""
     wanted = set(task.missing)
     written: list[int] = []
 
@@ -100,6 +104,8 @@ def drive_group(task: DemoTask) -> list[int]:
 
     with torch.inference_mode():
         expert = MPCDriver(build_mpc(task.scenario), period=task.scenario.period)
+        if task.expert == "verified:mpc":
+            expert = VerifiedDriver(expert, Verifier.for_scenario(task.scenario))
         rollout_lockstep(task.scenario, task.seeds, expert, on_finished=stage)
     return written
 
@@ -155,6 +161,7 @@ def generate_demonstrations(
     workers: int = 1,
     lockstep: int = 4,
     threads: int = 1,
+    expert: str = "mpc",
     on_progress: Optional[Callable[[int, int], None]] = None,
 ) -> DemosReport:
     """Drive the expert over ``seeds``, stage every episode, build the Minari dataset.
@@ -170,6 +177,8 @@ def generate_demonstrations(
         workers: parallel processes (1: in this process).
         lockstep: the grouping of the episodes (part of the directory's identity).
         threads: torch threads per worker.
+        expert: ``"mpc"`` or ``"verified:mpc"``, the MPC behind the check (:mod:`mmpc.verify`): every
+            recorded action keeps a verified way out (part of the directory's identity).
         on_progress: called as ``on_progress(finished, total)`` while episodes get staged.
 
     Returns:
@@ -185,10 +194,11 @@ def generate_demonstrations(
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     if workers < 1 or lockstep < 1 or threads < 1:
         raise ValueError(f"`workers`, `lockstep` and `threads` must be >= 1; got {workers}, {lockstep}, {threads}")
-    with locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions())) as directory:
+    manifest = Manifest(to_dict(scenario), lockstep, package_versions(), expert)  # refuses an unknown expert
+    with locked_directory(Path(out), manifest) as directory:
         staged = directory.finished_seeds()
         reused = [s for s in seeds if s in staged]
-        tasks = [DemoTask(scenario, tuple(group), tuple(s for s in group if s not in staged), directory.episodes_dir)
+        tasks = [DemoTask(scenario, tuple(group), tuple(s for s in group if s not in staged), directory.episodes_dir, expert)
                  for group in lockstep_groups(seeds, lockstep).values()]
         tasks = [task for task in tasks if task.missing]
         total = len(seeds)

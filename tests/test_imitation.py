@@ -33,6 +33,7 @@ from mmpc.imitation.dagger import (
     run_dagger,
 )
 from mmpc.imitation.dataset import (
+    MANIFEST,
     DemonstrationsError,
     Transitions,
     dataset_transitions,
@@ -162,6 +163,21 @@ def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refus
     with pytest.raises(DemonstrationsError, match="manifest.json is corrupt"):
         generate_demonstrations(short_cruise(), SEEDS, corrupt)
     assert list(lockstep_groups([1000, 1001, 1002, 1005], 4).values()) == [[1000, 1001, 1002], [1005]]
+
+
+def test_demonstrations_of_the_verified_expert_are_their_own_directory(demos_dir, tmp_path):
+    verified = tmp_path / "verified"
+    report = generate_demonstrations(short_cruise(1.0), SEEDS[:2], verified, lockstep=2, expert="verified:mpc")
+    assert report.generated == SEEDS[:2]
+    manifest = json.loads((verified / MANIFEST).read_text())
+    assert manifest["expert"] == "verified:mpc"
+    with pytest.raises(DemonstrationsError, match=r"differs in: expert \(verified:mpc there, mpc asked\)"):
+        generate_demonstrations(short_cruise(1.0), SEEDS[:2], verified, lockstep=2)
+    with pytest.raises(DemonstrationsError, match=r"differs in: expert \(mpc there, verified:mpc asked\)"):
+        generate_demonstrations(short_cruise(), SEEDS, demos_dir, lockstep=2, expert="verified:mpc")
+    with pytest.raises(ValueError, match="`expert` must be one of"):
+        generate_demonstrations(short_cruise(1.0), SEEDS[:2], tmp_path / "other", lockstep=2, expert="verified:bc")
+    assert not (tmp_path / "other").exists()  # refused before anything was written
 
 
 INTERRUPTED_EPISODES = 8

@@ -320,3 +320,14 @@ def test_the_shipped_proposers_drive_their_scenario_by_name(name):
     assert decision.goal_index.shape == (2,) and not bool(decision.fallback.any())
     with pytest.raises(FileNotFoundError, match="shipped proposers: cruise, high_speed"):
         make_driver("proposer:no_such_proposer", scenario)
+
+
+def test_the_shipped_proposer_drives_behind_the_check():
+    from mmpc.highway import run_lockstep
+
+    scenario = load_scenario("cruise", {"sim": "batched", "duration": 2.0})
+    driver = make_driver("verified:proposer:cruise", scenario)
+    results = run_lockstep(scenario, [71850, 71851], driver=driver)
+    assert driver.name == "verified:proposer:cruise"
+    assert all(r.metrics["collisions"] == 0 and r.metrics["verified_share"] > 0.9 for r in results)
+    assert all(record.verified is not None for r in results for record in r.records)
