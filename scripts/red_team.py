@@ -1,9 +1,9 @@
 """Red team: train a PPO agent that drives one car of the traffic, within the rules, to make a
 driver collide; then count its collisions over named seeds (:mod:`mmpc.rl.red_team`).
 
-    python scripts/red_team.py --driver verified:mpc --steps 100000 --episodes 1000 --seeds 68096 --out runs/red_team/verified
-    python scripts/red_team.py --driver mpc --steps 100000 --episodes 1000 --seeds 68096 --out runs/red_team/mpc
-    python scripts/red_team.py --driver verified:mpc --model runs/red_team/mpc/model.zip --episodes 1000 --seeds 68096 --out runs/red_team/cross
+    python scripts/red_team.py --driver verified:mpc --steps 100000 --episodes 1000 --seeds 73024 --out runs/red_team/verified
+    python scripts/red_team.py --driver mpc --steps 100000 --episodes 256 --seeds 74024 --out runs/red_team/mpc
+    python scripts/red_team.py --driver verified:mpc --model runs/red_team/mpc/model.zip --episodes 256 --seeds 74280 --out runs/red_team/cross
 
 Any driver spec of ``mmpc evaluate --driver`` can be the target. Prints a table and writes
 ``OUT/red_team.json`` (with ``OUT/model.zip`` and TensorBoard files under ``OUT/tb`` when it trains: the
