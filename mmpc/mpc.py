@@ -8,8 +8,10 @@ per :meth:`MPC.plan`.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Callable, NamedTuple, Optional
 
@@ -54,6 +56,16 @@ PREDICTIONS = {
     "lanes": predict_within_lanes,
     "constant_velocity": lambda states, times, road: predict_constant_velocity(states, times),
 }
+
+#: MPCConfig keys retired on 2026-11-28 (:meth:`MPCConfig.upgrade`): each switch with its off value,
+#: and (None) the settings that only mattered while their switch was on.
+RETIRED_OPTIONS = {
+    "contingencies": 0, "passing_margin": 0.0, "closing_margin": 0.0, "evasive_horizon": 0.0,
+    "contingency_window": None, "contingency_lateral_speed": None, "contingency_trigger": None,
+    "contingency_min_gain": None, "max_passing_margin": None, "max_closing_margin": None,
+}
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -152,6 +164,24 @@ class MPCConfig:
                 f"`stop_lanes` must be null (no stop goals) or an int >= 0; got {self.stop_lanes!r}")
         require(self.max_deceleration >= self.brake_deceleration,
                 f"`max_deceleration` ({self.max_deceleration}) must be >= `brake_deceleration` ({self.brake_deceleration})")
+
+    @classmethod
+    def upgrade(cls, values: Mapping, where: str) -> dict:
+        """Read a mapping written before the prediction options were retired (the lane-change
+        contingencies, the passing and closing margins, ``evasive_horizon``; the verified driver,
+        ``verified:mpc``, replaced them): their keys are dropped with a warning where the option
+        was off, and refused where it was on (the run cannot be reproduced by this mmpc)."""
+        retired = RETIRED_OPTIONS.keys() & set(values)
+        if not retired:
+            return dict(values)
+        switched_on = {name: values[name] for name in sorted(retired) if RETIRED_OPTIONS[name] is not None
+                       and values[name] != RETIRED_OPTIONS[name]}
+        if switched_on:
+            raise ValueError(f"{where}: {switched_on} switch on prediction options this mmpc no longer has (retired "
+                             f"2026-11-28: docs/experiments/2026-11-28-verified-driving.md); drive `verified:mpc` "
+                             f"for a verified way out, or mmpc at commit 748c42c to reproduce the run")
+        logger.warning("%s: retired MPC option key(s) %s ignored (each was off); remove them", where, sorted(retired))
+        return {name: value for name, value in values.items() if name not in retired}
 
 
 class Plan(NamedTuple):

@@ -314,3 +314,20 @@ def test_readme_keeps_its_two_commands_says_how_to_get_cpu_torch_and_stays_short
     assert any("pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in line for line in lines[5:12])
     text = "\n".join(lines)
     assert "about 23 s on an idle 2-core machine" in text and "about 6 minutes on an idle 2-core machine" in text
+
+
+def test_retired_prediction_options_are_dropped_when_off_and_refused_when_on(caplog):
+    """Files written before 2026-11-28 spell out the retired MPC options (the shipped agents' configs did)."""
+    from mmpc.config import from_dict, to_dict
+    from mmpc.scenario import ScenarioConfig
+
+    scenario = load_scenario("high_speed")
+    written = to_dict(scenario, complete=True)
+    written["mpc"].update(contingencies=0, contingency_window=4.0, contingency_trigger="incentive", passing_margin=0.0,
+                          max_passing_margin=1.0, closing_margin=0.0, max_closing_margin=4.0, evasive_horizon=0.0)
+    with caplog.at_level("WARNING", logger="mmpc.mpc"):
+        assert from_dict(ScenarioConfig, written) == scenario
+    assert "retired MPC option key(s)" in caplog.text and "evasive_horizon" in caplog.text
+    written["mpc"]["passing_margin"] = 0.5
+    with pytest.raises(ValueError, match=r"\{'passing_margin': 0.5\} switch on prediction options"):
+        from_dict(ScenarioConfig, written)
