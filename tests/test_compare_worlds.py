@@ -3,8 +3,6 @@
 import csv
 import json
 
-import pytest
-
 from compare_worlds import compare, main
 from mmpc.evaluate.intervals import mean_ci, welch_ci, wilson_ci
 from mmpc.evaluate.store import COLUMNS
