@@ -24,6 +24,7 @@ from mmpc.files import atomic_write
 from mmpc.imitation.features import SceneGeometry
 from mmpc.road import Road
 
+
 @dataclass(frozen=True)
 class CheckpointKind:
     """One kind of checkpoint.
