@@ -36,11 +36,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping, Optional
+from typing import Optional
 
 import numpy as np
 
-from mmpc.config import from_dict, require_int
+from mmpc.config import require_int
 from mmpc.problem import EGO_X, EGO_Y
 from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
@@ -82,7 +82,7 @@ def scene_geometry(scenario: ScenarioConfig) -> SceneGeometry:
 
 #: The geometry of the policies trained before the features read the scenario (highway-env's
 #: 5 m cars and the (8, 3) m ellipse every feature used then); a checkpoint without a ``scene``
-#: has it (:func:`mmpc.imitation.policy.policy_from_checkpoint`).
+#: has it (:data:`mmpc.imitation.policy.POLICY_CHECKPOINT`).
 LEGACY_SCENE = SceneGeometry(5.0, (8.0, 3.0))
 
 
@@ -216,14 +216,3 @@ def _row_features(state: list[float], near: list[list[float]], road: Road, confi
             else:
                 features += [0.0] * len(LANE_SLOT_FIELDS)
     return features
-
-
-def road_of(values: Mapping[str, Any]) -> Road:
-    """A :class:`Road` from its checkpoint form ``{"num_lanes": ..., "lane_width": ...}``."""
-    return from_dict(Road, values, where="road")
-
-
-def road_dict(road: Road) -> dict:
-    """The checkpoint form of a :class:`Road` (see :func:`road_of`)."""
-    return {"num_lanes": road.num_lanes, "lane_width": float(road.lane_width)}
-

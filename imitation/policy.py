@@ -26,19 +26,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from mmpc.config import from_dict, to_dict
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway import ACCELERATION_RANGE, STEERING_RANGE
-from mmpc.imitation.checkpoint import read_checkpoint, write_checkpoint
+from mmpc.imitation.checkpoint import CheckpointKind, load_model, read_model, save_model
 from mmpc.imitation.features import (
-    LEGACY_SCENE, STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, nearest_neighbours, road_dict, road_features, road_of,
+    LEGACY_SCENE, STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, nearest_neighbours, road_features,
 )
 from mmpc.road import Road
 
 logger = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = "mmpc-policy"
-CHECKPOINT_VERSION = 2  # 2: road-frame features (version 1 read highway-env's Kinematics observation)
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 
 
@@ -192,39 +189,33 @@ def fold(policy: MLPPolicy) -> nn.Sequential:
     return nn.Sequential(*layers, head).eval()
 
 
+#: The policy's checkpoint (:mod:`mmpc.imitation.checkpoint`). Version 2: road-frame features
+#: (version 1 read highway-env's Kinematics observation); a file without a scene has the legacy one.
+POLICY_CHECKPOINT = CheckpointKind("mmpc-policy", 2, what="policy", hint="train one with `mmpc imitate bc` or `dagger`",
+                                   config_type=PolicyConfig, legacy_scene=LEGACY_SCENE)
+
+
 def save_policy(path: Path, policy: MLPPolicy, *, scenario: Optional[str] = None, info: Optional[dict] = None) -> Path:
     """Write a checkpoint (architecture, road, scene geometry, weights and statistics, plus
     JSON-able ``info``)."""
-    return write_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, {
-        "config": to_dict(policy.config),
-        "road": road_dict(policy.road),
-        "scene": to_dict(policy.scene),
-        "state_dict": policy.state_dict(),
-        "scenario": scenario,
-        "info": info or {},
-    })
+    return save_model(path, POLICY_CHECKPOINT, policy, scenario=scenario, info=info)
 
 
-def load_checkpoint(path: Path) -> dict:
-    """Read a checkpoint written by :func:`save_policy` (tensors and plain data only)."""
-    return read_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, what="policy",
-                           hint="train one with `mmpc imitate bc` or `dagger`")
+def load_policy_checkpoint(path: Path) -> dict:
+    """Read a checkpoint written by :func:`save_policy`; a missing, foreign or damaged file raises."""
+    return read_model(path, POLICY_CHECKPOINT)
 
 
 def load_policy(path: Path) -> MLPPolicy:
     """The :class:`MLPPolicy` of a checkpoint file, in eval mode."""
-    return policy_from_checkpoint(load_checkpoint(path))
+    return policy_from_checkpoint(load_policy_checkpoint(path))
 
 
 def policy_from_checkpoint(checkpoint: dict) -> MLPPolicy:
-    """The :class:`MLPPolicy` of a checkpoint read by :func:`load_checkpoint`, in eval mode. A
+    """The :class:`MLPPolicy` of a checkpoint read by :func:`load_policy_checkpoint`, in eval mode. A
     checkpoint written before the features read the scenario has no ``scene``: its policy keeps
     the geometry it was trained with, :data:`mmpc.imitation.features.LEGACY_SCENE`."""
-    config = from_dict(PolicyConfig, checkpoint["config"], where="policy checkpoint: config")
-    scene = from_dict(SceneGeometry, checkpoint["scene"], where="policy checkpoint: scene") if "scene" in checkpoint else LEGACY_SCENE
-    policy = MLPPolicy(road_of(checkpoint["road"]), config, scene=scene)
-    policy.load_state_dict(checkpoint["state_dict"])
-    return policy.eval()
+    return load_model(checkpoint, POLICY_CHECKPOINT, MLPPolicy)
 
 
 class PolicyDriver(Driver):
@@ -269,7 +260,7 @@ def make_policy_driver(scenario, argument: Optional[str]) -> Driver:
     """Driver factory for the spec ``bc:PATH`` (a checkpoint of :func:`save_policy`)."""
     if not argument:
         raise ValueError("driver 'bc' needs a checkpoint path: 'bc:RUN/policy.pt'")
-    checkpoint = load_checkpoint(Path(argument))
+    checkpoint = load_policy_checkpoint(Path(argument))
     if checkpoint.get("scenario") not in (None, scenario.name):
         logger.warning("policy %s was trained on scenario %r; driving %r", argument, checkpoint["scenario"], scenario.name)
     policy = policy_from_checkpoint(checkpoint)

@@ -24,13 +24,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from mmpc.config import from_dict, require_int, to_dict
-from mmpc.imitation.checkpoint import read_checkpoint, write_checkpoint
-from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, road_dict, road_features, road_of
+from mmpc.config import require_int
+from mmpc.imitation.checkpoint import CheckpointKind, load_model, read_model, save_model
+from mmpc.imitation.features import STORED_NEIGHBOURS, FeatureConfig, SceneGeometry, road_features
 from mmpc.road import Road
-
-CHECKPOINT_FORMAT = "mmpc-proposer"
-CHECKPOINT_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -146,23 +143,19 @@ class ModeProposer(nn.Module):
         return scores.topk(count, dim=1).indices
 
 
+#: The proposer's checkpoint (:mod:`mmpc.imitation.checkpoint`): the goal count is its own entry.
+PROPOSER_CHECKPOINT = CheckpointKind("mmpc-proposer", 1, what="proposer", hint="train one with `mmpc imitate proposer`",
+                                     config_type=ProposerConfig, extra=("num_goals",))
+
+
 def save_proposer(path: Path, proposer: ModeProposer, *, scenario: Optional[str] = None, info: Optional[dict] = None) -> Path:
     """Write a checkpoint (architecture, goal count, road, scene, weights, statistics, JSON-able ``info``)."""
-    return write_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, {
-        "config": to_dict(proposer.config),
-        "num_goals": proposer.num_goals,
-        "road": road_dict(proposer.road),
-        "scene": to_dict(proposer.scene),
-        "state_dict": proposer.state_dict(),
-        "scenario": scenario,
-        "info": info or {},
-    })
+    return save_model(path, PROPOSER_CHECKPOINT, proposer, scenario=scenario, info=info, num_goals=proposer.num_goals)
 
 
 def load_proposer_checkpoint(path: Path) -> dict:
     """Read a checkpoint written by :func:`save_proposer`; a missing, foreign or damaged file raises."""
-    return read_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, what="proposer",
-                           hint="train one with `mmpc imitate proposer`")
+    return read_model(path, PROPOSER_CHECKPOINT)
 
 
 def load_proposer(path: Path) -> ModeProposer:
@@ -172,8 +165,5 @@ def load_proposer(path: Path) -> ModeProposer:
 
 def proposer_from_checkpoint(checkpoint: dict) -> ModeProposer:
     """The :class:`ModeProposer` of a checkpoint read by :func:`load_proposer_checkpoint`, in eval mode."""
-    config = from_dict(ProposerConfig, checkpoint["config"], where="proposer checkpoint: config")
-    scene = from_dict(SceneGeometry, checkpoint["scene"], where="proposer checkpoint: scene")
-    proposer = ModeProposer(road_of(checkpoint["road"]), int(checkpoint["num_goals"]), config, scene=scene)
-    proposer.load_state_dict(checkpoint["state_dict"])
-    return proposer.eval()
+    return load_model(checkpoint, PROPOSER_CHECKPOINT,
+                      lambda road, config, scene, num_goals: ModeProposer(road, int(num_goals), config, scene=scene))

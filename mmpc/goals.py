@@ -1,12 +1,16 @@
 """Goal samplers: where, at the end of the horizon, each batch element should arrive.
 
 A goal sampler is any callable ``sampler(ego, road) -> goals`` with ``ego`` (E, 6) (see
-:data:`mmpc.EGO_FIELDS`) and ``goals`` (E, G, 2) positions [m]; the two below are the paper's.
+:data:`mmpc.EGO_FIELDS`) and ``goals`` (E, G, 2) positions [m]; the first two below are the paper's.
+
+The samplers that place goals by speed take the planning horizon as a required keyword: the
+horizon of the optimizer that solves for their goals (``OptimizerConfig.horizon``; e.g.
+``CruiseGoals(horizon=optimizer.config.horizon)``), which :func:`mmpc.scenario.build_mpc` passes.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Optional, Protocol
 
 import torch
@@ -30,12 +34,12 @@ class CruiseGoals:
 
     Attributes:
         v_cruise: cruise speed [m/s].
-        horizon: planning horizon t_f [s].
+        horizon: planning horizon t_f [s], the optimizer's (keyword, required).
         num_goals: number of goals G.
     """
 
     v_cruise: float = 15.0
-    horizon: float = 8.0
+    horizon: float = field(kw_only=True)
     num_goals: int = 11
 
     def __post_init__(self) -> None:
@@ -112,7 +116,7 @@ class NearLaneGoals:
     Attributes:
         base: the sampler whose goals come first (G0 goals).
         speeds: average speeds of the extra goals [m/s].
-        horizon: planning horizon t_f [s].
+        horizon: planning horizon t_f [s], the optimizer's (keyword, required).
         lanes_around: lanes either side of the ego's lane that also get the extra goals;
             ``None``: every lane of the road.
 
@@ -123,7 +127,7 @@ class NearLaneGoals:
 
     base: GoalSampler
     speeds: tuple[float, ...] = (3.0, 6.0, 9.0, 12.0)
-    horizon: float = 8.0
+    horizon: float = field(kw_only=True)
     lanes_around: Optional[int] = 1
 
     def __post_init__(self) -> None:

@@ -337,7 +337,8 @@ class MPC:
     Example:
         >>> import torch, mmpc
         >>> from mmpc.mpc import MPC
-        >>> mpc = MPC(mmpc.BatchOptimizer(), mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road())
+        >>> optimizer = mmpc.BatchOptimizer()
+        >>> mpc = MPC(optimizer, mmpc.CruiseGoals(horizon=optimizer.config.horizon), mmpc.CruiseCost(), mmpc.Road())
         >>> ego = mmpc.ego_state(0.0, 8.0, 0.0, 14.0)
         >>> plan = mpc.plan(ego, torch.tensor([[[30.0, 8.0, 10.0, 0.0]]]))
         >>> plan.acceleration.shape, bool(plan.selection.feasible[0])

@@ -642,8 +642,8 @@ def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device:
             the CPU unless ``--device`` / ``MMPC_DEVICE`` says otherwise).
     """
     road = scenario.road
-    goals = scenario.objective.goal_sampler(road, scenario.optimizer.horizon)
     optimizer = BatchOptimizer(scenario.optimizer, device=run_device() if device is None else device, compile=compile)
+    goals = scenario.objective.goal_sampler(road, optimizer.config.horizon)
     return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0],
                vehicle_width=scenario.vehicle[1], control_period=scenario.period)
 

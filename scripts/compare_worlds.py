@@ -9,9 +9,9 @@ Made for the batched simulator against highway-env, same driver, scenarios and s
     mmpc evaluate --scenarios cruise,high_speed --seeds 0-199 --lockstep 200 --sim batched --out runs/worlds/batched
     python scripts/compare_worlds.py runs/worlds/highway-env runs/worlds/batched --out runs/worlds
 
-Episodes are the units: a metric's interval is mean +- 1.96 standard errors over episodes (for
-collisions, the share of episodes with one, Wilson's interval); two worlds agree on a metric
-when the interval of the difference of means (Welch) holds 0.
+Episodes are the units: a metric's interval is Student's t interval of the mean over episodes
+(for collisions, the share of episodes with one, Wilson's interval); two worlds agree on a metric
+when Welch's t interval of the difference of means holds 0 (:mod:`mmpc.evaluate.intervals`).
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
 from mmpc.evaluate import read_episodes
+from mmpc.evaluate.intervals import mean_ci, welch_ci, wilson_ci
 
 #: The metrics compared: (episodes.csv column, label).
 METRICS = (("collisions", "episodes with a collision"), ("fallback_steps", "fallback steps"),
@@ -33,30 +33,13 @@ METRICS = (("collisions", "episodes with a collision"), ("fallback_steps", "fall
            ("near_lane_change_steps", "car-steps of lane changes near the ego"),
            ("min_clearance", "closest approach (ellipse-normalised)"), ("mean_speed", "mean speed [m/s]"),
            ("meta_cost_mean", "meta cost (mean per step)"))
-Z95 = 1.959963984540054
 
 
-def mean_interval(values: Sequence[float]) -> tuple[float, float, float]:
-    """(mean, low, high): mean +- 1.96 standard errors."""
-    mean = statistics.fmean(values)
-    half = Z95 * statistics.stdev(values) / math.sqrt(len(values)) if len(values) > 1 else math.inf
-    return mean, mean - half, mean + half
-
-
-def wilson_interval(successes: int, count: int) -> tuple[float, float, float]:
-    """(share, low, high): Wilson's 95 % interval of a binomial share."""
-    share = successes / count
-    denominator = 1 + Z95 ** 2 / count
-    centre = (share + Z95 ** 2 / (2 * count)) / denominator
-    half = Z95 * math.sqrt(share * (1 - share) / count + Z95 ** 2 / (4 * count ** 2)) / denominator
-    return share, centre - half, centre + half
-
-
-def difference_interval(a: Sequence[float], b: Sequence[float]) -> tuple[float, float, float]:
-    """(mean(b) - mean(a), low, high): Welch's normal 95 % interval of the difference."""
-    difference = statistics.fmean(b) - statistics.fmean(a)
-    half = Z95 * math.sqrt(statistics.variance(a) / len(a) + statistics.variance(b) / len(b))
-    return difference, difference - half, difference + half
+def _bounds(centre: Optional[float], interval: Optional[Sequence[float]]) -> tuple[float, float, float]:
+    """(centre, low, high) of an interval of :mod:`mmpc.evaluate.intervals`: an unknown interval
+    (fewer than two finite values) is unbounded, an unknown centre (no finite value) NaN."""
+    centre = math.nan if centre is None else centre
+    return (centre, -math.inf, math.inf) if interval is None else (centre, interval[0], interval[1])
 
 
 def compare(reference: Path, other: Path) -> list[dict]:
@@ -79,10 +62,10 @@ def compare(reference: Path, other: Path) -> list[dict]:
             a = [float(r[column] > 0) if column == "collisions" else float(r[column]) for r in first[key]]
             b = [float(r[column] > 0) if column == "collisions" else float(r[column]) for r in second[key]]
             if column == "collisions":
-                interval_a, interval_b = wilson_interval(int(sum(a)), len(a)), wilson_interval(int(sum(b)), len(b))
+                interval_a, interval_b = (_bounds(sum(x) / len(x), wilson_ci(int(sum(x)), len(x))) for x in (a, b))
             else:
-                interval_a, interval_b = mean_interval(a), mean_interval(b)
-            difference = difference_interval(a, b) if len(a) > 1 and len(b) > 1 else (math.nan, -math.inf, math.inf)
+                interval_a, interval_b = (_bounds(*mean_ci(x)) for x in (a, b))
+            difference = _bounds(*welch_ci(a, b)) if len(a) > 1 and len(b) > 1 else (math.nan, -math.inf, math.inf)
             results.append({
                 "driver": key[0], "scenario": key[1], "metric": column, "label": label,
                 "episodes": [len(a), len(b)], "reference": interval_a, "other": interval_b, "difference": difference,

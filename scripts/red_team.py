@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from mmpc.drivers import make_driver
-from mmpc.evaluate.report import wilson_ci
+from mmpc.evaluate.intervals import wilson_ci
 from mmpc.rl.red_team import ACTION_NAMES, RedTeamVecEnv, score_red_team
 from mmpc.scenario import load_scenario
 

@@ -8,7 +8,7 @@ import pytest
 
 from compare_drivers import main
 from mmpc.evaluate import paired_differences
-from mmpc.evaluate.report import mean_ci
+from mmpc.evaluate.intervals import mean_ci
 from mmpc.evaluate.store import COLUMNS, check_inputs
 from mmpc.scenario import load_scenario
 

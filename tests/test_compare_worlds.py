@@ -3,19 +3,21 @@
 import csv
 import json
 
-import pytest
-
-from compare_worlds import difference_interval, main, mean_interval, wilson_interval
+from compare_worlds import compare, main
+from mmpc.evaluate.intervals import mean_ci, welch_ci, wilson_ci
 from mmpc.evaluate.store import COLUMNS
 
 
-def test_intervals():
-    mean, low, high = mean_interval([1.0, 2.0, 3.0, 4.0])
-    assert mean == 2.5 and high - mean == pytest.approx(1.959964 * 1.290994 / 2, rel=1e-5)
-    share, low, high = wilson_interval(0, 200)
-    assert share == 0.0 and low == pytest.approx(0.0, abs=1e-12) and high == pytest.approx(0.0188, abs=1e-4)
-    difference, low, high = difference_interval([1.0, 2.0, 3.0], [2.0, 3.0, 4.0])
-    assert difference == 1.0 and low < 0 < high
+def test_intervals_are_those_of_the_evaluation(tmp_path):
+    """A mean's t interval, the collision share's Wilson interval, Welch's t interval of the difference."""
+    rows = compare(_folder(tmp_path / "a", [14.0, 15.0, 16.0, 15.0], [0, 0, 0, 1]),
+                   _folder(tmp_path / "b", [14.5, 15.0, 15.5], [0, 0, 0]))
+    speed = next(row for row in rows if row["metric"] == "mean_speed")
+    collisions = next(row for row in rows if row["metric"] == "collisions")
+    mean, interval = mean_ci([14.0, 15.0, 16.0, 15.0])
+    difference, difference_interval = welch_ci([14.0, 15.0, 16.0, 15.0], [14.5, 15.0, 15.5])
+    assert speed["reference"] == (mean, *interval) and speed["difference"] == (difference, *difference_interval)
+    assert collisions["reference"] == (0.25, *wilson_ci(1, 4)) and collisions["other"][1] == 0.0
 
 
 def _folder(path, speeds, collisions):

@@ -22,7 +22,8 @@ from mmpc.highway.runner import run_episode
 from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.evaluate import METRIC_COLUMNS, Backend, EvaluationConfig, evaluate, read_episodes, run_tasks
 from mmpc.optimizer import COMPILE_ENV
-from mmpc.evaluate.report import mean_ci, summarize, t_quantile_975, wilson_ci
+from mmpc.evaluate.intervals import mean_ci, t_quantile_975, welch_ci, wilson_ci
+from mmpc.evaluate.report import summarize
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
@@ -86,6 +87,10 @@ def test_intervals_match_tables():
         for successes in (0, trials // 2, trials):
             low, high = wilson_ci(successes, trials)
             assert low <= successes / trials <= high
+    difference, interval = welch_ci([1.0, 2.0, 3.0], [2.0, 3.0, 4.0, float("inf")])  # 4 Welch degrees of freedom
+    assert difference == 1.0 and interval == pytest.approx([1.0 - 2.7764 * math.sqrt(2 / 3), 1.0 + 2.7764 * math.sqrt(2 / 3)], rel=1e-3)
+    assert welch_ci([1.0, 1.0], [2.0, 2.0]) == (1.0, [1.0, 1.0]) and welch_ci([1.0], [2.0, 3.0]) == (1.5, None)
+    assert welch_ci([], [2.0]) == (None, None)
     with pytest.raises(ValueError, match="dof"):
         t_quantile_975(0)
 

@@ -11,8 +11,10 @@ from mmpc.mpc import nearest_obstacles
 
 @pytest.fixture(scope="module")
 def cruise_mpc() -> mmpc.MPC:
-    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=6), speeds=(3.0, 6.0, 9.0, 12.0))
-    return mmpc.MPC(mmpc.BatchOptimizer(), goals, mmpc.CruiseCost(15.0), mmpc.Road(num_lanes=6))
+    optimizer = mmpc.BatchOptimizer()
+    horizon = optimizer.config.horizon
+    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=6, horizon=horizon), speeds=(3.0, 6.0, 9.0, 12.0), horizon=horizon)
+    return mmpc.MPC(optimizer, goals, mmpc.CruiseCost(15.0), mmpc.Road(num_lanes=6))
 
 
 def test_library_mpc_does_not_import_the_simulator():
@@ -41,7 +43,8 @@ def test_slow_car_ahead_with_free_neighbour_plans_a_lane_change(cruise_mpc):
 
 def test_blocked_lanes_choose_a_following_goal(cruise_mpc):
     road = mmpc.Road(num_lanes=3)
-    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=3), speeds=(3.0, 6.0, 9.0, 12.0))
+    horizon = cruise_mpc.optimizer.config.horizon
+    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=3, horizon=horizon), speeds=(3.0, 6.0, 9.0, 12.0), horizon=horizon)
     mpc = mmpc.MPC(cruise_mpc.optimizer, goals, cruise_mpc.meta_cost, road, mmpc.MPCConfig(num_obstacles=9))
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 12.0)
     walls = [[x, y, 8.0, 0.0] for y in (0.0, 8.0) for x in (-6.0, 8.0, 22.0, 36.0)]  # gaps < 2 a: no way through
@@ -161,7 +164,7 @@ def test_nearest_obstacles_rank_a_closing_car_ahead_by_its_closest_approach():
 
 def test_near_lane_goals_cover_the_lanes_around_the_ego():
     road = mmpc.Road(num_lanes=4)
-    sampler = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0, 10.0), horizon=8.0, lanes_around=1)
+    sampler = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4, horizon=8.0), speeds=(5.0, 10.0), horizon=8.0, lanes_around=1)
     goals = sampler(mmpc.ego_state(0.0, 0.4, 0.0, 10.0), road)[0]
     assert goals.shape == (4 + 2 * 3, 2)
     extra = goals[4:]
@@ -169,9 +172,9 @@ def test_near_lane_goals_cover_the_lanes_around_the_ego():
     assert sorted(set(extra[:, 0].tolist())) == [40.0, 80.0]
     middle = sampler(mmpc.ego_state(0.0, 8.2, 0.0, 10.0), road)[0, 4:]
     assert sorted(set(middle[:, 1].tolist())) == [4.0, 8.0, 12.0]
-    wide = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0,), lanes_around=3)
+    wide = mmpc.NearLaneGoals(sampler.base, speeds=(5.0,), horizon=8.0, lanes_around=3)
     assert sorted(wide(mmpc.ego_state(0.0, 8.0, 0.0, 10.0), road)[0, 4:, 1].tolist()) == [0.0, 4.0, 8.0, 12.0]
-    every_lane = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=4), speeds=(5.0,), lanes_around=None)
+    every_lane = mmpc.NearLaneGoals(sampler.base, speeds=(5.0,), horizon=8.0, lanes_around=None)
     assert every_lane(mmpc.ego_state(0.0, 0.0, 0.0, 10.0), road)[0, 4:, 1].tolist() == [0.0, 4.0, 8.0, 12.0]
 
 

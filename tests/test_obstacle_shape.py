@@ -105,7 +105,8 @@ def test_compiled_per_obstacle_axes_match_eager():
 
 def _mpc(max_obstacles: int = 4, **config) -> MPC:
     optimizer = mmpc.BatchOptimizer(small_config(max_obstacles=max_obstacles))
-    return MPC(optimizer, mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road(), MPCConfig(**{"num_obstacles": 4, **config}))
+    return MPC(optimizer, mmpc.CruiseGoals(horizon=optimizer.config.horizon), mmpc.CruiseCost(), mmpc.Road(),
+               MPCConfig(**{"num_obstacles": 4, **config}))
 
 
 def test_mpc_obstacle_axes_by_shape():

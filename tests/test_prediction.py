@@ -50,8 +50,8 @@ def test_longitudinal_motion_and_resting_vehicles_match_constant_velocity():
 def test_the_mpc_predicts_as_configured():
     states = torch.tensor([[[0.0, 10.0, 10.0, 2.0]]])
     optimizer = mmpc.BatchOptimizer()
-    make = lambda prediction: mmpc.MPC(optimizer, mmpc.CruiseGoals(), mmpc.CruiseCost(), ROAD,  # noqa: E731
-                                       mmpc.MPCConfig(prediction=prediction))
+    goals = mmpc.CruiseGoals(horizon=optimizer.config.horizon)
+    make = lambda prediction: mmpc.MPC(optimizer, goals, mmpc.CruiseCost(), ROAD, mmpc.MPCConfig(prediction=prediction))  # noqa: E731
     torch.testing.assert_close(make("lanes").predict(states, TIMES), mmpc.predict_within_lanes(states, TIMES, ROAD))
     torch.testing.assert_close(make("constant_velocity").predict(states, TIMES), mmpc.predict_constant_velocity(states, TIMES))
     assert mmpc.MPCConfig().prediction == "lanes"

@@ -17,6 +17,7 @@ from mmpc.imitation.labels import RankingExpert, goal_count, label_episodes, ran
 from mmpc.imitation.listwise import (
     ProposerTrainConfig, RankingLabels, feasible_recall, listmle_loss, ranking_targets, top_k_agreement, train_proposer,
 )
+from mmpc.imitation.policy import load_policy
 from mmpc.imitation.proposer import ModeProposer, ProposerConfig, load_proposer, save_proposer
 from mmpc.imitation.proposer_dagger import ProposerDaggerConfig
 from mmpc.imitation.proposer_driver import ProposerDriver, ego_lane_stop_goal, problem_rows
@@ -117,6 +118,13 @@ def test_checkpoint_round_trip_forced_goal_and_refusals(scenario, mpc, tmp_path)
         load_proposer(tmp_path / "junk.pt")
     with pytest.raises(FileNotFoundError, match="mmpc imitate proposer"):
         load_proposer(tmp_path / "missing.pt")
+    with pytest.raises(ValueError, match="not an mmpc policy checkpoint"):  # a checkpoint of the other kind
+        load_policy(path)
+    damaged = torch.load(path, weights_only=True)
+    del damaged["num_goals"]
+    torch.save(damaged, tmp_path / "damaged.pt")
+    with pytest.raises(ValueError, match="lacks 'num_goals'"):
+        load_proposer(tmp_path / "damaged.pt")
     with pytest.raises(ValueError, match="checkpoint path"):
         make_driver("proposer", scenario)
     cruise = load_scenario("cruise")  # another goal set (34 goals, not 35)

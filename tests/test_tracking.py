@@ -105,7 +105,7 @@ def test_a_tracked_plan_is_followed_by_a_kinematic_bicycle():
     problem = mmpc.ProblemBatch(ego, torch.tensor([[[165.0, 8.0]]], dtype=torch.float64),
                                 torch.zeros(1, 0, optimizer.times.numel(), 2, dtype=torch.float64))
     plan = optimizer(problem).trajectories.select(torch.zeros(1, dtype=torch.long))
-    mpc = mmpc.MPC(optimizer, mmpc.CruiseGoals(), mmpc.CruiseCost(), mmpc.Road())
+    mpc = mmpc.MPC(optimizer, mmpc.CruiseGoals(horizon=optimizer.config.horizon), mmpc.CruiseCost(), mmpc.Road())
     state = ego.clone()
     length, dt = 5.0, 0.1
     for frame in range(5):

@@ -16,8 +16,10 @@ from mmpc.scenes import synthetic_scenes
 
 @pytest.fixture(scope="module")
 def cruise_mpc() -> mmpc.MPC:
-    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=6), speeds=(3.0, 6.0, 9.0, 12.0))
-    return mmpc.MPC(mmpc.BatchOptimizer(), goals, mmpc.CruiseCost(15.0), mmpc.Road(num_lanes=6))
+    optimizer = mmpc.BatchOptimizer()
+    horizon = optimizer.config.horizon
+    goals = mmpc.NearLaneGoals(mmpc.CruiseGoals(num_goals=6, horizon=horizon), speeds=(3.0, 6.0, 9.0, 12.0), horizon=horizon)
+    return mmpc.MPC(optimizer, goals, mmpc.CruiseCost(15.0), mmpc.Road(num_lanes=6))
 
 
 @pytest.fixture(scope="module")

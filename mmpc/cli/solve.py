@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     optimizer = BatchOptimizer(config, dtype=dtype)
     scene = demo_scene(optimizer.config.num_steps, optimizer.config.horizon)
     if args.scenario == "cruise":
-        sampler, meta_cost = CruiseGoals(v_cruise=15.0, num_goals=args.goals), CruiseCost(15.0)
+        sampler, meta_cost = CruiseGoals(v_cruise=15.0, horizon=optimizer.config.horizon, num_goals=args.goals), CruiseCost(15.0)
     else:
         sampler, meta_cost = HighSpeedGoals(num_goals=args.goals), HighSpeedCost(24.0)
     ego = scene.problem.ego.to(dtype)

@@ -1,13 +1,8 @@
 """Summaries of an evaluation: per driver x scenario means with 95 % confidence intervals, a
 plain-text and a markdown table, a comparison figure and TensorBoard scalars.
 
-Intervals:
-
-- a mean over n episodes: Student's t interval ``mean +- t_{0.975, n-1} s / sqrt(n)`` with
-  ``s`` the sample standard deviation (none for n < 2);
-- the collision rate k / n: Wilson's score interval
-  ``(p + z^2/2n +- z sqrt(p (1-p) / n + z^2 / 4n^2)) / (1 + z^2/n)``, z = 1.96, which stays
-  inside [0, 1] and is not empty at k = 0.
+Intervals (:mod:`mmpc.evaluate.intervals`): Student's t for a mean over episodes (and for the
+mean of paired per-seed differences), Wilson's score interval for the collision rate.
 """
 
 from __future__ import annotations
@@ -16,10 +11,9 @@ import math
 import os
 import shutil
 from pathlib import Path
-from statistics import NormalDist
 from typing import Optional, Sequence
 
-from mmpc.config import require_int
+from mmpc.evaluate.intervals import mean_ci, wilson_ci
 from mmpc.evaluate.store import NUMBER_COLUMNS
 from mmpc.files import file_slug
 from mmpc.metrics import OFF_CENTRE
@@ -66,58 +60,6 @@ COMPARED = (
 )
 #: Metrics that are >= 0 by definition (a speed is not: highway-env lets a car reverse).
 NON_NEGATIVE = frozenset({"collision_rate", "meta_cost_mean", "solve_ms_mean", "solve_ms_per_episode_mean"})
-
-_Z = NormalDist().inv_cdf(0.975)
-
-
-def t_quantile_975(dof: int) -> float:
-    """Student's t 0.975 quantile for ``dof`` >= 1 degrees of freedom.
-
-    Exact for 1 and 2 (``tan(0.475 pi)``, ``sqrt(2) * 0.95 / sqrt(1 - 0.95^2)``); from 3 on the
-    Cornish-Fisher expansion in 1/dof to the fourth order around the normal quantile (relative
-    error < 2e-3 at dof = 3, < 1e-5 from dof = 10).
-    """
-    require_int("", low=1, dof=dof)
-    if dof == 1:
-        return math.tan(0.475 * math.pi)
-    if dof == 2:
-        return 0.95 * math.sqrt(2.0 / (1.0 - 0.95**2))
-    z = _Z
-    terms = (
-        (z**3 + z) / 4,
-        (5 * z**5 + 16 * z**3 + 3 * z) / 96,
-        (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / 384,
-        (79 * z**9 + 776 * z**7 + 1482 * z**5 - 1920 * z**3 - 945 * z) / 92160,
-    )
-    return z + sum(term / dof ** (k + 1) for k, term in enumerate(terms))
-
-
-def mean_ci(values: Sequence[float]) -> tuple[Optional[float], Optional[list[float]]]:
-    """Mean and 95 % t interval ``[low, high]`` of the finite ``values`` (``None``: none / n < 2)."""
-    finite = [float(v) for v in values if v is not None and math.isfinite(v)]
-    if not finite:
-        return None, None
-    n = len(finite)
-    mean = sum(finite) / n
-    if n < 2:
-        return mean, None
-    std = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
-    half = t_quantile_975(n - 1) * std / math.sqrt(n)
-    return mean, [mean - half, mean + half]
-
-
-def wilson_ci(successes: int, trials: int) -> Optional[list[float]]:
-    """95 % Wilson score interval of a rate ``successes / trials`` (``None`` for no trials)."""
-    if trials <= 0:
-        return None
-    p = successes / trials
-    denominator = 1 + _Z**2 / trials
-    centre = (p + _Z**2 / (2 * trials)) / denominator
-    half = _Z * math.sqrt(p * (1 - p) / trials + _Z**2 / (4 * trials**2)) / denominator
-    # The bounds are exact at the ends: rounding would put 0 (or 1) just outside its own interval.
-    low = 0.0 if successes == 0 else max(0.0, centre - half)
-    high = 1.0 if successes == trials else min(1.0, centre + half)
-    return [low, high]
 
 
 def _finite(value: Optional[float]) -> Optional[float]:

@@ -89,6 +89,19 @@ def vehicle_behind(
     return torch.where(index < num_vehicles, index, 0), index < num_vehicles
 
 
+def desired_gap(speed: torch.Tensor, heading: torch.Tensor, front_speed: torch.Tensor, front_heading: torch.Tensor,
+                config: SimConfig) -> torch.Tensor:
+    """IDM desired gap ``d* = d0 + v T + v dv / (2 sqrt(a_max b))`` [m] of a vehicle of speed
+    ``speed`` [m/s] and heading ``heading`` [rad] behind one of ``front_speed``, ``front_heading``;
+    ``dv`` is the velocity difference projected on the follower's heading (as highway-env's
+    ``IDMVehicle.desired_gap``). All four tensors broadcast together; the result has their shape."""
+    cos, sin = torch.cos(heading), torch.sin(heading)
+    closing = ((speed * cos - front_speed * torch.cos(front_heading)) * cos
+               + (speed * sin - front_speed * torch.sin(front_heading)) * sin)
+    ab = -config.comfort_acc_max * config.comfort_acc_min
+    return config.distance_wanted + speed * config.time_wanted + speed * closing / (2 * ab ** 0.5)
+
+
 def idm_between(
     state: VehicleState,
     follower: torch.Tensor,
@@ -118,12 +131,8 @@ def idm_between(
     target = target.clamp(0.0, config.speed_limit)
     free = config.comfort_acc_max * (1 - torch.pow(speed.clamp(min=0.0) / not_zero(target).abs(), delta))
     front_x, front_speed, front_heading = (torch.gather(field, 1, front) for field in (state.x, state.speed, state.heading))
-    cos, sin = torch.cos(heading), torch.sin(heading)
-    closing = ((speed * cos - front_speed * torch.cos(front_heading)) * cos
-               + (speed * sin - front_speed * torch.sin(front_heading)) * sin)
-    ab = -config.comfort_acc_max * config.comfort_acc_min
-    desired_gap = config.distance_wanted + speed * config.time_wanted + speed * closing / (2 * ab ** 0.5)
-    interaction = config.comfort_acc_max * torch.pow(desired_gap / not_zero(front_x - x), 2)
+    gap = desired_gap(speed, heading, front_speed, front_heading, config)
+    interaction = config.comfort_acc_max * torch.pow(gap / not_zero(front_x - x), 2)
     acceleration = torch.where(has_front, free - interaction, free)
     return torch.where(has_follower, acceleration, torch.zeros_like(acceleration))
 

@@ -37,7 +37,7 @@ from typing import Optional
 import torch
 
 from mmpc.sim.config import SimConfig
-from mmpc.sim.idm import idm_between, vehicle_ahead, vehicle_behind
+from mmpc.sim.idm import desired_gap, idm_between, vehicle_ahead, vehicle_behind
 from mmpc.sim.state import VehicleState
 
 
@@ -96,17 +96,12 @@ def abort_blockers(state: VehicleState, config: SimConfig) -> torch.Tensor:
     desired gap behind j) and not on i's target lane: j would abort i's change if heading for it."""
     num_vehicles = state.x.shape[1]
     slots = torch.arange(num_vehicles, device=state.x.device)
-    speed, heading = state.speed[:, :, None], state.heading[:, :, None]
-    cos, sin = torch.cos(heading), torch.sin(heading)
-    other_speed, other_heading = state.speed[:, None, :], state.heading[:, None, :]
-    closing = ((speed * cos - other_speed * torch.cos(other_heading)) * cos
-               + (speed * sin - other_speed * torch.sin(other_heading)) * sin)
-    ab = -config.comfort_acc_max * config.comfort_acc_min
-    desired_gap = config.distance_wanted + speed * config.time_wanted + speed * closing / (2 * ab ** 0.5)
+    gap = desired_gap(state.speed[:, :, None], state.heading[:, :, None],
+                      state.speed[:, None, :], state.heading[:, None, :], config)
     distance = state.x[:, None, :] - state.x[:, :, None]
     other = (slots[:, None] != slots[None, :]) & (slots[None, :] > 0) & state.alive[:, None, :]
     off_target = state.lane[:, None, :] != state.target_lane[:, :, None]
-    return other & off_target & (distance > 0) & (distance < desired_gap)
+    return other & off_target & (distance > 0) & (distance < gap)
 
 
 def change_lanes(state: VehicleState, config: SimConfig) -> VehicleState:
