@@ -21,11 +21,11 @@ from mmpc.cli.main import main
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.evaluate import METRIC_COLUMNS, Backend, EvaluationConfig, evaluate, read_episodes, run_tasks
-from mmpc.optimizer import COMPILE_ENV
 from mmpc.evaluate.report import mean_ci, summarize, t_quantile_975, wilson_ci
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
+from mmpc.solver.execution import COMPILE_ENV
 
 REPO = Path(__file__).resolve().parents[1]
 #: The per-episode results (what must not depend on the backend); timings excluded.
