@@ -127,7 +127,7 @@ def validate_warm(warm: Optional[WarmStart], iterations: Optional[int], config: 
             raise ValueError(f"`warm.{name}` must have shape {shape} for this batch; got {got}")
         if value.device != device:
             raise ValueError(f"`warm.{name}` is on {value.device} but the optimizer is on {device}; move it with .to()")
-        fields.append(value.to(dtype))  # problems with NaN or inf start cold (forward)
+        fields.append(value.to(dtype))  # problems with NaN or inf start cold (BatchOptimizer.forward)
     return WarmStart(*fields), config.iterations - iterations
 
 
