@@ -1,15 +1,15 @@
 """mmpc: multi-modal model predictive control by batch non-holonomic trajectory optimization."""
 
 from mmpc.basis import Basis, bernstein_basis
-from mmpc.config import OptimizerConfig
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig, Plan
-from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state, predict_constant_velocity, predict_within_lanes
 from mmpc.ranking import Selection, constraint_violation, select_best
 from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road
+from mmpc.solver.config import OptimizerConfig
+from mmpc.solver.optimizer import BatchOptimizer
 
 __version__ = "0.1.0"
 

@@ -21,7 +21,6 @@ from mmpc.config import require, require_field_types, require_int, require_non_n
 from mmpc.footprint import HIGHWAY_VEHICLE, covering_semi_axes
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
-from mmpc.optimizer import BatchOptimizer
 from mmpc.problem import (
     EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
     require_on_device,
@@ -29,6 +28,7 @@ from mmpc.problem import (
 from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
 from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road
+from mmpc.solver.optimizer import BatchOptimizer
 from mmpc.stopping import conflict_deceleration, stop_goals
 
 #: A selection rule for :meth:`MPC.plan_problem`: ``(result, cost (E, G), violation (E, G)) -> Selection``.

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 
 from mmpc.basis import Basis
-from mmpc.config import OptimizerConfig
+from mmpc.solver.config import OptimizerConfig
 
 
 class Operators(NamedTuple):

@@ -7,10 +7,11 @@ from typing import NamedTuple, Optional, Union
 
 import torch
 
-from mmpc.config import OptimizerConfig, require_non_negative
+from mmpc.config import require_non_negative
 from mmpc.footprint import ellipse_distance_squared
 from mmpc.problem import EGO_Y
 from mmpc.result import SolveResult, Trajectories
+from mmpc.solver.config import OptimizerConfig
 
 
 class Selection(NamedTuple):

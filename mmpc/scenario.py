@@ -22,16 +22,17 @@ from typing import Any, ClassVar, Mapping, Optional, Union
 
 import torch
 
-from mmpc.config import (OptimizerConfig, load_config, require, require_field_types, require_int, require_non_negative,
-                         require_positive)
+from mmpc.config import load_config, require, require_field_types, require_int, require_non_negative, require_positive
 from mmpc.configs import shipped_config_dir
 from mmpc.device import run_device
 from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost, MetaCost, TaskRewardCost
 from mmpc.mpc import MPC, MPCConfig
-from mmpc.optimizer import COMPILE_ENV, BatchOptimizer
 from mmpc.road import Road
+from mmpc.solver.config import OptimizerConfig
+from mmpc.solver.execution import COMPILE_ENV
+from mmpc.solver.optimizer import BatchOptimizer
 
 logger = logging.getLogger(__name__)
 
@@ -589,7 +590,7 @@ class ScenarioConfig:
         a run option (:func:`mmpc.config.from_dict` calls this first).
 
         ``mpc.compile`` is dropped with a warning: compiling is chosen per run (``--compile``,
-        :data:`mmpc.optimizer.COMPILE_ENV`). ``mpc.wheelbase`` equal to the vehicle length is
+        :data:`mmpc.solver.execution.COMPILE_ENV`). ``mpc.wheelbase`` equal to the vehicle length is
         dropped with a warning; another value is refused, as the MPC now steers with the length.
         """
         mpc = values.get("mpc")
@@ -634,7 +635,7 @@ def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device:
     Args:
         scenario: the scenario.
         compile: ``"auto"`` (default): compiled on the CPU when a C++ compiler is found, unless
-            the environment variable :data:`mmpc.optimizer.COMPILE_ENV` (``MMPC_COMPILE``) says
+            the environment variable :data:`mmpc.solver.execution.COMPILE_ENV` (``MMPC_COMPILE``) says
             0 (eager) or 1 (compiled); the command line's ``--compile auto|on|off`` sets that
             variable, so worker processes inherit it. ``True`` / ``False`` decide here. See
             :class:`mmpc.BatchOptimizer`.

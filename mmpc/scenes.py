@@ -7,9 +7,9 @@ from typing import NamedTuple
 
 import torch
 
-from mmpc.config import OptimizerConfig
 from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
 from mmpc.road import Road
+from mmpc.solver.config import OptimizerConfig
 
 #: The obstacle ellipse the scenes are made for: the default (the paper authors') optimizer's [m].
 SCENE_ELLIPSE = OptimizerConfig().ellipse

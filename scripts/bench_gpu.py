@@ -31,8 +31,8 @@ from bench_solver import benchmark_problem, time_solver  # noqa: E402
 
 from mmpc.cli.arguments import compile_at_once, int_list, seed_list  # noqa: E402
 from mmpc.device import DEVICE_ENV  # noqa: E402
-from mmpc.optimizer import BatchOptimizer  # noqa: E402
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario  # noqa: E402
+from mmpc.solver.optimizer import BatchOptimizer  # noqa: E402
 
 SECTIONS = ("solver", "sim", "mpc", "evaluate")
 

@@ -24,11 +24,12 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from mmpc.cli.arguments import int_list
-from mmpc.config import OptimizerConfig, require, require_int, require_positive
+from mmpc.config import require, require_int, require_positive
 from mmpc.footprint import covering_semi_axes
-from mmpc.optimizer import BatchOptimizer
 from mmpc.plotting import plot_scaling
 from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
+from mmpc.solver.config import OptimizerConfig
+from mmpc.solver.optimizer import BatchOptimizer
 
 
 @dataclass(frozen=True)

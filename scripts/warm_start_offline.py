@@ -19,9 +19,9 @@ import torch
 
 from mmpc.drivers import MPCDriver
 from mmpc.highway.runner import Observer, run_lockstep
-from mmpc.optimizer import BatchOptimizer
 from mmpc.ranking import select_best
 from mmpc.scenario import PAPER_SCHEDULE, build_mpc, load_scenario
+from mmpc.solver.optimizer import BatchOptimizer
 
 COLD_ITERATIONS = (10, 20, 30, 50)
 WARM_ITERATIONS = (10, 20, 30)

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.optimizer import COMPILE_ENV
 from mmpc.scenes import synthetic_scenes
+from mmpc.solver.execution import COMPILE_ENV
 
 # The scenario MPC compiles its optimizer by default (compile="auto"); a cold compile takes a
 # minute per batch layout, so the tests, subprocesses included, run the eager reference. The

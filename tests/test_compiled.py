@@ -4,8 +4,8 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.optimizer import _goal_padding
 from mmpc.scenes import synthetic_scenes
+from mmpc.solver.execution import goal_padding
 from tests.conftest import small_config
 
 
@@ -43,12 +43,12 @@ def test_compiled_history_drops_the_padding_goals():
 
 
 def test_goal_padding_fills_whole_vectors_only_where_cheap():
-    assert _goal_padding(1, 11, 4) == 5  # 16 float32 lanes
-    assert _goal_padding(1, 11, 8) == 5  # 8 float64 lanes: 16
-    assert _goal_padding(4, 11, 4) == 1  # 4 x 12 = 48
-    assert _goal_padding(1, 32, 4) == 0
-    assert _goal_padding(5, 11, 4) == 0  # 5 x 16 would add 25 elements a row: more than a vector
-    assert _goal_padding(64, 11, 4) == 0  # 704 = 44 vectors already
+    assert goal_padding(1, 11, 4) == 5  # 16 float32 lanes
+    assert goal_padding(1, 11, 8) == 5  # 8 float64 lanes: 16
+    assert goal_padding(4, 11, 4) == 1  # 4 x 12 = 48
+    assert goal_padding(1, 32, 4) == 0
+    assert goal_padding(5, 11, 4) == 0  # 5 x 16 would add 25 elements a row: more than a vector
+    assert goal_padding(64, 11, 4) == 0  # 704 = 44 vectors already
 
 
 def test_compiled_solves_allow_more_recompiles_than_torchs_default(monkeypatch):
@@ -56,15 +56,15 @@ def test_compiled_solves_allow_more_recompiles_than_torchs_default(monkeypatch):
     a proposer driver with its escalations, or several scenarios in one worker, pass torch's
     default limit of 8, where a fullgraph compile fails hard. The compiled path raises the limit
     for its own calls only."""
-    from mmpc import optimizer as module
+    from mmpc.solver.execution import RECOMPILE_LIMIT
 
     default = torch._dynamo.config.recompile_limit
     seen = []
-    monkeypatch.setattr(module.BatchOptimizer, "_solve_batch", lambda self, *args: seen.append(torch._dynamo.config.recompile_limit))
+    monkeypatch.setattr(mmpc.BatchOptimizer, "_solve_batch", lambda self, *args: seen.append(torch._dynamo.config.recompile_limit))
     scene = synthetic_scenes(1, seed=0)[0]
-    module.BatchOptimizer(compile=True)(scene.problem)
-    module.BatchOptimizer(compile=False)(scene.problem)
-    assert seen == [module._RECOMPILE_LIMIT, default] and module._RECOMPILE_LIMIT > default
+    mmpc.BatchOptimizer(compile=True)(scene.problem)
+    mmpc.BatchOptimizer(compile=False)(scene.problem)
+    assert seen == [RECOMPILE_LIMIT, default] and RECOMPILE_LIMIT > default
     assert torch._dynamo.config.recompile_limit == default  # restored after the call
 
 
@@ -80,10 +80,10 @@ def test_each_compiled_layout_gets_shape_specialised_kernels():
     static iterations of its own, and a layout seen before compiles nothing."""
     from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 
-    from mmpc import optimizer as module
+    from mmpc.solver import iterations
 
     def iterate_graphs() -> int:
-        return len(_debug_get_cache_entry_list(module._iterate.__code__))
+        return len(_debug_get_cache_entry_list(iterations.iterate.__code__))
 
     config = small_config(iterations=2, heading_target_deg=7.5)  # a config no other test compiles
     compiled = mmpc.BatchOptimizer(config, compile=True)
@@ -101,15 +101,15 @@ def test_compiled_layouts_past_the_recompile_limit_solve_eagerly(monkeypatch, ca
     (the same answers to float32 rounding), with one warning."""
     import logging
 
-    from mmpc import optimizer as module
+    from mmpc.solver import execution
 
     config = small_config(iterations=2, heading_target_deg=8.5)
-    compiled, eager = module.BatchOptimizer(config, compile=True), module.BatchOptimizer(config)
+    compiled, eager = mmpc.BatchOptimizer(config, compile=True), mmpc.BatchOptimizer(config)
     problem = synthetic_scenes(2, seed=1, num_steps=config.num_steps)[1].problem
     compiled(_goals_widened(problem, 16))  # every compiled function now holds at least one layout
-    monkeypatch.setattr(module, "_RECOMPILE_LIMIT", 1)
+    monkeypatch.setattr(execution, "RECOMPILE_LIMIT", 1)
     wide = _goals_widened(problem, 32)
-    with caplog.at_level(logging.WARNING, logger="mmpc.optimizer"):
+    with caplog.at_level(logging.WARNING, logger="mmpc.solver"):
         result = compiled(wide)
         compiled(wide)
     assert caplog.text.count("solve eagerly") == 1
@@ -122,7 +122,7 @@ def test_compiled_layouts_past_the_recompile_limit_solve_eagerly(monkeypatch, ca
 def test_a_layout_solves_eagerly_until_its_estimated_eager_time_is_spent(monkeypatch):
     """compile_after: each call layout runs eagerly until the eager seconds estimated from its calls
     (not clocks: the same episodes on any machine load) reach it, then compiled (warm-up + timed)."""
-    from mmpc.optimizer import _EAGER_SECONDS
+    from mmpc.solver.execution import EAGER_SECONDS
 
     runs = []
 
@@ -135,7 +135,7 @@ def test_a_layout_solves_eagerly_until_its_estimated_eager_time_is_spent(monkeyp
     optimizer.compiled = True  # the deferral only reads the flag; eager functions keep the test fast
     scene = synthetic_scenes(1, seed=3)[0]
     goals = scene.problem.goals.shape[1]
-    fixed, per_element = _EAGER_SECONDS[False]
+    fixed, per_element = EAGER_SECONDS[False]
     optimizer.compile_after = 2.5 * (fixed + per_element * goals)  # three eager calls reach it
     for _ in range(5):
         optimizer(scene.problem)
@@ -146,7 +146,7 @@ def test_a_layout_solves_eagerly_until_its_estimated_eager_time_is_spent(monkeyp
 
 
 def test_compile_after_defaults_to_deferring_only_for_auto(monkeypatch):
-    from mmpc.optimizer import AUTO_COMPILE_AFTER_S, COMPILE_ENV
+    from mmpc.solver.execution import AUTO_COMPILE_AFTER_S, COMPILE_ENV
 
     assert mmpc.BatchOptimizer(compile=True).compile_after == 0.0
     monkeypatch.delenv(COMPILE_ENV)

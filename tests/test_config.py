@@ -294,7 +294,7 @@ def test_solve_takes_an_optimizer_config_and_overrides(tmp_path, capsys):
 
 def test_compile_flag_sets_the_one_environment_variable(monkeypatch):
     from mmpc.cli.arguments import apply_compile
-    from mmpc.optimizer import COMPILE_ENV
+    from mmpc.solver.execution import COMPILE_ENV
 
     monkeypatch.setenv(COMPILE_ENV, "0")
     apply_compile("auto")
@@ -306,7 +306,7 @@ def test_compile_flag_sets_the_one_environment_variable(monkeypatch):
 
 
 def test_config_modules_define_no_per_class_serialisation():
-    for module in ("mmpc.config", "mmpc.mpc", "mmpc.scenario", "mmpc.drivers.frenet", "mmpc.drivers.nlp", "mmpc.rl.config",
+    for module in ("mmpc.solver.config", "mmpc.mpc", "mmpc.scenario", "mmpc.drivers.frenet", "mmpc.drivers.nlp", "mmpc.rl.config",
                    "mmpc.imitation.bc", "mmpc.imitation.dagger", "mmpc.imitation.features", "mmpc.imitation.policy"):
         loaded = importlib.import_module(module)
         for value in vars(loaded).values():

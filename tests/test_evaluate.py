@@ -21,12 +21,12 @@ from mmpc.cli.main import main
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import Decision, Driver, Observation, registry
 from mmpc.evaluate import METRIC_COLUMNS, Backend, EvaluationConfig, evaluate, read_episodes, run_tasks
-from mmpc.optimizer import COMPILE_ENV
 from mmpc.evaluate.intervals import mean_ci, t_quantile_975, welch_ci, wilson_ci
 from mmpc.evaluate.report import summarize
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import EGO_V, EGO_Y
 from mmpc.scenario import load_scenario
+from mmpc.solver.execution import COMPILE_ENV
 
 REPO = Path(__file__).resolve().parents[1]
 #: The per-episode results (what must not depend on the backend); timings excluded.

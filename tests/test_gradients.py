@@ -8,7 +8,7 @@ import torch
 from torch.autograd.gradcheck import GradcheckError
 
 import mmpc
-from mmpc.optimizer import _kernel_compiler_found
+from mmpc.solver.execution import kernel_compiler_found
 from tests.conftest import small_config
 
 #: Every float tensor a solve returns (``history`` requested), in the order gradcheck numbers them.
@@ -95,7 +95,7 @@ def test_compiled_backward_is_finite_and_matches_eager(caplog):
     eager, compiled = mmpc.BatchOptimizer(config), mmpc.BatchOptimizer(config, compile=True)
     inputs = _problem("obstacle_active", eager.times, torch.float32)
     expected_outputs, expected = _loss_gradients(eager, inputs)
-    with caplog.at_level(logging.INFO, logger="mmpc.optimizer"):
+    with caplog.at_level(logging.INFO, logger="mmpc.solver"):
         for _ in range(2):
             outputs, gradients = _loss_gradients(compiled, inputs)
             assert all(bool(g.isfinite().all()) for g in gradients)
@@ -105,7 +105,7 @@ def test_compiled_backward_is_finite_and_matches_eager(caplog):
     assert compiled.last_compile_ms == 0.0
 
 
-@pytest.mark.skipif(not _kernel_compiler_found(on_cpu=True), reason="inductor's CPU kernels need a C++ compiler")
+@pytest.mark.skipif(not kernel_compiler_found(on_cpu=True), reason="inductor's CPU kernels need a C++ compiler")
 def test_compiled_solve_then_backward_gives_the_compiled_values():
     # A compiled solve without grad, then the same problem with grad (eager): float32 rounding apart.
     config = small_config(num_steps=12, order=6, iterations=6, max_obstacles=2)

@@ -6,8 +6,8 @@ import torch
 
 import mmpc
 from mmpc.basis import bernstein_basis
-from mmpc.config import OptimizerConfig
 from mmpc.operators import build_operators, lane_keeping_profile, position_equality_matrix
+from mmpc.solver.config import OptimizerConfig
 
 
 def test_without_lane_keeping_both_axes_share_the_papers_matrices():

@@ -200,16 +200,16 @@ def test_undrivable_candidates_give_a_lane_keeping_brake(cruise_mpc):
 
 
 def test_auto_compile_is_the_float32_path_with_a_kernel_compiler(monkeypatch):
-    import mmpc.optimizer
+    from mmpc.solver import execution
 
     assert not mmpc.BatchOptimizer(compile="auto").compiled  # conftest: MMPC_COMPILE=0
-    monkeypatch.setenv(mmpc.optimizer.COMPILE_ENV, "maybe")
+    monkeypatch.setenv(execution.COMPILE_ENV, "maybe")
     with pytest.raises(ValueError, match="MMPC_COMPILE"):
         mmpc.BatchOptimizer(compile="auto")
-    monkeypatch.delenv(mmpc.optimizer.COMPILE_ENV)
+    monkeypatch.delenv(execution.COMPILE_ENV)
     assert mmpc.BatchOptimizer(compile="auto").compiled
     assert not mmpc.BatchOptimizer(compile="auto", dtype=torch.float64).compiled  # mmpc.trig is float32-exact
-    monkeypatch.setattr(mmpc.optimizer, "_kernel_compiler_found", lambda on_cpu: False)
+    monkeypatch.setattr(execution, "kernel_compiler_found", lambda on_cpu: False)
     assert not mmpc.BatchOptimizer(compile="auto").compiled
     with pytest.raises(ValueError, match="compile"):
         mmpc.BatchOptimizer(compile="fast")

@@ -211,7 +211,7 @@ def test_an_old_wheelbase_other_than_the_vehicle_length_is_refused():
 
 
 def test_compile_is_a_run_option_not_part_of_the_scenario(monkeypatch):
-    from mmpc.optimizer import COMPILE_ENV
+    from mmpc.solver.execution import COMPILE_ENV
 
     assert "compile" not in {f.name for f in dataclasses.fields(MPCConfig)}
     plain = load_scenario("cruise")

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.optimizer import _tiling
 from mmpc.scenes import synthetic_scenes
+from mmpc.solver.execution import tiling
 from tests.conftest import small_config
 
 
@@ -37,7 +37,7 @@ def _three_problems(config: mmpc.OptimizerConfig) -> mmpc.ProblemBatch:
 def test_tiled_solve_equals_one_call(tile_size, expected_tiling):
     config = small_config(iterations=12, max_obstacles=3)
     problem = _three_problems(config)
-    assert _tiling(3, 5, tile_size) == expected_tiling
+    assert tiling(3, 5, tile_size) == expected_tiling
     whole = mmpc.BatchOptimizer(config, dtype=torch.float64)
     tiled = mmpc.BatchOptimizer(config, dtype=torch.float64, tile_size=tile_size)
     expected, result = whole(problem, history=True), tiled(problem, history=True)
@@ -52,16 +52,16 @@ def test_tiled_solve_equals_one_call(tile_size, expected_tiling):
 
 
 def test_tiling_uses_few_tile_shapes():
-    assert _tiling(1, 11, 256) is None  # one tile
-    assert _tiling(3, 11, None) is None
-    assert _tiling(1, 1024, 256) == (1, 256)
-    assert _tiling(1, 1000, 256) == (1, 250)  # four even tiles, no padding
-    assert _tiling(1, 257, 256) == (1, 129)  # two tiles, one padding goal
-    assert _tiling(64, 11, 256) == (23, 11)  # 3 tiles of as many problems as fit
-    assert _tiling(40, 11, 256) == (23, 11)
-    assert _tiling(8, 35, 256) == (4, 35)  # 2 tiles of 4 (7 fit), a power of two
-    assert _tiling(9, 35, 256) == (7, 35)
-    assert _tiling(2, 300, 256) == (1, 150)
+    assert tiling(1, 11, 256) is None  # one tile
+    assert tiling(3, 11, None) is None
+    assert tiling(1, 1024, 256) == (1, 256)
+    assert tiling(1, 1000, 256) == (1, 250)  # four even tiles, no padding
+    assert tiling(1, 257, 256) == (1, 129)  # two tiles, one padding goal
+    assert tiling(64, 11, 256) == (23, 11)  # 3 tiles of as many problems as fit
+    assert tiling(40, 11, 256) == (23, 11)
+    assert tiling(8, 35, 256) == (4, 35)  # 2 tiles of 4 (7 fit), a power of two
+    assert tiling(9, 35, 256) == (7, 35)
+    assert tiling(2, 300, 256) == (1, 150)
 
 
 def test_tile_size_defaults_to_the_compiled_cpu_path_only():

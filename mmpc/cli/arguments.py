@@ -13,9 +13,9 @@ import yaml
 
 from mmpc.device import DEVICE_ENV, resolve_device
 from mmpc.files import TEMPORARY_PREFIX
-from mmpc.optimizer import COMPILE_ENV
+from mmpc.solver.execution import COMPILE_ENV
 
-#: ``--compile`` choices -> the value of :data:`mmpc.optimizer.COMPILE_ENV` they set (``None``: leave it).
+#: ``--compile`` choices -> the value of :data:`mmpc.solver.execution.COMPILE_ENV` they set (``None``: leave it).
 COMPILE_CHOICES = {"auto": None, "on": "1", "off": "0"}
 
 
@@ -131,7 +131,7 @@ def max_threads() -> int:
 
 
 def apply_compile(choice: str) -> None:
-    """Set :data:`mmpc.optimizer.COMPILE_ENV` for ``--compile on|off`` (``auto`` leaves it), so
+    """Set :data:`mmpc.solver.execution.COMPILE_ENV` for ``--compile on|off`` (``auto`` leaves it), so
     that every MPC this process and its workers build (:func:`mmpc.scenario.build_mpc`) follows it."""
     value = COMPILE_CHOICES[choice]
     if value is not None:
@@ -142,10 +142,10 @@ def compile_at_once() -> None:
     """For benchmarks: every call layout compiled at its first call (:data:`COMPILE_ENV` = 1 where
     a kernel compiler is found, else 0) unless the environment already says, so that no timing
     includes the eager solves ``compile="auto"`` runs before it compiles a layout."""
-    from mmpc.optimizer import _kernel_compiler_found
+    from mmpc.solver.execution import kernel_compiler_found
 
     if not os.environ.get(COMPILE_ENV, "").strip():
-        os.environ[COMPILE_ENV] = "1" if _kernel_compiler_found(on_cpu=True) else "0"
+        os.environ[COMPILE_ENV] = "1" if kernel_compiler_found(on_cpu=True) else "0"
 
 
 def split_overrides(pairs: list[tuple[str, Any]], section: str) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -15,7 +15,7 @@ from mmpc.cli.arguments import add_set
 #: Config kinds -> (module, class).
 KINDS = {
     "scenario": ("mmpc.scenario", "ScenarioConfig"),
-    "optimizer": ("mmpc.config", "OptimizerConfig"),
+    "optimizer": ("mmpc.solver.config", "OptimizerConfig"),
     "mpc": ("mmpc.mpc", "MPCConfig"),
     "rl": ("mmpc.rl.config", "RLConfig"),
     "bc": ("mmpc.imitation.bc", "TrainConfig"),

@@ -10,15 +10,16 @@ from pathlib import Path
 import torch
 
 from mmpc.cli.arguments import add_config, unwritable
-from mmpc.config import OptimizerConfig, load_config
+from mmpc.config import load_config
 from mmpc.goals import CruiseGoals, HighSpeedGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost
-from mmpc.optimizer import BatchOptimizer
 from mmpc.plotting import plot_candidates
 from mmpc.problem import ProblemBatch
 from mmpc.ranking import select_best
 from mmpc.result import Status
 from mmpc.scenes import demo_scene
+from mmpc.solver.config import OptimizerConfig
+from mmpc.solver.optimizer import BatchOptimizer
 
 
 def run(args: argparse.Namespace) -> int:

@@ -25,10 +25,11 @@ import torch
 
 from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
 from mmpc.drivers.nlp import NLPConfig, TrajectoryNLP, resample
-from mmpc.config import OptimizerConfig, require_int
+from mmpc.config import require_int
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
 from mmpc.road import Road
+from mmpc.solver.config import OptimizerConfig
 
 #: The worker process's NLP (built once per process by :func:`_init_worker`).
 _WORKER_NLP: Optional[TrajectoryNLP] = None

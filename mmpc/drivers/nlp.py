@@ -41,9 +41,10 @@ from typing import Any, Callable, NamedTuple, Optional
 import numpy as np
 import torch
 
-from mmpc.config import OptimizerConfig, require_int, require_non_negative, require_positive
+from mmpc.config import require_int, require_non_negative, require_positive
 from mmpc.result import Trajectories
 from mmpc.road import Road
+from mmpc.solver.config import OptimizerConfig
 
 #: Layout of the NLP state.
 STATE_FIELDS = ("x", "y", "psi", "v", "a", "omega")

@@ -29,7 +29,7 @@ from typing import Callable, Iterator, Optional, Sequence, TypeVar
 import torch
 
 from mmpc.config import require_int
-from mmpc.optimizer import COMPILE_ENV
+from mmpc.solver.execution import COMPILE_ENV
 
 logger = logging.getLogger(__name__)
 
