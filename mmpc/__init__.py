@@ -6,7 +6,8 @@ from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig, Plan
 from mmpc.optimizer import BatchOptimizer
-from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state, predict_constant_velocity, predict_within_lanes
+from mmpc.obstacles.prediction import predict_constant_velocity, predict_within_lanes
+from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state
 from mmpc.ranking import Selection, constraint_violation, select_best
 from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road
