@@ -45,6 +45,7 @@ UNDRIVABLE = Status.NONHOLONOMIC | Status.HEADING | Status.SPEED | Status.NUMERI
 #: 2 m cars lie at 0.91 of the high-speed scenario's 8 m x 3 m ellipse.
 ESCAPE_DEPTH = 0.05
 
+
 @dataclass(frozen=True)
 class MPCConfig:
     """Settings of the receding-horizon loop.
@@ -54,11 +55,13 @@ class MPCConfig:
             ``obstacle_lookahead`` (must not exceed the optimizer's ``max_obstacles``).
         ignore_behind: vehicles more than this far behind the ego are ignored [m].
         obstacle_lookahead: the M obstacles are the vehicles that come nearest within this
-            many seconds at constant velocity (:func:`mmpc.obstacles.shape.nearest_obstacles`) [s]; 0: nearest now.
+            many seconds at constant velocity (:func:`mmpc.obstacles.shape.nearest_obstacles`) [s];
+            0: nearest now.
             Measured in high-speed traffic with goals at 24 m/s: ranked by today's distance, a
             7 m/s car 46 m ahead in the ego's lane was left out for cars beside and behind,
             every plan drove through it, and the ego met a wall of slow cars at 23.5 m/s.
-        prediction: how the obstacles move over the horizon (:data:`mmpc.obstacles.prediction.PREDICTIONS`): ``"lanes"`` (constant velocity,
+        prediction: how the obstacles move over the horizon
+            (:data:`mmpc.obstacles.prediction.PREDICTIONS`): ``"lanes"`` (constant velocity,
             lateral motion ending on the next lane centre, :func:`mmpc.predict_within_lanes`)
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within

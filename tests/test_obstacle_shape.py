@@ -42,7 +42,8 @@ def test_ellipse_distance_takes_one_or_many_ellipses():
 def test_one_offset_in_floats_measures_as_the_tensors_do():
     for dx, dy in [(4.0, 3.0), (-7.3, 1.1), (0.0, -6.0)]:
         squared = offset_distance_squared(dx, dy, (8.0, 3.0))
-        tensor = ellipse_distance_squared(torch.tensor([dx, dy], dtype=torch.float64), torch.zeros(2, dtype=torch.float64), (8.0, 3.0))
+        point = torch.tensor([dx, dy], dtype=torch.float64)
+        tensor = ellipse_distance_squared(point, torch.zeros(2, dtype=torch.float64), (8.0, 3.0))
         assert squared == float(tensor)
         assert offset_distance(dx, dy, (8.0, 3.0)) == pytest.approx(math.sqrt(squared), rel=1e-15)
 
