@@ -41,6 +41,7 @@ from typing import Optional
 import numpy as np
 
 from mmpc.config import require_int
+from mmpc.obstacles.shape import offset_distance_squared
 from mmpc.problem import EGO_X, EGO_Y
 from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
@@ -144,12 +145,11 @@ def nearest_neighbours(ego: np.ndarray, vehicles: np.ndarray, mask: Optional[np.
     if ego.ndim != 2 or ego.shape[1] != 6 or vehicles.ndim != 3 or vehicles.shape[0] != ego.shape[0] or vehicles.shape[2] != 4:
         raise ValueError(f"`ego` must be (E, 6) and `vehicles` (E, V, 4); got {ego.shape} and {vehicles.shape}")
     masks = [None] * ego.shape[0] if mask is None else np.asarray(mask, dtype=bool).tolist()
-    scale_x, scale_y = ellipse
     empty = [math.nan] * 4
     rows = []
     for state, others, real in zip(ego.tolist(), vehicles.tolist(), masks):
         x, y = state[EGO_X], state[EGO_Y]
-        ranked = sorted((((o[0] - x) / scale_x) ** 2 + ((o[1] - y) / scale_y) ** 2, i) for i, o in enumerate(others)
+        ranked = sorted((offset_distance_squared(o[0] - x, o[1] - y, ellipse), i) for i, o in enumerate(others)
                         if (real is None or real[i]) and all(math.isfinite(value) for value in o))
         chosen = [others[i] for _, i in ranked[:count]]
         rows.append(chosen + [empty] * (count - len(chosen)))
@@ -193,8 +193,7 @@ def _row_features(state: list[float], near: list[list[float]], road: Road, confi
     features = [y - lane * width, y - left, right - y, psi, v]
     if config.ego_command:
         features += [a, psidot]
-    scale_x, scale_y = config.scene.ellipse
-    near = sorted(near, key=lambda n: ((n[0] - x) / scale_x) ** 2 + ((n[1] - y) / scale_y) ** 2
+    near = sorted(near, key=lambda n: offset_distance_squared(n[0] - x, n[1] - y, config.scene.ellipse)
                   if all(math.isfinite(value) for value in n) else math.inf)
     present = [all(math.isfinite(value) for value in n) for n in near]
     for (nx, ny, nvx, nvy), here in zip(near[:config.neighbours], present):

@@ -4,7 +4,8 @@ from mmpc.basis import Basis, bernstein_basis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig, Plan
-from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state, predict_constant_velocity, predict_within_lanes
+from mmpc.obstacles.prediction import predict_constant_velocity, predict_within_lanes
+from mmpc.problem import EGO_FIELDS, ProblemBatch, ego_state
 from mmpc.ranking import Selection, constraint_violation, select_best
 from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road

@@ -18,14 +18,14 @@ from typing import Callable, NamedTuple, Optional
 import torch
 
 from mmpc.config import require, require_field_types, require_int, require_non_negative, require_positive
-from mmpc.footprint import HIGHWAY_VEHICLE, covering_semi_axes
 from mmpc.goals import GoalSampler
 from mmpc.meta_costs import MetaCost
-from mmpc.problem import (
-    EGO_FIELDS, EGO_PSI, EGO_V, EGO_X, EGO_Y, ProblemBatch, predict_constant_velocity, predict_within_lanes,
-    require_on_device,
+from mmpc.obstacles.prediction import PREDICTIONS
+from mmpc.obstacles.shape import (
+    HIGHWAY_VEHICLE, OBSTACLE_SHAPES, longest_semi_axes, nearest_obstacles, obstacle_semi_axes, squared_obstacle_distance,
 )
-from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best, squared_obstacle_distance
+from mmpc.problem import EGO_FIELDS, EGO_PSI, EGO_V, EGO_Y, ProblemBatch, require_on_device
+from mmpc.ranking import Selection, constraint_violation, lateral_move, select_best
 from mmpc.result import SolveResult, Status, Trajectories, WarmStart
 from mmpc.road import Road
 from mmpc.solver.optimizer import BatchOptimizer
@@ -47,16 +47,6 @@ UNDRIVABLE = Status.NONHOLONOMIC | Status.HEADING | Status.SPEED | Status.NUMERI
 #: 2 m cars lie at 0.91 of the high-speed scenario's 8 m x 3 m ellipse.
 ESCAPE_DEPTH = 0.05
 
-#: Obstacle shapes by :attr:`MPCConfig.obstacle_shape` name.
-OBSTACLE_SHAPES = ("fixed", "heading")
-
-#: Obstacle predictions by :attr:`MPCConfig.prediction` name: ``(states (E, M, 4), times (N,),
-#: road) -> (E, M, N, 2)`` centres.
-PREDICTIONS = {
-    "lanes": predict_within_lanes,
-    "constant_velocity": lambda states, times, road: predict_constant_velocity(states, times),
-}
-
 #: MPCConfig keys retired on 2026-11-28 (:meth:`MPCConfig.upgrade`): each switch with its off value,
 #: and (None) the settings that only mattered while their switch was on.
 RETIRED_OPTIONS = {
@@ -77,18 +67,20 @@ class MPCConfig:
             ``obstacle_lookahead`` (must not exceed the optimizer's ``max_obstacles``).
         ignore_behind: vehicles more than this far behind the ego are ignored [m].
         obstacle_lookahead: the M obstacles are the vehicles that come nearest within this
-            many seconds at constant velocity (:func:`nearest_obstacles`) [s]; 0: nearest now.
+            many seconds at constant velocity (:func:`mmpc.obstacles.shape.nearest_obstacles`) [s];
+            0: nearest now.
             Measured in high-speed traffic with goals at 24 m/s: ranked by today's distance, a
             7 m/s car 46 m ahead in the ego's lane was left out for cars beside and behind,
             every plan drove through it, and the ego met a wall of slow cars at 23.5 m/s.
-        prediction: how the obstacles move over the horizon: ``"lanes"`` (constant velocity,
+        prediction: how the obstacles move over the horizon
+            (:data:`mmpc.obstacles.prediction.PREDICTIONS`): ``"lanes"`` (constant velocity,
             lateral motion ending on the next lane centre, :func:`mmpc.predict_within_lanes`)
             or ``"constant_velocity"`` (:func:`mmpc.predict_constant_velocity`, lateral motion
             unbounded): a vehicle changing lanes, extrapolated straight, crosses every lane within
             the horizon and leaves no feasible candidate.
         obstacle_shape: each obstacle's ellipse: ``"fixed"`` (the optimizer's ``ellipse_a``,
             ``ellipse_b`` for every car) or ``"heading"`` (widened across the road to cover the
-            car at its direction of motion, :func:`mmpc.footprint.covering_semi_axes`): a car
+            car at its direction of motion, :func:`mmpc.obstacles.shape.obstacle_semi_axes`): a car
             changing lanes, turned 10-30 deg, reaches 0.6-1 m beyond the fixed ellipse.
         command_window: the command is the plan's tangential acceleration and heading rate
             averaged over ``[0, command_window]`` [s]. Each plan starts at the current heading
@@ -232,58 +224,6 @@ class Scored(NamedTuple):
     compile_ms: float = 0.0
 
 
-def nearest_obstacles(
-    ego: torch.Tensor,
-    vehicles: torch.Tensor,
-    vehicle_mask: Optional[torch.Tensor],
-    count: int,
-    ellipse: tuple[float, float],
-    ignore_behind: float,
-    lookahead: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``count`` vehicles that come nearest to the ego within ``lookahead`` seconds, in
-    ellipse-normalised distance, both moving at their current velocity.
-
-    With ``lookahead`` 0 this is the distance now, which ranks a car 45 m ahead in the ego's
-    lane (5.6 at a = 8 m) behind one alongside two lanes over (2.7 at b = 3 m) however fast
-    the ego closes on it; the closest approach within a few seconds ranks it first.
-
-    Args:
-        ego: (E, 6) ego states.
-        vehicles: (E, V, 4) other vehicles (x, y, vx, vy) [m, m/s].
-        vehicle_mask: (E, V) bool, True for real vehicles; ``None`` = all real.
-        count: M slots to fill.
-        ellipse: (a, b) semi-axes [m] defining the distance.
-        ignore_behind: vehicles with x < ego x - ignore_behind are left out [m].
-        lookahead: window of the closest approach [s], >= 0.
-
-    Returns:
-        states (E, M, 4) and mask (E, M), nearest first; unused slots have mask False.
-    """
-    num_problems, num_vehicles = vehicles.shape[:2]
-    if vehicle_mask is None:
-        vehicle_mask = torch.ones(num_problems, num_vehicles, dtype=torch.bool, device=vehicles.device)
-    scale = vehicles.new_tensor(ellipse)
-    offset = (vehicles[..., :2] - ego[:, None, EGO_X:EGO_Y + 1]) / scale  # (E, V, 2)
-    ego_velocity = ego[:, EGO_V, None] * torch.stack([torch.cos(ego[:, EGO_PSI]), torch.sin(ego[:, EGO_PSI])], dim=-1)
-    closing = (vehicles[..., 2:4] - ego_velocity[:, None]) / scale  # (E, V, 2) normalised relative velocity
-    # closest approach of offset + t closing over t in [0, lookahead]
-    speed_sq = (closing * closing).sum(dim=-1).clamp_min(1e-12)
-    when = (-(offset * closing).sum(dim=-1) / speed_sq).clamp(0.0, lookahead)
-    distance = torch.linalg.vector_norm(offset + when[..., None] * closing, dim=-1)
-    eligible = vehicle_mask & (vehicles[..., 0] >= ego[:, None, EGO_X] - ignore_behind)
-    distance = torch.where(eligible, distance, torch.full_like(distance, float("inf")))
-    k = min(count, num_vehicles)
-    order = distance.argsort(dim=1)[:, :k]
-    states = torch.gather(vehicles, 1, order[..., None].expand(-1, -1, 4))
-    mask = torch.gather(eligible, 1, order)
-    if k < count:
-        pad = count - k
-        states = torch.cat([states, states.new_zeros(num_problems, pad, 4)], dim=1)
-        mask = torch.cat([mask, mask.new_zeros(num_problems, pad)], dim=1)
-    return states, mask
-
-
 def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]) -> None:
     """Refuse what :meth:`MPC.build_problem` cannot plan from, naming what came.
 
@@ -402,36 +342,30 @@ class MPC:
         obstacles = self.predict(states, opt.times)
         axes = self.obstacle_axes(states)
         goals = self.goal_sampler(ego, self.road)
-        if self.config.stop_lanes is not None:
-            ellipse = self.ellipse
-            if axes is not None and axes.shape[1] > 0:  # rest behind the longest ellipse of the problem's obstacles
-                longest = torch.where(mask, axes[..., 0], torch.full_like(axes[..., 0], ellipse[0]))
-                ellipse = (longest.amax(dim=1, keepdim=True).clamp_min(ellipse[0]), ellipse[1])
+        if self.config.stop_lanes is not None:  # rest behind the longest ellipse of the problem's obstacles
             stops = stop_goals(ego, obstacles, mask, self.road, horizon=opt.config.horizon,
-                               ellipse=ellipse, lanes=self.config.stop_lanes, gap=self.config.stop_gap)
+                               ellipse=longest_semi_axes(axes, mask, self.ellipse), lanes=self.config.stop_lanes,
+                               gap=self.config.stop_gap)
             goals = torch.cat([goals, stops], dim=1)
         return ProblemBatch(ego, goals, obstacles, mask, axes)
 
     def obstacle_axes(self, states: torch.Tensor) -> Optional[torch.Tensor]:
         """(E, M, 2) ellipse semi-axes [m] of the (E, M, 4) obstacle states by
-        :attr:`MPCConfig.obstacle_shape`; ``None`` for ``"fixed"`` (the optimizer's ellipse)."""
-        if self.config.obstacle_shape == "fixed":
-            return None
-        # Below 1 m/s the direction of motion says little about where the car points.
-        moving = torch.hypot(states[..., 2], states[..., 3]) >= 1.0
-        heading = torch.where(moving, torch.atan2(states[..., 3], states[..., 2]), torch.zeros_like(states[..., 2]))
-        return covering_semi_axes(heading, self.ellipse, self.optimizer.config.max_heading_deg, self.vehicle)
+        :attr:`MPCConfig.obstacle_shape` (:func:`mmpc.obstacles.shape.obstacle_semi_axes`); ``None``
+        for ``"fixed"`` (the optimizer's ellipse)."""
+        return obstacle_semi_axes(states, self.config.obstacle_shape, self.ellipse, self.optimizer.config.max_heading_deg,
+                                  self.vehicle)
 
     @property
     def ellipse(self) -> tuple[float, float]:
         """The optimizer's obstacle ellipse semi-axes (a, b) [m]."""
-        return self.optimizer.config.ellipse_a, self.optimizer.config.ellipse_b
+        return self.optimizer.config.ellipse
 
     def nearest_obstacles(
         self, ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The (E, M, 4) states and (E, M) mask of the obstacles this MPC plans around:
-        :func:`nearest_obstacles` with the config's count, ignore-behind distance and lookahead
+        :func:`mmpc.obstacles.shape.nearest_obstacles` with the config's count, ignore-behind distance and lookahead
         and the optimizer's ellipse."""
         return nearest_obstacles(
             ego, vehicles, vehicle_mask, self.config.num_obstacles, self.ellipse,

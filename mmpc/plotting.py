@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Ellipse  # noqa: E402
 import torch  # noqa: E402
 
-from mmpc.footprint import HIGHWAY_VEHICLE  # noqa: E402
+from mmpc.obstacles.shape import HIGHWAY_VEHICLE  # noqa: E402
 from mmpc.problem import ProblemBatch  # noqa: E402
 from mmpc.result import SolveResult  # noqa: E402
 from mmpc.road import Road  # noqa: E402

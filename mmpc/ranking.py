@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional, Union
+from typing import NamedTuple, Optional
 
 import torch
 
 from mmpc.config import require_non_negative
-from mmpc.footprint import ellipse_distance_squared
 from mmpc.problem import EGO_Y
 from mmpc.result import SolveResult, Trajectories
 from mmpc.solver.config import OptimizerConfig
@@ -43,24 +42,6 @@ def constraint_violation(result: SolveResult, config: OptimizerConfig) -> torch.
     max_heading = math.radians(config.max_heading_deg)
     heading = (result.max_heading_deviation - max_heading).clamp_min(0.0) / max_heading
     return 10.0 * penetration + acceleration + nonholonomic / max(config.v_max, 1.0) + heading
-
-
-def squared_obstacle_distance(
-    trajectories: Trajectories, obstacles: torch.Tensor, ellipse: Union[tuple[float, float], torch.Tensor]
-) -> torch.Tensor:
-    """(E, C, M, N) squared ellipse-normalised distance ``(dx / a)^2 + (dy / b)^2`` of every
-    candidate's samples to every obstacle slot (< 1: inside its ellipse;
-    :func:`mmpc.footprint.ellipse_distance_squared`).
-
-    Args:
-        trajectories: the candidates, fields (E, C, N).
-        obstacles: (E, M, N, 2) predicted centres at the same instants [m].
-        ellipse: (a, b) semi-axes [m], or (E, M, 2) per obstacle (:attr:`mmpc.ProblemBatch.obstacle_axes`).
-    """
-    points = torch.stack([trajectories.x, trajectories.y], dim=-1)[:, :, None]  # (E, C, 1, N, 2)
-    if isinstance(ellipse, torch.Tensor):
-        ellipse = ellipse[:, None, :, None, :]  # (E, 1, M, 1, 2)
-    return ellipse_distance_squared(points, obstacles[:, None], ellipse)
 
 
 def lateral_move(trajectories: Trajectories, ego: torch.Tensor) -> torch.Tensor:

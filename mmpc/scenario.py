@@ -25,10 +25,10 @@ import torch
 from mmpc.config import load_config, require, require_field_types, require_int, require_non_negative, require_positive
 from mmpc.configs import shipped_config_dir
 from mmpc.device import run_device
-from mmpc.footprint import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, LaneChangeCost, MetaCost, TaskRewardCost
 from mmpc.mpc import MPC, MPCConfig
+from mmpc.obstacles.shape import HIGHWAY_VEHICLE, ellipse_coverage, smallest_covering_axis
 from mmpc.road import Road
 from mmpc.solver.config import OptimizerConfig
 from mmpc.solver.execution import COMPILE_ENV
@@ -38,7 +38,7 @@ logger = logging.getLogger(__name__)
 
 #: Obstacle ellipse semi-axes for highway-env [m] (the default cruise scenario's): it must hold the
 #: Minkowski sum of two 5 m x 2 m cars with the ego turned over its heading band
-#: (:func:`mmpc.footprint.ellipse_coverage` <= 1; the authors' (5.6, 3.0) does not). Figures:
+#: (:func:`mmpc.obstacles.shape.ellipse_coverage` <= 1; the authors' (5.6, 3.0) does not). Figures:
 #: docs/experiments/2026-11-21-differences-from-paper.md.
 HIGHWAY_ELLIPSE = (8.0, 3.3)
 #: Heading band [deg], the paper's 13 (the high-speed scenario keeps 8, which drove it better).
@@ -469,14 +469,14 @@ class ScenarioConfig:
         ego: the controlled vehicle at the start.
         traffic: the other vehicles.
         vehicle_size: (length, width) of every vehicle, the ego included [m]; ``None`` keeps
-            highway-env's 5 m x 2 m (:data:`mmpc.footprint.HIGHWAY_VEHICLE`). highway-env's
+            highway-env's 5 m x 2 m (:data:`mmpc.obstacles.shape.HIGHWAY_VEHICLE`). highway-env's
             bicycle model turns with the length as wheelbase, and so does the MPC's steering
             (:func:`build_mpc`). Not with NGSIM traffic (recorded vehicles keep their recorded size).
         optimizer: batch optimizer settings (default: the authors' with :data:`HIGHWAY_ELLIPSE`,
             :data:`HIGHWAY_MAX_HEADING_DEG`, :data:`HIGHWAY_HEADING_TARGET_DEG` and the
             back-offs :data:`HIGHWAY_OBSTACLE_BACKOFF`, :data:`HIGHWAY_ACCELERATION_BACKOFF`). Its obstacle
             ellipse must cover two of the scenario's vehicles with the ego anywhere in the
-            heading band and the other along the road (:func:`mmpc.footprint.ellipse_coverage`
+            heading band and the other along the road (:func:`mmpc.obstacles.shape.ellipse_coverage`
             <= 1), else the scenario is refused: the ego could touch a car it plans to clear.
         mpc: receding-horizon settings (default: :class:`mmpc.MPCConfig`'s with
             :data:`HIGHWAY_OBSTACLE_SHAPE` and the warm starts :data:`HIGHWAY_WARM_ITERATIONS`;
@@ -580,7 +580,7 @@ class ScenarioConfig:
         raise ValueError(
             f"{where}: the obstacle ellipse (a = {axes[0]} m, b = {axes[1]} m) does not cover two {vehicle[0]} m x "
             f"{vehicle[1]} m vehicles with the ego turned up to `optimizer.max_heading_deg` = {band} deg "
-            f"(mmpc.footprint.ellipse_coverage {coverage:.3f} > 1): the ego could touch a car it plans to clear. "
+            f"(mmpc.obstacles.shape.ellipse_coverage {coverage:.3f} > 1): the ego could touch a car it plans to clear. "
             f"The smallest covering ellipse: {' or '.join(options)} (or a narrower heading band)"
         )
 

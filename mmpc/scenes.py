@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
 
-from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
+from mmpc.obstacles.prediction import predict_constant_velocity
+from mmpc.obstacles.shape import ellipse_distance_squared, offset_distance, smallest_distance
+from mmpc.problem import ProblemBatch, ego_state
 from mmpc.road import Road
 from mmpc.solver.config import OptimizerConfig
 
@@ -44,12 +45,7 @@ def _certify_reachable(
     tau = (times / horizon)[:, None]  # (N, 1)
     start = ego[0, :2]
     path = start + tau[None] * (goals[0, :, None, :] - start)  # (G, N, 2)
-    if obstacles.shape[1] == 0:
-        clear = torch.ones(goals.shape[1], dtype=torch.bool)
-    else:
-        scale = torch.tensor(ellipse, dtype=goals.dtype)
-        offset = (path[:, None] - obstacles[0][None]) / scale  # (G, M, N, 2)
-        clear = offset.norm(dim=-1).amin(dim=(1, 2)) >= 1.2
+    clear = smallest_distance(ellipse_distance_squared(path[:, None], obstacles[0][None], ellipse), None, (1, 2)) >= 1.2
     lateral = (goals[0, :, 1] - ego[0, 1]).abs() <= 2 * road.lane_width + 1e-6
     mean_speed = (goals[0, :, 0] - ego[0, 0]) / horizon
     speed_ok = (mean_speed >= 5.0) & (mean_speed <= 25.0)
@@ -119,7 +115,7 @@ def synthetic_scenes(
             lane = integer(road.num_lanes)
             x = ego_x + (uniform(25.0, 130.0) if integer(4) else uniform(-30.0, -12.0))
             y = float(lanes[lane])
-            if math.hypot((x - ego_x) / SCENE_ELLIPSE[0], (y - float(ego[0, 1])) / SCENE_ELLIPSE[1]) < 1.5:
+            if offset_distance(x - ego_x, y - float(ego[0, 1]), SCENE_ELLIPSE) < 1.5:
                 continue
             if any(py == y and abs(px - x) < 14.0 for px, py, _ in placed):
                 continue

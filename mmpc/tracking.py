@@ -11,18 +11,15 @@ where they have come too close or the vehicle has drifted too far (:func:`needs_
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Union
+from typing import Union
 
 import torch
 
 from mmpc.config import require_positive
-from mmpc.footprint import ellipse_distance_squared
+from mmpc.obstacles.prediction import Predictor
+from mmpc.obstacles.shape import ellipse_distance_squared, smallest_distance
 from mmpc.problem import EGO_PSI, EGO_V, EGO_X, EGO_Y
 from mmpc.result import Trajectories
-
-#: ``(states (E, M, 4), times (N,)) -> (E, M, N, 2)`` predicted obstacle centres, e.g. :meth:`mmpc.MPC.predict`.
-Predictor = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-
 
 @dataclass(frozen=True)
 class TrackingConfig:
@@ -98,10 +95,8 @@ def plan_clearance(
     centres = predict(states, times)  # (E, M, N, 2)
     points = torch.stack([rest.x, rest.y], dim=-1)[:, None]  # (E, 1, N, 2)
     axes = ellipse[:, :, None, :] if isinstance(ellipse, torch.Tensor) else ellipse  # (E, M, 1, 2)
-    distance = ellipse_distance_squared(points, centres, axes).sqrt()
     counted = mask[..., None] & (ahead <= times[-1] + 1e-9)[:, None, :]
-    distance = torch.where(counted, distance, torch.full_like(distance, float("inf")))
-    return distance.flatten(1).amin(dim=1)
+    return smallest_distance(ellipse_distance_squared(points, centres, axes), counted, (1, 2))
 
 
 def track(

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import platform
 import statistics
 import sys
@@ -51,8 +50,8 @@ from build_problem_corpus import CorpusError, corpus_path, git_state, load_corpu
 from mmpc.cli.arguments import add_compile, apply_compile, compile_at_once, override
 from mmpc.config import ConfigError, to_dict
 from mmpc.mpc import MPC, Scored
+from mmpc.obstacles.shape import smallest_distance, squared_obstacle_distance
 from mmpc.problem import ProblemBatch
-from mmpc.ranking import squared_obstacle_distance
 from mmpc.result import Status
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 
@@ -127,10 +126,8 @@ def obstacle_distance(scored: Scored, problem: ProblemBatch, ellipse: tuple[floa
     ``problem.obstacles``."""
     trajectories = scored.result.trajectories
     trajectories = trajectories._replace(x=trajectories.x.to(torch.float64), y=trajectories.y.to(torch.float64))
-    distance = squared_obstacle_distance(trajectories, problem.obstacles.to(torch.float64), ellipse).sqrt()  # (E, G, M, N)
-    present = problem.obstacle_mask[:, None, :, None].expand_as(distance)
-    distance = torch.where(present, distance, torch.full_like(distance, math.inf))
-    return distance.amin(dim=2)
+    squared = squared_obstacle_distance(trajectories, problem.obstacles.to(torch.float64), ellipse)  # (E, G, M, N)
+    return smallest_distance(squared, problem.obstacle_mask[:, None, :, None], 2)
 
 
 def verdicts(scored: Scored, problem: ProblemBatch, scenario: ScenarioConfig) -> dict[str, torch.Tensor]:
@@ -138,7 +135,7 @@ def verdicts(scored: Scored, problem: ProblemBatch, scenario: ScenarioConfig) ->
     status bits and the iterations of every candidate."""
     opt = scenario.optimizer
     result = scored.result
-    distance = obstacle_distance(scored, problem, (opt.ellipse_a, opt.ellipse_b))  # (E, G, N)
+    distance = obstacle_distance(scored, problem, opt.ellipse)  # (E, G, N)
     return {
         "ours": result.feasible,
         "obstacle": 1.0 - distance.amin(dim=-1),

@@ -25,9 +25,10 @@ import torch
 
 from mmpc.cli.arguments import int_list
 from mmpc.config import require, require_int, require_positive
-from mmpc.footprint import covering_semi_axes
+from mmpc.obstacles.prediction import predict_constant_velocity
+from mmpc.obstacles.shape import covering_semi_axes
 from mmpc.plotting import plot_scaling
-from mmpc.problem import ProblemBatch, ego_state, predict_constant_velocity
+from mmpc.problem import ProblemBatch, ego_state
 from mmpc.solver.config import OptimizerConfig
 from mmpc.solver.optimizer import BatchOptimizer
 
@@ -98,7 +99,7 @@ def benchmark_problem(batch: int, obstacles: int, times: torch.Tensor) -> Proble
 
 
 def turned_axes(obstacles: int, config: OptimizerConfig) -> torch.Tensor:
-    """(1, M, 2) per-obstacle semi-axes of cars turned by 0-20 deg (:func:`mmpc.footprint.covering_semi_axes`)."""
+    """(1, M, 2) per-obstacle semi-axes of cars turned by 0-20 deg (:func:`mmpc.obstacles.shape.covering_semi_axes`)."""
     headings = torch.deg2rad(torch.linspace(0.0, 20.0, obstacles))[None]
     return covering_semi_axes(headings, config.ellipse, config.max_heading_deg)
 

@@ -5,7 +5,7 @@ import torch
 
 import mmpc
 from mmpc.config import ConfigError
-from mmpc.problem import predict_constant_velocity
+from mmpc.obstacles.prediction import predict_constant_velocity
 
 
 def _swerve(config: mmpc.OptimizerConfig) -> mmpc.SolveResult:

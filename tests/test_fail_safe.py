@@ -9,7 +9,7 @@ import torch
 import mmpc
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
-from mmpc.problem import predict_constant_velocity
+from mmpc.obstacles.prediction import predict_constant_velocity
 from mmpc.scenario import load_scenario
 from mmpc.highway.stopped_traffic import STOPPED_SPEED, stopped_traffic_grid, stopped_traffic_scene
 from mmpc.stopping import MIN_ADVANCE, conflict_deceleration, stop_goals

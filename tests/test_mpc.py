@@ -6,7 +6,6 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.mpc import nearest_obstacles
 
 
 @pytest.fixture(scope="module")
@@ -132,34 +131,6 @@ def test_steering_inverts_the_kinematic_turn_rate(cruise_mpc):
     plan = cruise_mpc.plan(ego, torch.tensor([[[30.0, 4.0, 8.0, 0.0]]]))
     expected = math.atan(cruise_mpc.wheelbase * float(plan.heading_rate[0]) / 15.0)
     assert float(plan.steering[0]) == pytest.approx(expected, rel=1e-5)
-
-
-def test_nearest_obstacles_ignores_far_behind_and_pads():
-    ego = mmpc.ego_state(100.0, 8.0, 0.0, 15.0)
-    vehicles = torch.tensor([[[60.0, 8.0, 10.0, 0.0], [130.0, 8.0, 10.0, 0.0], [105.0, 4.0, 10.0, 0.0]]])
-    states, mask = nearest_obstacles(ego, vehicles, None, 4, (8.0, 3.0), ignore_behind=20.0)
-    assert states.shape == (1, 4, 4) and mask.tolist() == [[True, True, False, False]]
-    assert states[0, 0, 0] == 105.0 and states[0, 1, 0] == 130.0  # nearest first
-
-
-def test_nearest_obstacles_rank_a_closing_car_ahead_by_its_closest_approach():
-    # the high-speed scene (seed 12 with 24 m/s goals): a 7 m/s car 46 m ahead in the ego's lane
-    # (5.75 now at a = 8 m) against a car a lane over just behind (1.83) and one beside two lanes
-    # over (2.67), both falling back
-    ego = mmpc.ego_state(100.0, 20.0, 0.0, 23.5)
-    ahead, behind, beside = [146.0, 20.0, 7.0, 0.0], [90.0, 16.0, 7.5, 0.0], [101.0, 12.0, 9.0, 0.0]
-    vehicles = torch.tensor([[beside, behind, ahead]])
-    now, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0)
-    assert now[0].tolist() == [behind, beside]  # today's distance: the car ahead is left out
-    soon, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0, lookahead=3.0)
-    assert soon[0].tolist() == [ahead, behind]  # met within 2.8 s: first; the others keep their distance now
-    shorter, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0, lookahead=1.0)
-    assert shorter[0].tolist() == [behind, beside]  # 30 m off after 1 s: still last
-    # a car overtaking fast in the ego's lane from 15 m behind comes before the one beside
-    overtaking = [85.0, 20.0, 35.0, 0.0]
-    states, _ = nearest_obstacles(ego, torch.tensor([[beside, overtaking]]), None, 1, (8.0, 3.0),
-                                  ignore_behind=20.0, lookahead=3.0)
-    assert states[0, 0].tolist() == overtaking
 
 
 def test_near_lane_goals_cover_the_lanes_around_the_ego():

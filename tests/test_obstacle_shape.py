@@ -1,4 +1,5 @@
-"""Per-obstacle ellipses: covering a turned car, and the optimizer's per-obstacle path."""
+"""The obstacle shape (:mod:`mmpc.obstacles.shape`): covering a turned car, the normalised distance
+and clearance, the nearest obstacles, and the optimizer's per-obstacle path."""
 
 import math
 
@@ -6,9 +7,11 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.footprint import covering_semi_axes, ellipse_coverage, ellipse_distance_squared
 from mmpc.mpc import MPC, MPCConfig
-from mmpc.ranking import squared_obstacle_distance
+from mmpc.obstacles.shape import (
+    covering_semi_axes, ellipse_coverage, ellipse_distance_squared, longest_semi_axes, nearest_obstacles, obstacle_semi_axes,
+    offset_distance, offset_distance_squared, smallest_distance, squared_obstacle_distance,
+)
 from mmpc.scenes import synthetic_scenes
 from tests.conftest import small_config
 
@@ -34,6 +37,69 @@ def test_ellipse_distance_takes_one_or_many_ellipses():
     axes = torch.tensor([[8.0, 3.0], [8.0, 6.0]])
     assert ellipse_distance_squared(points, torch.zeros(2), axes).tolist() == [1.25, 1.0]
 
+
+
+def test_one_offset_in_floats_measures_as_the_tensors_do():
+    for dx, dy in [(4.0, 3.0), (-7.3, 1.1), (0.0, -6.0)]:
+        squared = offset_distance_squared(dx, dy, (8.0, 3.0))
+        point = torch.tensor([dx, dy], dtype=torch.float64)
+        tensor = ellipse_distance_squared(point, torch.zeros(2, dtype=torch.float64), (8.0, 3.0))
+        assert squared == float(tensor)
+        assert offset_distance(dx, dy, (8.0, 3.0)) == pytest.approx(math.sqrt(squared), rel=1e-15)
+
+
+def test_smallest_distance_counts_only_the_present_entries():
+    squared = torch.tensor([[[4.0, 0.25], [9.0, 16.0]], [[1.0, 0.0], [2.25, 1.0]]])  # (2, M=2, N=2)
+    present = torch.tensor([[False, True], [True, True]])[:, :, None]
+    assert smallest_distance(squared, present, (1, 2)).tolist() == [3.0, 0.0]
+    assert smallest_distance(squared, None, -1).tolist() == [[0.5, 3.0], [0.0, 1.0]]
+    assert smallest_distance(squared, torch.zeros(2, 2, 1, dtype=torch.bool), (1, 2)).tolist() == [math.inf] * 2
+    assert smallest_distance(squared[:, :0], None, (1, 2)).tolist() == [math.inf] * 2  # no obstacle slot
+
+
+def test_a_stop_goal_rests_behind_the_longest_present_ellipse():
+    axes = torch.tensor([[[9.0, 3.0], [12.0, 4.0]], [[7.0, 3.0], [11.0, 3.0]]])
+    mask = torch.tensor([[True, True], [True, False]])
+    longest, b = longest_semi_axes(axes, mask, (8.0, 3.0))
+    assert longest.tolist() == [[12.0], [8.0]] and b == 3.0  # never shorter than the configured a
+    assert longest_semi_axes(None, mask, (8.0, 3.0)) == (8.0, 3.0)
+
+
+def test_obstacle_semi_axes_by_shape_name():
+    states = torch.tensor([[[0.0, 0.0, 10.0, 3.0], [0.0, 0.0, 0.5, 0.4]]])
+    assert obstacle_semi_axes(states, "fixed", (8.0, 3.3), 13.0) is None
+    axes = obstacle_semi_axes(states, "heading", (8.0, 3.3), 13.0)
+    assert axes[0, 0, 1] > 3.3 and axes[0, 1].tolist() == pytest.approx([8.0, 3.3])  # slow: heading 0
+    with pytest.raises(ValueError, match="`shape` must be one of"):
+        obstacle_semi_axes(states, "rectangle", (8.0, 3.3), 13.0)
+
+
+def test_nearest_obstacles_ignores_far_behind_and_pads():
+    ego = mmpc.ego_state(100.0, 8.0, 0.0, 15.0)
+    vehicles = torch.tensor([[[60.0, 8.0, 10.0, 0.0], [130.0, 8.0, 10.0, 0.0], [105.0, 4.0, 10.0, 0.0]]])
+    states, mask = nearest_obstacles(ego, vehicles, None, 4, (8.0, 3.0), ignore_behind=20.0)
+    assert states.shape == (1, 4, 4) and mask.tolist() == [[True, True, False, False]]
+    assert states[0, 0, 0] == 105.0 and states[0, 1, 0] == 130.0  # nearest first
+
+
+def test_nearest_obstacles_rank_a_closing_car_ahead_by_its_closest_approach():
+    # the high-speed scene (seed 12 with 24 m/s goals): a 7 m/s car 46 m ahead in the ego's lane
+    # (5.75 now at a = 8 m) against a car a lane over just behind (1.83) and one beside two lanes
+    # over (2.67), both falling back
+    ego = mmpc.ego_state(100.0, 20.0, 0.0, 23.5)
+    ahead, behind, beside = [146.0, 20.0, 7.0, 0.0], [90.0, 16.0, 7.5, 0.0], [101.0, 12.0, 9.0, 0.0]
+    vehicles = torch.tensor([[beside, behind, ahead]])
+    now, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0)
+    assert now[0].tolist() == [behind, beside]  # today's distance: the car ahead is left out
+    soon, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0, lookahead=3.0)
+    assert soon[0].tolist() == [ahead, behind]  # met within 2.8 s: first; the others keep their distance now
+    shorter, _ = nearest_obstacles(ego, vehicles, None, 2, (8.0, 3.0), ignore_behind=20.0, lookahead=1.0)
+    assert shorter[0].tolist() == [behind, beside]  # 30 m off after 1 s: still last
+    # a car overtaking fast in the ego's lane from 15 m behind comes before the one beside
+    overtaking = [85.0, 20.0, 35.0, 0.0]
+    states, _ = nearest_obstacles(ego, torch.tensor([[beside, overtaking]]), None, 1, (8.0, 3.0),
+                                  ignore_behind=20.0, lookahead=3.0)
+    assert states[0, 0].tolist() == overtaking
 
 def _scene():
     scene = synthetic_scenes(3, seed=5)[2]

@@ -5,8 +5,8 @@ import pytest
 from mmpc import HighSpeedGoals, NearLaneGoals, Road
 from mmpc.config import from_dict, to_dict
 from mmpc.evaluate import scenario_fingerprint
-from mmpc.footprint import ellipse_coverage, smallest_covering_axis
 from mmpc.mpc import MPCConfig
+from mmpc.obstacles.shape import ellipse_coverage, smallest_covering_axis
 from mmpc.scenario import (
     SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
     build_mpc, load_scenario,

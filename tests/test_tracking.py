@@ -7,7 +7,7 @@ import torch
 
 import mmpc
 from mmpc.config import ConfigError
-from mmpc.problem import predict_constant_velocity
+from mmpc.obstacles.prediction import predict_constant_velocity
 from mmpc.result import Trajectories
 from mmpc.tracking import TrackingConfig, needs_replan, plan_clearance, sample, track
 

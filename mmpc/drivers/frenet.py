@@ -32,8 +32,8 @@ from mmpc.drivers.common import checked_ego, obstacles_for, ranked_decision
 from mmpc.config import require_int, require_positive
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.mpc import MPC
+from mmpc.obstacles.shape import squared_obstacle_distance
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
-from mmpc.ranking import squared_obstacle_distance
 from mmpc.result import Trajectories
 
 

@@ -21,7 +21,7 @@ import torch
 
 from mmpc.collisions import CRASH_COLUMNS, Crash, collider_index, crash_scene, is_ego_fault
 from mmpc.drivers import Decision, Driver, Observation, make_driver
-from mmpc.footprint import ellipse_distance_squared
+from mmpc.obstacles.shape import ellipse_distance_squared, smallest_distance
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.highway.worlds import World, make_world
 from mmpc.metrics import StepRecord, episode_metrics
@@ -57,11 +57,7 @@ def _clearances(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.
                 ellipse: tuple[float, float]) -> torch.Tensor:
     """(A,) smallest normalised ellipse distance from each ego (A, 6) to its vehicles (A, V, 4) (inf without any)."""
     squared = ellipse_distance_squared(vehicles[..., :2], ego[:, None, EGO_X:EGO_Y + 1], ellipse)  # (A, V)
-    if mask is not None:
-        squared = squared.masked_fill(~mask, float("inf"))
-    if squared.shape[1] == 0:
-        return squared.new_full((squared.shape[0],), float("inf"))
-    return squared.amin(dim=1).sqrt()
+    return smallest_distance(squared, mask, 1)
 
 
 #: A car moving across the road faster than this is changing lane [m/s] (:class:`mmpc.verify.TrafficAssumptions`).
@@ -104,7 +100,7 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
         goal_xy = torch.where((goal >= 0)[:, None], chosen, goal_xy)
     road = scenario.road
     speed, lateral = ego[:, EGO_V].double(), ego[:, EGO_Y].double()
-    ellipse = (scenario.optimizer.ellipse_a, scenario.optimizer.ellipse_b)
+    ellipse = scenario.optimizer.ellipse
     columns = zip(
         ego[:, EGO_X].tolist(), ego[:, EGO_Y].tolist(), ego[:, EGO_PSI].tolist(), ego[:, EGO_V].tolist(),
         ego[:, EGO_A].tolist(), ego[:, EGO_PSIDOT].tolist(), road.lane_index(ego[:, EGO_Y]).tolist(),
