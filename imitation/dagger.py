@@ -58,7 +58,7 @@ import torch
 
 from mmpc.config import from_dict, require_int, to_dict
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.highway.worlds import stack_observations
+from mmpc.highway.highway_env_world import stack_observations
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import atomic_write, atomic_write_text
