@@ -128,7 +128,7 @@ def mpc_rows(scenario_name: str, envs: Sequence[int], steps: int, schedules: Seq
         for k, driver in drivers.items():
             scenario = scenarios[k]
             measured = {}
-            for name, build in (("highway-env", HighwayEnvWorld), ("batched", BatchedWorld)):
+            for name, build in (("highway-env", HighwayEnvWorld.start), ("batched", BatchedWorld.start)):
                 world = build(scenario, seeds)
                 try:
                     measured[name] = _closed_loop(world, driver, num_envs, steps)
