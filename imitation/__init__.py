@@ -9,7 +9,8 @@
 - :mod:`mmpc.imitation.policy`: the MLP policy, its checkpoint and the ``bc:PATH`` driver.
 - :mod:`mmpc.imitation.bc` / :mod:`mmpc.imitation.dagger`: behaviour cloning and DAgger (a
   beta-mixture of expert and learner drives, the MPC labels the learner's states in large
-  optimizer batches).
+  optimizer batches); :mod:`mmpc.imitation.dagger_rounds`: the rounds it shares with the mode
+  proposer's DAgger (:mod:`mmpc.imitation.proposer_dagger`).
 - :mod:`mmpc.imitation.compare` / :mod:`mmpc.imitation.bench`: closed-loop table and inference cost.
 - :mod:`mmpc.imitation.export`: the policy as a stable-baselines3 policy (PPO can start from it).
 

@@ -58,11 +58,12 @@ import torch
 
 from mmpc.config import from_dict, require_int, to_dict
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.highway.worlds import stack_observations
+from mmpc.highway.highway_env_world import stack_observations
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import atomic_write, atomic_write_text
 from mmpc.imitation.bc import TrainConfig, hyperparameters_text, train_policy
+from mmpc.imitation.dagger_rounds import best_of, beta_of, run_rounds
 from mmpc.imitation.dataset import Transitions
 from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.policy import PolicyConfig, PolicyDriver, load_policy, save_policy
@@ -144,8 +145,8 @@ class DaggerConfig:
             raise ValueError(f"`duration` must be null or a finite number > 0 s; got {self.duration}")
 
     def beta_of(self, round_index: int) -> float:
-        """beta_i of round i >= 1 (the expert's share of the driving)."""
-        return self.beta * self.beta_decay ** (round_index - 1)
+        """beta_i of round i >= 1 (the expert's share of the driving; :func:`mmpc.imitation.dagger_rounds.beta_of`)."""
+        return beta_of(self.beta, self.beta_decay, round_index)
 
 
 def _rows(observation: Observation, rows: torch.Tensor) -> Observation:
@@ -296,10 +297,7 @@ def _rollout_stats(rollouts: Sequence[Rollout]) -> dict:
 def best_round(rounds: Sequence[dict]) -> int:
     """The round whose policy had the fewest check collisions (ties: the later round); the last
     round when the rounds carry no check."""
-    checked = [entry for entry in rounds if "check_collisions" in entry]
-    if not checked:
-        return rounds[-1]["round"]
-    return min(checked, key=lambda entry: (entry["check_collisions"], -entry["round"]))["round"]
+    return best_of(rounds, lambda e: (e["check_collisions"], -e["round"]) if "check_collisions" in e else None)
 
 
 def _transitions(rollouts: Sequence[Rollout], actions: Sequence[np.ndarray], first_id: int) -> Transitions:
@@ -427,7 +425,10 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, datas
     with SummaryWriter(str(out / "tb")) as writer, torch.inference_mode(False):
         if not rounds:
             writer.add_text("hyperparameters", hyperparameters_text(config))
-        for round_index in range(len(rounds), config.iterations + 1):
+
+        def play(round_index: int) -> dict:
+            """One round: drive (round 0: the expert or the dataset), label, train, check; the round's files."""
+            nonlocal data, policy
             if round_index == 0 and dataset_dir is not None:
                 from mmpc.imitation.dataset import dataset_road, dataset_transitions, open_dataset
 
@@ -485,11 +486,13 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, datas
             writer.add_scalar("dagger/val_loss", entry["val_loss"], round_index)
             save_policy(out / f"round_{round_index}" / "policy.pt", policy, scenario=scenario.name, info={"round": round_index})
             atomic_write(out / "data.npz", lambda handle: np.savez_compressed(handle, **data._asdict()))
-            rounds.append(entry)
+            return entry
+
+        def record(rounds: list[dict]) -> None:
             atomic_write_text(out / "dagger.json", json.dumps(_report(identity, config, rounds), indent=2) + "\n")
-            logger.info("DAgger round %d: %s", round_index, entry)
-            if on_round is not None:
-                on_round(entry)
+            logger.info("DAgger round %d: %s", rounds[-1]["round"], rounds[-1])
+
+        run_rounds(rounds, config.iterations, play, record, on_round)
     report = _report(identity, config, rounds)
     best = report["best_round"]
     chosen = next(entry for entry in rounds if entry["round"] == best)

@@ -33,6 +33,7 @@ import numpy as np
 from mmpc.config import require_int, to_dict
 from mmpc.files import atomic_write_text
 from mmpc.highway import run_lockstep
+from mmpc.imitation.dagger_rounds import best_of, beta_of, run_rounds
 from mmpc.imitation.features import scene_geometry
 from mmpc.imitation.labels import label_episodes, read_labels
 from mmpc.imitation.listwise import ProposerTrainConfig, RankingLabels, train_proposer
@@ -92,8 +93,9 @@ class ProposerDaggerConfig:
                              f"{labelled.start}-{labelled.stop - 1}: the check must be held out")
 
     def beta_of(self, round_index: int) -> float:
-        """The expert's share of the driving in round ``round_index`` (1 in round 0)."""
-        return 1.0 if round_index == 0 else self.beta * self.beta_decay ** (round_index - 1)
+        """The expert's share of the driving in round ``round_index`` (1 in round 0;
+        :func:`mmpc.imitation.dagger_rounds.beta_of`)."""
+        return beta_of(self.beta, self.beta_decay, round_index)
 
     def seeds_of(self, round_index: int) -> list[int]:
         first = self.seed_start + round_index * self.episodes
@@ -111,10 +113,9 @@ def check_drive(scenario: ScenarioConfig, driver, seeds: list[int], lockstep: in
 
 
 def _best_round(rounds: list[dict]) -> int:
-    checked = [entry for entry in rounds if "check" in entry]
-    if not checked:
-        return rounds[-1]["round"]
-    return min(checked, key=lambda e: (e["check"]["collisions"], e["check"]["meta_cost_mean"]))["round"]
+    """The round whose proposer had the fewest check collisions, then the lowest check meta cost
+    (ties: the earlier round); the last round when the rounds carry no check."""
+    return best_of(rounds, lambda e: (e["check"]["collisions"], e["check"]["meta_cost_mean"]) if "check" in e else None)
 
 
 def _identity(scenario: ScenarioConfig, config: ProposerDaggerConfig) -> dict:
@@ -183,7 +184,9 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: ProposerDaggerConfi
     labels = read_labels([out / "labels" / f"round_{i}" for i in range(len(rounds))]) if resumed else None
     writer = SummaryWriter(str(out / "tb"))
     try:
-        for index in range(len(rounds), config.rounds + 1):
+        def play(index: int) -> dict:
+            """One round: drive and label (the proposer of the round before in the loop), train, check."""
+            nonlocal labels, expert_check
             proposer: Optional[ModeProposer] = load_proposer(out / f"round_{index - 1}" / "proposer.pt") if index else None
             beta = config.beta_of(index)
             report = label_episodes(
@@ -218,13 +221,15 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: ProposerDaggerConfi
                 writer.add_scalar("check/meta_cost_mean", entry["check"]["meta_cost_mean"], labels.num_states)
             writer.add_scalar("labels/top_k_agreement", entry["top_k_agreement"], labels.num_states)
             writer.flush()
-            rounds.append(entry)
+            return entry
+
+        def record(rounds: list[dict]) -> None:
             best = _best_round(rounds)
             shutil.copyfile(out / f"round_{best}" / "proposer.pt", out / "proposer.pt")
             atomic_write_text(out / REPORT, json.dumps({"identity": identity, "rounds": rounds, "best_round": best},
                                                        indent=2) + "\n")
-            if on_round is not None:
-                on_round(entry)
+
+        run_rounds(rounds, config.rounds, play, record, on_round)
     finally:
         writer.close()
     return json.loads((out / REPORT).read_text())

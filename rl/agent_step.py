@@ -7,19 +7,20 @@ each frame the safety layer executes it for the environments still running, in O
 - :class:`AgentStep` is that state: the commands, the plan decided at the decision, the plans
   held from frame to frame. The safe-agent driver (:class:`mmpc.rl.driver.SafeAgentDriver`) steps
   it one frame per runner call.
-- :func:`run_agent_step` runs a whole step in a :class:`StepWorld` (highway-env's episodes in
-  :mod:`mmpc.rl.envs`, the batched simulator in :mod:`mmpc.rl.sim_vec_env`) and tallies what the
-  environments' ``info`` reports (:class:`StepTally`).
+- :func:`run_agent_step` runs a whole step in a :class:`mmpc.highway.worlds.World` (highway-env's
+  episodes in :mod:`mmpc.rl.envs`, the batched simulator in :mod:`mmpc.rl.sim_vec_env`) and tallies
+  what the environments' ``info`` reports (:class:`StepTally`).
 """
 
 from __future__ import annotations
 
-from typing import Optional, Protocol
+from typing import Callable, Optional
 
 import numpy as np
 import torch
 
 from mmpc.drivers import Observation
+from mmpc.highway.worlds import World
 from mmpc.rl.safety import DecisionSolve, FrameControl, HeldPlan, SafePlan, SafetyLayer
 
 
@@ -102,25 +103,6 @@ class AgentStep:
         return control
 
 
-class StepWorld(Protocol):
-    """E environments an agent step runs in (rows index them, on the safety layer's device)."""
-
-    def running(self) -> torch.Tensor:
-        """(E,) bool, the environments whose episode goes on."""
-
-    def observe(self, rows: torch.Tensor) -> Observation:
-        """The road-frame state of the environments ``rows``."""
-
-    def apply(self, rows: torch.Tensor, acceleration: torch.Tensor, steering: torch.Tensor) -> None:
-        """Apply one command per row of ``rows`` and advance the world one frame."""
-
-    def rewards(self, rows: torch.Tensor) -> torch.Tensor:
-        """(R,) float64 rewards of the current states of ``rows`` (:class:`mmpc.rl.config.RewardConfig`)."""
-
-    def speeds(self, rows: torch.Tensor) -> torch.Tensor:
-        """(R,) the egos' speeds [m/s]."""
-
-
 class StepTally:
     """What E environments' agent step adds up, on one device: the reward, less the intervention
     penalty per overridden frame, and the counts and last values ``info`` reports."""
@@ -177,15 +159,17 @@ class StepTally:
         return reals[:, 0].copy(), infos
 
 
-def run_agent_step(step: AgentStep, world: StepWorld, tally: StepTally) -> None:
-    """Run ``step`` to its end in ``world``: at every frame ONE layer call for the environments
-    still running, their commands applied, the frame tallied. Stops early when every episode ended."""
+def run_agent_step(step: AgentStep, world: World, tally: StepTally, rewards: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    """Run ``step`` to its end in ``world`` (observing without Kinematics rows, on the safety
+    layer's device and dtype): at every frame ONE layer call for the environments still running,
+    their commands applied, the frame tallied with ``rewards(rows)``, the (R,) float64 rewards of
+    the states ``rows`` reached (:class:`mmpc.rl.config.RewardConfig`). Stops early when every episode ended."""
     while not step.over:
-        rows = world.running().nonzero()[:, 0]
+        rows = (~world.done()).nonzero()[:, 0]
         if rows.numel() == 0:
             return
-        control = step.frame(world.observe(rows), rows)
+        control = step.frame(world.observe(rows)[0], rows)
         if step.frame_solved:
             tally.solve_ms.append(control.solve_ms)
         world.apply(rows, control.acceleration, control.steering)
-        tally.add(rows, control, world.rewards(rows), world.speeds(rows))
+        tally.add(rows, control, rewards(rows), world.speeds(rows))

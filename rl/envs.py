@@ -32,9 +32,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from mmpc.highway.worlds import stack_observations
-from mmpc.drivers import Observation
-from mmpc.highway import HighwayEpisode, road_state
+from mmpc.highway import HighwayEpisode
+from mmpc.highway.highway_env_world import HighwayEnvWorld
 from mmpc.config import from_dict
 from mmpc.rl.config import RL_SCENARIO, RewardConfig, SafeEnvConfig
 from mmpc.highway.kinematics import DeferredKinematics
@@ -266,11 +265,6 @@ class SafeHighwayEnv(gym.Env):
         return observation_vectors(self._kinematics.compute()[None], None if features is None else features[None],
                                    self.config)[0]
 
-    def road_state(self) -> Observation:
-        """The current road-frame state for the safety layer (E = 1, no kinematics)."""
-        state = road_state(self.episode.unwrapped, self.episode.frame, dtype=self.layer.mpc.optimizer.dtype)
-        return Observation(state.ego, state.vehicles)
-
     def check_action(self, action: Any) -> Any:
         """``action`` checked against the action space (:func:`check_action`)."""
         return check_action(action, self.config, self.continuous)
@@ -281,8 +275,16 @@ class SafeHighwayEnv(gym.Env):
         if not envs[0].config.solver_features:
             return [None] * len(envs), 0.0
         layer = envs[0].layer
-        solve = layer.decision_solve(stack_observations([env.road_state() for env in envs], range(len(envs))))
+        solve = layer.decision_solve(episodes_world(envs).observe(range(len(envs)))[0])
         return list(layer.features(solve)), solve.scored.solve_ms
+
+
+def episodes_world(envs: Sequence[SafeHighwayEnv]) -> HighwayEnvWorld:
+    """The current episodes of environments that share one safety layer, as one world observed for
+    the layer (its dtype and device, no Kinematics rows)."""
+    layer = envs[0].layer
+    return HighwayEnvWorld([env.episode for env in envs], dtype=layer.mpc.optimizer.dtype, kinematics=False,
+                           device=layer.device)
 
 
 def refuse_verify(config: SafeEnvConfig) -> None:
@@ -348,7 +350,8 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
             raise RuntimeError(f"environment {index}'s episode is over: call reset()")
     count = len(envs)
     config = envs[0].config
-    observation = stack_observations([env.road_state() for env in envs], range(count))
+    world = episodes_world(envs)
+    observation = world.observe(range(count))[0]
     solve = None
     if config.replan == "decision" and not envs[0].continuous:  # the grid solve the observation's features came from
         solve = layer.decision_solve(observation)
@@ -357,7 +360,8 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
     tally = StepTally(count, layer.device, config.intervention_penalty)
     if solve is not None:
         tally.solve_ms.append(solve.scored.solve_ms)
-    run_agent_step(step, _EpisodesStepWorld(envs, layer.device), tally)
+    run_agent_step(step, world, tally,
+                   lambda rows: frame_rewards([world.episodes[i] for i in rows.tolist()], envs[0].reward_config).to(layer.device))
     features, features_ms = SafeHighwayEnv._features(envs)
     if config.solver_features:
         tally.solve_ms.append(features_ms)
@@ -366,30 +370,3 @@ def advance(envs: Sequence[SafeHighwayEnv], actions: Sequence[Any]) -> list[Step
     rewards, infos = tally.infos(step.commands, speed, crashed, WallTime(float(np.mean(tally.solve_ms)) if tally.solve_ms else 0.0))
     return [StepOutcome(env.observation(features[i]), float(rewards[i]), info["crashed"], not info["crashed"] and env.episode.done, info)
             for i, (env, info) in enumerate(zip(envs, infos))]
-
-
-class _EpisodesStepWorld:
-    """highway-env episodes advanced together as the world of an agent step
-    (:class:`mmpc.rl.agent_step.StepWorld`); each steps on its own, from host copies of the commands."""
-
-    def __init__(self, envs: Sequence[SafeHighwayEnv], device: torch.device) -> None:
-        self.envs = envs
-        self.device = device
-
-    def running(self) -> torch.Tensor:
-        return torch.tensor([not env.episode.done for env in self.envs], device=self.device)
-
-    def observe(self, rows: torch.Tensor) -> Observation:
-        active = rows.tolist()
-        return stack_observations([self.envs[i].road_state() for i in active], active)
-
-    def apply(self, rows: torch.Tensor, acceleration: torch.Tensor, steering: torch.Tensor) -> None:
-        for i, a, s in zip(rows.tolist(), acceleration.tolist(), steering.tolist()):
-            self.envs[i].episode.apply(a, s)
-
-    def rewards(self, rows: torch.Tensor) -> torch.Tensor:
-        return frame_rewards([self.envs[i].episode for i in rows.tolist()], self.envs[0].reward_config).to(self.device)
-
-    def speeds(self, rows: torch.Tensor) -> torch.Tensor:
-        return torch.tensor([float(self.envs[i].episode.ego.speed) for i in rows.tolist()], dtype=torch.float64,
-                            device=self.device)

@@ -25,7 +25,7 @@ from gymnasium.vector.utils import batch_space
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, VecEnvStepReturn
 
 from mmpc.config import require_int
-from mmpc.drivers import Observation
+from mmpc.highway.batched_world import BatchedWorld
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.agent_step import AgentStep, StepTally, run_agent_step
 from mmpc.rl.envs import WallTime, action_space, action_tensor, check_action, observation_space, observation_vectors
@@ -95,15 +95,16 @@ class SafeSimBatch:
         self.dtype = self.layer.mpc.optimizer.dtype
         self.device = self.layer.device
         self.rng = np.random.default_rng(seed)
-        self.sim: Optional[SimEpisodes] = None
+        self.world: Optional[BatchedWorld] = None
         self._decision: Optional[DecisionSolve] = None
 
     def _seeds(self, seeds: Sequence[Optional[int]]) -> list[int]:
         return [int(s) if s is not None else int(self.rng.integers(SEED_RANGE)) for s in seeds]
 
-    def _road_observation(self, rows: torch.Tensor) -> Observation:
-        ego, vehicles, mask = self.sim.road_state()
-        return Observation(ego[rows].to(self.dtype), vehicles[rows].to(self.dtype), mask[rows], None, rows)
+    @property
+    def sim(self) -> Optional[SimEpisodes]:
+        """The simulator's episodes (``None`` before :meth:`reset`)."""
+        return None if self.world is None else self.world.sim
 
     @property
     def _decides_from_features_solve(self) -> bool:
@@ -116,7 +117,7 @@ class SafeSimBatch:
         the last states of episodes that ended (their solve is not a decision's, :meth:`SafetyLayer.decision_solve`)."""
         solve = None
         if self.config.solver_features or self._decides_from_features_solve:
-            solve = self.layer.decision_solve(self._road_observation(rows), warm=not last)
+            solve = self.layer.decision_solve(self.world.observe(rows)[0], warm=not last)
         features = self.layer.features(solve) if self.config.solver_features else None
         kinematics = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=self.config.kinematics_vehicles,
                                             check=False)
@@ -136,7 +137,8 @@ class SafeSimBatch:
         if len(seeds) != self.num_envs:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
         episode_seeds = self._seeds(seeds)
-        self.sim = SimEpisodes(self.scenario, episode_seeds, device=self.device)
+        self.world = BatchedWorld(SimEpisodes(self.scenario, episode_seeds, device=self.device), dtype=self.dtype,
+                                  kinematics=False)
         self.layer.forget()
         observations, self._decision = self._observations(torch.arange(self.num_envs, device=self.device))
         solve_ms = WallTime(self._decision.scored.solve_ms if self._decision is not None else 0.0)
@@ -165,11 +167,12 @@ class SafeSimBatch:
         if bool(self.sim.done.any()):
             raise RuntimeError(f"environments {self.sim.done.nonzero()[:, 0].tolist()} are over: reset them first")
         everyone = torch.arange(self.num_envs, device=self.device)
-        step = AgentStep.begin(self.layer, self._road_observation(everyone), action_tensor(checked, self.continuous),
+        step = AgentStep.begin(self.layer, self.world.observe(everyone)[0], action_tensor(checked, self.continuous),
                                continuous=self.continuous, period=1.0 / self.scenario.frequency,
                                solve=self._decision if self._decides_from_features_solve else None)
         tally = StepTally(self.num_envs, self.device, self.config.intervention_penalty)
-        run_agent_step(step, _SimStepWorld(self), tally)  # the decision's solve was timed at the end of the step before
+        # the decision's solve was timed at the end of the step before
+        run_agent_step(step, self.world, tally, lambda rows: self._frame_rewards()[rows])
         solve_ms = tally.solve_ms
         ended_crashed, speed = self.sim.crashed.clone(), self.sim.state.speed[:, 0].clone()  # before the resets
         truncated = (self.sim.done & ~ended_crashed).cpu().numpy()
@@ -182,7 +185,7 @@ class SafeSimBatch:
             if last_solve is not None:
                 solve_ms.append(last_solve.scored.solve_ms)
             episode_seeds = self._seeds([None] * finished.numel())
-            self.sim.reset(finished, episode_seeds)
+            self.world.restart(finished, episode_seeds)
             self.layer.forget(finished)
             reset_infos = {row: {"episode_seed": seed} for row, seed in zip(finished.tolist(), episode_seeds)}
         observations, self._decision = self._observations(everyone)
@@ -194,33 +197,6 @@ class SafeSimBatch:
                                      WallTime(float(np.mean(solve_ms)) if solve_ms else 0.0))
         crashed = np.array([info["crashed"] for info in infos], dtype=np.bool_)
         return BatchStep(observations, rewards, crashed, truncated, infos, final, reset_infos)
-
-
-class _SimStepWorld:
-    """A :class:`SafeSimBatch`'s simulator as the world of its agent steps (:class:`mmpc.rl.agent_step.StepWorld`)."""
-
-    def __init__(self, batch: SafeSimBatch) -> None:
-        self.batch = batch
-        self.sim = batch.sim
-
-    def running(self) -> torch.Tensor:
-        return ~self.sim.done
-
-    def observe(self, rows: torch.Tensor) -> Observation:
-        return self.batch._road_observation(rows)
-
-    def apply(self, rows: torch.Tensor, acceleration: torch.Tensor, steering: torch.Tensor) -> None:
-        running = torch.zeros(self.sim.num_envs, dtype=torch.bool, device=rows.device)
-        running[rows] = True
-        command = torch.zeros(self.sim.num_envs, 2, dtype=self.sim.state.x.dtype, device=rows.device)
-        command[rows] = torch.stack([acceleration, steering], dim=1).to(command.dtype)
-        self.sim.step(command, running)
-
-    def rewards(self, rows: torch.Tensor) -> torch.Tensor:
-        return self.batch._frame_rewards()[rows]
-
-    def speeds(self, rows: torch.Tensor) -> torch.Tensor:
-        return self.sim.state.speed[rows, 0].double()
 
 
 class TensorVecEnv(VecEnv):

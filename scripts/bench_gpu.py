@@ -134,7 +134,7 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
     """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as
     bench_sim; ``profiled``: and :func:`device_profile` of 3 more steps)."""
     from mmpc.drivers.mpc_driver import MPCDriver
-    from mmpc.highway.worlds import BatchedWorld
+    from mmpc.highway.batched_world import BatchedWorld
 
     rows = []
     for compiled in compile_modes:
@@ -142,9 +142,9 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
         for num_envs in envs:
             row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "num_envs": num_envs}
             try:
-                world = BatchedWorld(scenario, list(range(num_envs)), device=device)
+                world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
                 _closed_loop(world, driver, num_envs, 1)  # compiles (and on CUDA captures) this E
-                world = BatchedWorld(scenario, list(range(num_envs)), device=device)
+                world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
                 step_s, solve_s, iterations = _closed_loop(world, driver, num_envs, steps)
                 row.update(step_ms=step_s * 1e3, solve_share=solve_s / step_s, env_steps_per_s=num_envs / step_s,
                            iterations_per_step=iterations)

@@ -63,9 +63,9 @@ def _world_steps_per_second(world, num_envs: int, steps: int) -> float:
 
 def world_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, highway_envs: int) -> list[dict]:
     """Table 1: the batched world per E, and highway-env's per-environment rate."""
-    from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld
+    from mmpc.highway import BatchedWorld, HighwayEnvWorld
 
-    highway = HighwayEnvWorld(scenario, list(range(highway_envs)))
+    highway = HighwayEnvWorld.start(scenario, list(range(highway_envs)))
     try:
         reference = _world_steps_per_second(highway, highway_envs, steps)
     finally:
@@ -73,7 +73,7 @@ def world_rows(scenario: ScenarioConfig, envs: Sequence[int], steps: int, highwa
     rows = [{"table": "world", "world": "highway-env", "num_envs": highway_envs, "env_steps_per_s": reference,
              "speedup": 1.0}]
     for num_envs in envs:
-        rate = _world_steps_per_second(BatchedWorld(scenario, list(range(num_envs))), num_envs, steps)
+        rate = _world_steps_per_second(BatchedWorld.start(scenario, list(range(num_envs))), num_envs, steps)
         rows.append({"table": "world", "world": "batched", "num_envs": num_envs, "env_steps_per_s": rate,
                      "speedup": rate / reference})
     return rows
@@ -89,7 +89,7 @@ def _closed_loop(world, driver, num_envs: int, steps: int) -> tuple[float, float
     total = solve = 0.0
     iterations: list[float] = []
     for step in range(steps + 1):
-        ended = world.done()
+        ended = world.done().tolist()
         running = [i for i in active if not ended[i]]
         if not running:
             break
@@ -118,7 +118,7 @@ def mpc_rows(scenario_name: str, envs: Sequence[int], steps: int, schedules: Seq
     """Table 2: both worlds with the MPC in the loop at each E (same driver, same seeds), for each
     of ``schedules`` (:data:`SCHEDULES`) of the scenario ``scenario_name``."""
     from mmpc.drivers import make_driver
-    from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld
+    from mmpc.highway import BatchedWorld, HighwayEnvWorld
 
     scenarios = {name: load_scenario(scenario_name, {"sim": "batched", **SCHEDULES[name]}) for name in schedules}
     drivers = {name: make_driver("mpc", scenario) for name, scenario in scenarios.items()}
@@ -128,7 +128,7 @@ def mpc_rows(scenario_name: str, envs: Sequence[int], steps: int, schedules: Seq
         for k, driver in drivers.items():
             scenario = scenarios[k]
             measured = {}
-            for name, build in (("highway-env", HighwayEnvWorld), ("batched", BatchedWorld)):
+            for name, build in (("highway-env", HighwayEnvWorld.start), ("batched", BatchedWorld.start)):
                 world = build(scenario, seeds)
                 try:
                     measured[name] = _closed_loop(world, driver, num_envs, steps)
@@ -214,12 +214,12 @@ def _rss_bytes(field: str) -> int:
 def memory_probe(scenario_name: str, num_envs: int, steps: int) -> dict:
     """Step ``num_envs`` environments in this process (after a warm-up with one): the state's
     bytes, the resident memory before building them and the peak while stepping them."""
-    from mmpc.highway.worlds import BatchedWorld
+    from mmpc.highway.batched_world import BatchedWorld
 
     scenario = load_scenario(scenario_name, {"sim": "batched"})
 
     def run(count: int) -> BatchedWorld:
-        world = BatchedWorld(scenario, list(range(count)))
+        world = BatchedWorld.start(scenario, list(range(count)))
         for _ in range(steps):
             world.observe(list(range(count)))
             world.apply(list(range(count)), torch.zeros(count), torch.zeros(count))

@@ -188,8 +188,8 @@ def test_both_worlds_read_the_same_meeting_at_the_impact(part):
     cruise = load_scenario("cruise")
     scripted = dataclasses.replace(cruise, ego=EgoConfig(speed=ego_speed, lane=2), traffic=ScriptedTraffic(
         (ScriptedVehicle(lane=2, x=along, speed=other_speed, constant_speed=True),)))
-    highway = HighwayEnvWorld(scripted, [0])
-    batched = BatchedWorld(dataclasses.replace(cruise, sim="batched"), [0])
+    highway = HighwayEnvWorld.start(scripted, [0])
+    batched = BatchedWorld.start(dataclasses.replace(cruise, sim="batched"), [0])
     batched.sim.state = vehicle_state(torch.tensor([[0.0, along]]), torch.tensor([[8.0, 8.0]]),
                                       speed=torch.tensor([[ego_speed, other_speed]]))
     try:

@@ -13,7 +13,7 @@ import torch
 
 from mmpc.cli.arguments import seed_list
 from mmpc.cli.main import main
-from mmpc.highway.runner import _traffic_near, run_episode, write_outputs
+from mmpc.highway.runner import traffic_near, run_episode, write_outputs
 from mmpc.evaluate import format_table, read_episodes, summarize
 from mmpc.metrics import StepRecord, episode_metrics, lane_change_durations
 from mmpc.scenario import ScenarioConfig, load_scenario
@@ -62,9 +62,9 @@ def test_the_statistics_that_lead_to_crashes_come_from_the_traffic_around_the_eg
                               [20.0, 20.0, 5.0, 3.0],  # changing lane three lanes over
                               [0.0, 0.0, 0.0, 0.0]]])  # absent
     mask = torch.tensor([[True] * 4, [True, True, True, False]])
-    ttc, changing = _traffic_near(ego, vehicles, mask, load_scenario("high_speed"))
+    ttc, changing = traffic_near(ego, vehicles, mask, load_scenario("high_speed"))
     assert ttc.tolist() == [2.0, 0.0] and changing.tolist() == [2, 0]
-    _, alone = _traffic_near(ego[:1], vehicles[:1, :0], None, load_scenario("high_speed"))
+    _, alone = traffic_near(ego[:1], vehicles[:1, :0], None, load_scenario("high_speed"))
     assert alone.tolist() == [0]
     records = [record(0)._replace(ttc=3.0, lane_changes_near=1), record(1)._replace(ttc=1.5, lane_changes_near=2),
                record(2)]

@@ -15,7 +15,7 @@ import torch
 
 from mmpc.config import load_config
 from mmpc.highway.runner import run_episode
-from mmpc.highway.worlds import BatchedWorld
+from mmpc.highway.batched_world import BatchedWorld
 from mmpc.rl.config import RLConfig, SafeEnvConfig
 from mmpc.rl.driver import SafeAgentDriver
 from mmpc.rl.safety import observation_rows
@@ -64,7 +64,7 @@ def count_solves(driver: SafeAgentDriver) -> list[int]:
 def test_frame_mode_plans_the_held_goal_afresh_at_every_frame(smoke):
     driver = make_driver(smoke, "frame")
     layer = driver.layer
-    world = BatchedWorld(smoke.scenario, SEEDS)
+    world = BatchedWorld.start(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
     active = list(range(len(SEEDS)))
     frames = smoke.env.decision_frames
@@ -87,7 +87,7 @@ def test_decision_mode_solves_once_at_the_decision_and_tracks_the_plan_between(s
     layer = driver.layer
     calls = count_solves(driver)
     period = 1.0 / smoke.scenario.frequency
-    world = BatchedWorld(smoke.scenario, SEEDS)
+    world = BatchedWorld.start(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
     active = list(range(len(SEEDS)))
     tracked_frames = 0
@@ -121,7 +121,7 @@ def test_rows_leaving_the_batch_keep_the_others_held_plans(smoke):
     driver = make_driver(smoke, "decision", actions)
     layer = driver.layer
     period = 1.0 / smoke.scenario.frequency
-    world = BatchedWorld(smoke.scenario, seeds)
+    world = BatchedWorld.start(smoke.scenario, seeds)
     driver.reset(len(seeds))
     active = list(range(len(seeds)))
     for frame in range(smoke.env.decision_frames):
@@ -152,7 +152,7 @@ def test_the_driver_drives_two_agent_steps_as_the_training_environment(replan, c
     driver = make_driver(smoke, replan, actions, continuous)
     batch = SafeSimBatch(len(SEEDS), smoke.scenario, driver.config, smoke.reward, continuous=continuous)
     batch.reset(SEEDS)
-    world = BatchedWorld(smoke.scenario, SEEDS)
+    world = BatchedWorld.start(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
     active = list(range(len(SEEDS)))
     interventions = [0] * len(SEEDS)
@@ -184,7 +184,7 @@ def test_the_runner_records_a_decision_mode_episode(smoke):
 def test_a_row_joining_mid_step_is_decided_while_the_others_track(smoke):
     driver = make_driver(smoke, "decision", [3, 0, 5])
     layer = driver.layer
-    world = BatchedWorld(smoke.scenario, SEEDS)
+    world = BatchedWorld.start(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
     observation, _ = world.observe([0, 1])
     first = driver.decide(observation)

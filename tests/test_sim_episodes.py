@@ -16,7 +16,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from mmpc.config import to_dict
 from mmpc.evaluate.store import scenario_fingerprint
 from mmpc.highway import HighwayEpisode, run_lockstep
-from mmpc.highway.worlds import BatchedWorld, make_world
+from mmpc.highway.batched_world import BatchedWorld
+from mmpc.highway.worlds import make_world
 from mmpc.scenario import IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle, load_scenario
 from mmpc.sim import SimConfig, SimEpisodes, kinematics_observation, lane_keeping_steering, pair_collisions, vehicle_state
 from mmpc.sim.random import integers, uniform
@@ -150,7 +151,7 @@ def test_a_step_reads_two_values_on_the_host():
 
 
 def test_a_batched_world_observes_without_reading_values_on_the_host():
-    world = BatchedWorld(CRUISE, [0, 1, 2])
+    world = BatchedWorld.start(CRUISE, [0, 1, 2])
     world.apply([0, 1, 2], torch.tensor([1.0, 0.0, -1.0]), torch.zeros(3))
     with ValueReads() as reads:
         batch, _ = world.observe([0, 1, 2])
@@ -160,7 +161,7 @@ def test_a_batched_world_observes_without_reading_values_on_the_host():
 
 
 def test_a_batched_world_s_single_rows_are_the_batch_s_rows_on_the_host():
-    world = BatchedWorld(CRUISE, [0, 1, 2])
+    world = BatchedWorld.start(CRUISE, [0, 1, 2])
     world.apply([0, 1, 2], torch.tensor([1.0, 0.0, -1.0]), torch.zeros(3))
     batch, rows = world.observe([2, 0])
     assert len(rows) == 2

@@ -3,8 +3,9 @@ highway-env or pygame.
 
 :mod:`~mmpc.highway.episode` turns a scenario into a highway-env episode seen in the road frame;
 :mod:`~mmpc.highway.traffic` drives the other vehicles (IDM/MOBIL, scripted, NGSIM replay);
-:mod:`~mmpc.highway.worlds` holds the environments of a run: highway-env episodes, or the batched
-simulator (:mod:`mmpc.sim`) when the scenario says ``sim: batched``;
+:mod:`~mmpc.highway.worlds` is the protocol of the environments of a run (the episode runner's and
+the safe RL agent step's): highway-env episodes (:mod:`~mmpc.highway.highway_env_world`), or the
+batched simulator (:mod:`~mmpc.highway.batched_world`, :mod:`mmpc.sim`) when the scenario says ``sim: batched``;
 :mod:`~mmpc.highway.runner` is the one episode loop (lockstep, with observers);
 :mod:`~mmpc.highway.video` draws the driver's candidates into the rendered frames.
 """
@@ -28,7 +29,9 @@ from mmpc.highway.runner import (
     run_lockstep,
     write_outputs,
 )
-from mmpc.highway.worlds import BatchedWorld, HighwayEnvWorld, World, make_world, stack_observations
+from mmpc.highway.batched_world import BatchedWorld
+from mmpc.highway.highway_env_world import HighwayEnvWorld, stack_observations
+from mmpc.highway.worlds import World, make_world
 
 __all__ = [
     "ACCELERATION_RANGE", "STEERING_RANGE", "EpisodeResult", "HighwayEpisode", "Observer", "RoadFrame", "RoadState",

@@ -197,10 +197,10 @@ class HighwayEpisode:
         """highway-env's ``Kinematics`` observation of the current state, (rows, features) float32."""
         return np.asarray(self.unwrapped.observation_type.observe(), dtype=np.float32)
 
-    def observe(self, dtype: torch.dtype = torch.float32) -> Observation:
-        """The current state for a driver (E = 1)."""
+    def observe(self, dtype: torch.dtype = torch.float32, *, kinematics: bool = True) -> Observation:
+        """The current state for a driver (E = 1), with highway-env's ``Kinematics`` rows unless ``kinematics`` is off."""
         state = road_state(self.unwrapped, self.frame, dtype=dtype)
-        return Observation(state.ego, state.vehicles, None, self.kinematics()[None])
+        return Observation(state.ego, state.vehicles, None, self.kinematics()[None] if kinematics else None)
 
     def observe_impact(self) -> Observation:
         """The current state with the last frame's collision pushes taken back (E = 1, no

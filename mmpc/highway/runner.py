@@ -66,7 +66,7 @@ CHANGING_SPEED = 0.5
 NEAR_ALONG = 30.0
 
 
-def _traffic_near(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], scenario: ScenarioConfig
+def traffic_near(ego: torch.Tensor, vehicles: torch.Tensor, mask: Optional[torch.Tensor], scenario: ScenarioConfig
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """For each ego (A, 6) among its vehicles (A, V, 4): (A,) the time to collision with the nearest
     car ahead whose body overlaps the ego's across the road (0 where they touch, inf where none
@@ -111,7 +111,7 @@ def _step_records(steps: Sequence[int], episodes: Sequence, observation: Observa
         _clearances(ego, observation.vehicles, observation.vehicle_mask, ellipse).tolist(),
         [None] * rows if decision.verified is None else decision.verified.tolist(),
         [False] * rows if decision.failsafe is None else decision.failsafe.tolist(),
-        *(column.tolist() for column in _traffic_near(ego, observation.vehicles, observation.vehicle_mask, scenario)),
+        *(column.tolist() for column in traffic_near(ego, observation.vehicles, observation.vehicle_mask, scenario)),
     )
     frequency = scenario.frequency
     return [
@@ -341,7 +341,7 @@ def run_lockstep(
         for observer in observers:
             observer.start(episodes)
         driver.reset(len(episodes))
-        ended = world.done()
+        ended = world.done().tolist()
         active = [i for i in range(len(episodes)) if not ended[i]]
         for i in sorted(set(range(len(episodes))) - set(active)):  # ended at reset (e.g. a crash on spawning)
             for observer in observers:
@@ -357,7 +357,7 @@ def run_lockstep(
             for observer in observers:
                 observer.decided(observation, decision, active)
             world.apply(active, decision.acceleration, decision.steering)
-            ended = world.done()
+            ended = world.done().tolist()
             step_records = _step_records([len(records[i]) for i in active], [episodes[i] for i in active], observation,
                                          decision, scenario)
             for row, (i, record) in enumerate(zip(active, step_records)):
