@@ -169,3 +169,30 @@ def test_a_planted_import_is_reported(module, planted, expected):
     sources[module] += "\n" + planted + "\n"
     problems = layer_violations(sources)
     assert any(expected in problem for problem in problems), problems
+
+
+#: The most lines a module of the installed packages may have (a longer one holds two jobs).
+MAX_MODULE_LINES = 700
+
+
+def private_imports(sources: dict[str, str]) -> list[str]:
+    """``from mmpc.x import _name`` lines: a private name used outside its module."""
+    found = []
+    for module, source in sources.items():
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").split(".")[0] == "mmpc"):
+                found += [f"{module}:{node.lineno} imports {alias.name} from {node.module}" for alias in node.names
+                          if alias.name.startswith("_") and not alias.name.startswith("__")]
+    return found
+
+
+def test_no_module_is_over_the_line_limit_and_no_private_name_crosses_a_module():
+    sources = read_sources()
+    long = {module: source.count("\n") for module, source in sources.items() if source.count("\n") > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+    for folder in ("scripts", "tests"):  # the benchmarks and tests use the public names too
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            sources[f"{folder}/{path.name}"] = path.read_text(encoding="utf-8")
+    assert private_imports(sources) == []
+    assert private_imports({"mmpc.x": "from mmpc.solver.execution import _SIMD_BYTES\n"}) == [
+        "mmpc.x:1 imports _SIMD_BYTES from mmpc.solver.execution"]
