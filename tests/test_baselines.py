@@ -14,7 +14,8 @@ from mmpc.drivers.frenet import FrenetConfig, FrenetPlanner, evaluate_polynomial
 from mmpc.drivers.nlp import SOLVED_STATUSES, NLPConfig, TrajectoryNLP, resample
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
-from mmpc.scenario import EgoConfig, ScenarioConfig, ScriptedTraffic, ScriptedVehicle, build_mpc
+from mmpc.scenario import EgoConfig, ScenarioConfig, build_mpc
+from mmpc.traffic_config import ScriptedTraffic, ScriptedVehicle
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -10,7 +10,8 @@ import torch
 from mmpc.collisions import CRASH_COLUMNS, crash_scene, is_ego_fault, struck_part
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.highway import run_episode, run_lockstep
-from mmpc.scenario import EgoConfig, ScriptedTraffic, ScriptedVehicle, load_scenario
+from mmpc.scenario import EgoConfig, load_scenario
+from mmpc.traffic_config import ScriptedTraffic, ScriptedVehicle
 
 CAR = (5.0, 2.0)
 

@@ -25,10 +25,8 @@ from mmpc.rl.config import RL_SCENARIO, RewardConfig, RLConfig, SafeEnvConfig
 from mmpc.rl.config import TrainConfig as RLTrainConfig
 from mmpc.sim import SimConfig
 from mmpc.tracking import TrackingConfig
-from mmpc.scenario import (
-    CruiseObjective, EgoConfig, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
-    ScriptedVehicle, load_scenario,
-)
+from mmpc.scenario import CruiseObjective, EgoConfig, HighSpeedObjective, ScenarioConfig, load_scenario
+from mmpc.traffic_config import IDMTraffic, NGSIMTraffic, ScriptedTraffic, ScriptedVehicle
 
 ROOT = Path(__file__).resolve().parents[1]
 

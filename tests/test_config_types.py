@@ -13,7 +13,8 @@ from mmpc.cli.arguments import override
 from mmpc.cli.main import main
 from mmpc.config import ConfigError, fits_type, load_config, require_field_types
 from mmpc.rl.config import RLConfig
-from mmpc.scenario import EgoConfig, IDMTraffic, ScenarioConfig, ScriptedVehicle, load_scenario
+from mmpc.scenario import EgoConfig, ScenarioConfig, load_scenario
+from mmpc.traffic_config import IDMTraffic, ScriptedVehicle
 from mmpc.sim import SimConfig
 from tests.test_config import CONFIGS
 

@@ -9,9 +9,8 @@ import pytest
 from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
 from mmpc.highway import HighwayEpisode, command_to_action, env_config, vehicle_motion
-from mmpc.scenario import (
-    EgoConfig, HighSpeedObjective, IDMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle,
-)
+from mmpc.scenario import EgoConfig, HighSpeedObjective, ScenarioConfig
+from mmpc.traffic_config import IDMTraffic, ScriptedTraffic, ScriptedVehicle
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -9,7 +9,8 @@ from mmpc.highway.runner import run_episode
 from mmpc.drivers import make_driver
 from mmpc.highway import HighwayEpisode
 from mmpc.highway.ngsim import FOOT, read_ngsim
-from mmpc.scenario import EgoConfig, NGSIMTraffic, ScenarioConfig
+from mmpc.scenario import EgoConfig, ScenarioConfig
+from mmpc.traffic_config import NGSIMTraffic
 from mmpc.highway.traffic import ReplayVehicle
 
 #: The column order of the data.gov release (US-101 and I-80 files).

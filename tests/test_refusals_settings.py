@@ -25,7 +25,8 @@ from mmpc.config import ConfigError, load_config
 from mmpc.device import DEVICE_ENV
 from mmpc.drivers import registry
 from mmpc.imitation.bc import TrainConfig as BCTrainConfig
-from mmpc.scenario import EgoConfig, IDMTraffic, load_scenario
+from mmpc.scenario import EgoConfig, load_scenario
+from mmpc.traffic_config import IDMTraffic
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

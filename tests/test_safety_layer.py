@@ -18,7 +18,8 @@ from mmpc.problem import ego_state
 from mmpc.rl.config import RLConfig
 from mmpc.rl.envs import SafeHighwayEnv
 from mmpc.rl.safety import SafetyLayer
-from mmpc.scenario import EgoConfig, ScriptedTraffic, ScriptedVehicle, build_mpc, load_scenario
+from mmpc.scenario import EgoConfig, build_mpc, load_scenario
+from mmpc.traffic_config import ScriptedTraffic, ScriptedVehicle
 from mmpc.tracking import plan_clearance
 
 pytestmark = pytest.mark.usefixtures("one_thread")

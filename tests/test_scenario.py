@@ -7,10 +7,8 @@ from mmpc.config import from_dict, to_dict
 from mmpc.evaluate import scenario_fingerprint
 from mmpc.mpc import MPCConfig
 from mmpc.obstacles.shape import ellipse_coverage, smallest_covering_axis
-from mmpc.scenario import (
-    SCENARIO_DIR, CruiseObjective, HighSpeedObjective, IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic,
-    build_mpc, load_scenario,
-)
+from mmpc.scenario import SCENARIO_DIR, CruiseObjective, HighSpeedObjective, ScenarioConfig, build_mpc, load_scenario
+from mmpc.traffic_config import IDMTraffic, NGSIMTraffic, ScriptedTraffic
 
 
 def test_shipped_cruise_yaml_is_the_default_scenario():

@@ -18,7 +18,8 @@ from highway_env.vehicle.behavior import IDMVehicle  # noqa: E402
 from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
 from mmpc.highway.episode import HighwayEpisode  # noqa: E402
-from mmpc.scenario import EgoConfig, ScenarioConfig, ScriptedTraffic  # noqa: E402
+from mmpc.scenario import EgoConfig, ScenarioConfig  # noqa: E402
+from mmpc.traffic_config import ScriptedTraffic  # noqa: E402
 
 LANES = 3
 #: Rows (x [m], y [m], heading [rad], speed [m/s], target speed [m/s], IDM delta); row 0 the ego.

@@ -18,7 +18,8 @@ from mmpc.evaluate.store import scenario_fingerprint
 from mmpc.highway import HighwayEpisode, run_lockstep
 from mmpc.highway.batched_world import BatchedWorld
 from mmpc.highway.worlds import make_world
-from mmpc.scenario import IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic, ScriptedVehicle, load_scenario
+from mmpc.scenario import ScenarioConfig, load_scenario
+from mmpc.traffic_config import IDMTraffic, NGSIMTraffic, ScriptedTraffic, ScriptedVehicle
 from mmpc.sim import SimConfig, SimEpisodes, kinematics_observation, lane_keeping_steering, pair_collisions, vehicle_state
 from mmpc.sim.random import integers, uniform
 from mmpc.sim.traffic import PLACEMENT_GAP, initial_state, keep_in_window, sim_config

@@ -21,7 +21,8 @@ from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
 from mmpc.highway import HighwayEpisode  # noqa: E402
 from mmpc.highway.episode import env_config  # noqa: E402
-from mmpc.scenario import EgoConfig, IDMTraffic, ScenarioConfig, ScriptedTraffic, load_scenario  # noqa: E402
+from mmpc.scenario import EgoConfig, ScenarioConfig, load_scenario  # noqa: E402
+from mmpc.traffic_config import IDMTraffic, ScriptedTraffic  # noqa: E402
 from mmpc.sim import SimConfig, VehicleState, kinematics_observation, vehicle_state  # noqa: E402
 from mmpc.sim.observation import FEATURES  # noqa: E402
 

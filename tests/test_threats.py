@@ -10,7 +10,8 @@ import torch
 from mmpc.config import ConfigError
 from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.drivers.verified import VerifiedDriver
-from mmpc.scenario import IDMTraffic, Threats, load_scenario
+from mmpc.scenario import load_scenario
+from mmpc.traffic_config import IDMTraffic, Threats
 from mmpc.sim import SimConfig, SimEpisodes, vehicle_state
 from mmpc.sim.idm import steering_to_lane
 from mmpc.sim.threats import threaten_lanes, threaten_speeds

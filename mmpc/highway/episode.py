@@ -29,7 +29,8 @@ from highway_env.road.lane import StraightLane
 from highway_env.vehicle.kinematics import Vehicle
 
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.scenario import IDMTraffic, ScenarioConfig
+from mmpc.scenario import ScenarioConfig
+from mmpc.traffic_config import IDMTraffic
 from mmpc.highway.traffic import TrafficController, make_traffic, resize
 
 #: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.

@@ -12,7 +12,8 @@ import dataclasses
 import math
 from typing import NamedTuple
 
-from mmpc.scenario import EgoConfig, ScenarioConfig, ScriptedTraffic, ScriptedVehicle
+from mmpc.scenario import EgoConfig, ScenarioConfig
+from mmpc.traffic_config import ScriptedTraffic, ScriptedVehicle
 
 #: Layouts of :func:`stopped_traffic_scene`.
 LAYOUTS = ("wall", "single", "cut_in")

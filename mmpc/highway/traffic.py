@@ -18,7 +18,8 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from mmpc.highway.ngsim import Recording, Track, read_ngsim
-from mmpc.scenario import IDMTraffic, NGSIMTraffic, ScenarioConfig, ScriptedTraffic
+from mmpc.scenario import ScenarioConfig
+from mmpc.traffic_config import IDMTraffic, NGSIMTraffic, ScriptedTraffic
 
 #: Smallest distance along the road to any vehicle in a lane where a vehicle is (re)placed [m].
 PLACEMENT_GAP = 30.0
@@ -113,7 +114,7 @@ def _others(env: AbstractEnv) -> list[Vehicle]:
 
 class IDMTrafficController:
     """highway-env's IDM/MOBIL vehicles with the scenario's speeds, kept inside a window around
-    the ego (see :class:`mmpc.scenario.IDMTraffic`)."""
+    the ego (see :class:`mmpc.traffic_config.IDMTraffic`)."""
 
     def __init__(self, config: IDMTraffic, env: AbstractEnv) -> None:
         self.config = config
@@ -263,7 +264,7 @@ class ReplayVehicle(Vehicle):
 
 
 class NGSIMReplay:
-    """NGSIM vehicles replayed as the traffic around the ego (see :class:`mmpc.scenario.NGSIMTraffic`).
+    """NGSIM vehicles replayed as the traffic around the ego (see :class:`mmpc.traffic_config.NGSIMTraffic`).
 
     The ego starts at ``ego_position`` along the recorded section, in the scenario's lane;
     recorded vehicles too close to that start are left out; vehicles enter when their

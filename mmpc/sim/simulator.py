@@ -14,7 +14,7 @@ from mmpc.sim.kinematics import bicycle_step
 from mmpc.sim.mobil import advance_timers, change_lanes
 from mmpc.sim.state import VehicleState, check_state
 from mmpc.sim.threats import Orders, obey_lanes, obey_speeds, threaten_lanes, threaten_speeds
-from mmpc.scenario import Threats
+from mmpc.traffic_config import Threats
 
 
 class ThreatDraws(NamedTuple):
@@ -55,7 +55,7 @@ class HighwaySimulator:
         if not isinstance(config, SimConfig):
             raise TypeError(f"`config` must be a SimConfig; got {type(config).__name__}")
         if threats is not None and not isinstance(threats, Threats):
-            raise TypeError(f"`threats` must be a mmpc.scenario.Threats or None; got {type(threats).__name__}")
+            raise TypeError(f"`threats` must be a mmpc.traffic_config.Threats or None; got {type(threats).__name__}")
         self.config = config
         self.threats = threats
 

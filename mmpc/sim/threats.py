@@ -1,6 +1,6 @@
 """Threatening traffic: the cars near the ego do what endangers it most that the rules allow.
 
-The falsification mode of the batched simulator (:class:`mmpc.scenario.Threats`). Each frame,
+The falsification mode of the batched simulator (:class:`mmpc.traffic_config.Threats`). Each frame,
 after MOBIL has decided, cars within ``reach`` of the ego:
 
 - **cut in**: a car ahead of the ego, settled on its lane, that MOBIL kept there at its decision
@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import torch
 
-from mmpc.scenario import Threats
+from mmpc.traffic_config import Threats
 from mmpc.sim.config import SimConfig
 from mmpc.sim.idm import idm_acceleration, vehicle_behind
 from mmpc.sim.mobil import mobil_safe

@@ -21,7 +21,8 @@ import math
 
 import torch
 
-from mmpc.scenario import IDMTraffic, ScenarioConfig, batched_unsupported
+from mmpc.scenario import ScenarioConfig, batched_unsupported
+from mmpc.traffic_config import IDMTraffic
 from mmpc.sim.config import SimConfig
 from mmpc.sim.random import integers, uniform
 from mmpc.sim.state import VehicleState, vehicle_state
