@@ -48,13 +48,12 @@ class HighwayEnvWorld:
         return len(self.episodes)
 
     def observe(self, rows: torch.Tensor | Sequence[int]) -> tuple[Observation, list[Observation]]:
-        rows = rows.tolist() if isinstance(rows, torch.Tensor) else list(rows)
+        rows = _row_list(rows)
         singles = [self.episodes[i].observe(self.dtype, kinematics=self.kinematics) for i in rows]
         return stack_observations(singles, rows), singles
 
     def apply(self, rows: torch.Tensor | Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
-        rows = rows.tolist() if isinstance(rows, torch.Tensor) else list(rows)
-        for i, a, s in zip(rows, acceleration.tolist(), steering.tolist()):
+        for i, a, s in zip(_row_list(rows), acceleration.tolist(), steering.tolist()):
             self.episodes[i].apply(a, s)
 
     def observe_impact(self, index: int) -> Observation:
@@ -64,12 +63,16 @@ class HighwayEnvWorld:
         return torch.tensor([episode.done for episode in self.episodes], device=self.device)
 
     def speeds(self, rows: torch.Tensor | Sequence[int]) -> torch.Tensor:
-        rows = rows.tolist() if isinstance(rows, torch.Tensor) else list(rows)
-        return torch.tensor([float(self.episodes[i].ego.speed) for i in rows], dtype=torch.float64, device=self.device)
+        return torch.tensor([float(self.episodes[i].ego.speed) for i in _row_list(rows)], dtype=torch.float64, device=self.device)
 
     def close(self) -> None:
         for episode in self.episodes:
             episode.close()
+
+
+def _row_list(rows: torch.Tensor | Sequence[int]) -> list[int]:
+    """The environments ``rows`` (a long tensor or ints) as a list of ints."""
+    return rows.tolist() if isinstance(rows, torch.Tensor) else list(rows)
 
 
 def stack_observations(observations: Sequence[Observation], env_ids: Sequence[int]) -> Observation:
