@@ -15,6 +15,8 @@ from mmpc.cli.arguments import add_compile, add_config, add_device, add_set, add
 
 
 def _scenario(args: argparse.Namespace, overrides: dict):
+    """The verb's scenario, refused before any folder is made where this machine lacks its data."""
+    from mmpc.config import ConfigError
     from mmpc.scenario import load_scenario
 
     apply_compile(args.compile)
@@ -23,6 +25,9 @@ def _scenario(args: argparse.Namespace, overrides: dict):
         if not args.duration > 0:
             raise ValueError(f"--duration must be > 0 s; got {args.duration}")
         scenario = scenario.replace(duration=args.duration)
+    missing = scenario.missing_data()
+    if missing is not None:
+        raise ConfigError(f"scenario {scenario.name!r}: {missing}")
     return scenario
 
 

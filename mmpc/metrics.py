@@ -134,7 +134,9 @@ def episode_metrics(
         [m/s^2]), ``ang_acc_mean`` (mean |d psidot / dt| [rad/s^2]), ``solve_ms_mean`` / ``_max``, ``iterations_mean`` (optimizer
         iterations per step; ``None`` where the driver reports none),
         ``lane_changes`` (changes of the nearest lane), ``fallback_steps``, ``verified_share`` (share
-        of steps whose command verified; ``None`` for a driver not verified), ``failsafe_steps``, ``min_clearance``,
+        of steps whose command verified; ``None`` for a driver not verified), ``first_verified_step`` (the
+        first step whose command verified: from there on the ego keeps a way out; ``None`` where none did, or
+        for a driver not verified: a collision then is no defect of the check), ``failsafe_steps``, ``min_clearance``,
         ``off_centre_share`` (share of steps farther than :data:`OFF_CENTRE` from the nearest
         lane centre), ``lane_change_s_mean`` (mean of :func:`lane_change_durations`; ``None`` without one),
         ``min_ttc`` (smallest :attr:`StepRecord.ttc` [s]; ``None`` where no car ahead was ever closing),
@@ -170,6 +172,8 @@ def episode_metrics(
         lane_changes=sum(a.lane != b.lane for a, b in zip(records, records[1:])),
         fallback_steps=sum(r.fallback for r in records),
         verified_share=_mean([float(r.verified) for r in records]) if records[0].verified is not None else None,
+        first_verified_step=(next((i for i, r in enumerate(records) if r.verified), None)
+                             if records[0].verified is not None else None),
         failsafe_steps=sum(r.failsafe for r in records),
         min_clearance=min(r.clearance for r in records),
         off_centre_share=_mean([float(abs(r.y - r.lane * lane_width) > OFF_CENTRE) for r in records]),

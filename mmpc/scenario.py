@@ -33,7 +33,7 @@ from mmpc.road import Road
 from mmpc.solver.config import OptimizerConfig
 from mmpc.solver.execution import COMPILE_ENV
 from mmpc.solver.optimizer import BatchOptimizer
-from mmpc.traffic_config import IDMTraffic, NGSIMTraffic, ScriptedTraffic, Traffic
+from mmpc.traffic_config import THREATS_MIN_FREQUENCY, IDMTraffic, NGSIMTraffic, ScriptedTraffic, Traffic
 
 logger = logging.getLogger(__name__)
 
@@ -336,6 +336,10 @@ class ScenarioConfig:
         require(self.sim == "batched" or getattr(self.traffic, "threats", None) is None,
                 f"{where}: threatening traffic (`traffic.threats`) runs on the batched simulator only; got sim "
                 f"{self.sim!r}: set `sim: batched` (--sim batched)")
+        require(getattr(self.traffic, "threats", None) is None or self.frequency >= THREATS_MIN_FREQUENCY,
+                f"{where}: threatening traffic keeps its cars within the verification's assumptions only at "
+                f"`frequency` >= {THREATS_MIN_FREQUENCY:g} Hz (longer frames make the lane-keeping controller "
+                f"overshoot); got {self.frequency:g} Hz")
         require(self.ego.lane is None or self.ego.lane < self.lanes,
                  f"{where}: `ego.lane` must be < lanes={self.lanes}; got {self.ego.lane}")
         if isinstance(self.traffic, ScriptedTraffic):

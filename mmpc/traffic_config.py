@@ -13,6 +13,13 @@ from typing import ClassVar, Optional, Union
 from mmpc.config import require, require_field_types, require_int, require_positive
 
 
+#: The lowest frequency of a scenario with threatening traffic [Hz]: 1 / ``SimConfig.kp_heading``
+#: is the longest frame after which the lane-keeping controller does not overshoot; with longer
+#: frames the cars leave the headings and lateral speeds :class:`mmpc.verify.TrafficAssumptions`
+#: holds them to, and a falsification tool must keep its cars within them.
+THREATS_MIN_FREQUENCY = 5.0
+
+
 @dataclass(frozen=True)
 class Threats:
     """Traffic that threatens the ego as much as the rules allow (the batched simulator only).

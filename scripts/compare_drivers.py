@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 from mmpc.evaluate import paired_differences, read_episodes
 from mmpc.evaluate.report import PAIRED_METRICS, check_paired_metrics
-from mmpc.evaluate.store import read_inputs
+from mmpc.evaluate.store import scenario_differences
 
 
 class Selection(NamedTuple):
@@ -69,36 +69,6 @@ def select(spec: str) -> Selection:
     return Selection(label or f"{driver} on {scenario}", Path(folder), scenario, rows)
 
 
-def _flat(settings: dict, prefix: str = "") -> dict:
-    """Nested settings as ``{"dotted.key": value}``."""
-    flat = {}
-    for key, value in settings.items():
-        flat.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
-    return flat
-
-
-def scenario_differences(reference: Selection, other: Selection) -> list[str]:
-    """How ``other``'s scenario differs from ``reference``'s, read from the folders'
-    ``scenarios.json``: ``"key: reference value vs other value"`` per setting but the name; empty
-    where they agree; one line saying so where a folder does not record its scenario's settings."""
-    recorded = []
-    for selection in (reference, other):
-        inputs = read_inputs(selection.folder)
-        if selection.scenario not in inputs.scenarios:
-            return [f"{selection.folder / 'scenarios.json'} does not record scenario {selection.scenario!r}, "
-                    "so its settings cannot be compared"]
-        recorded.append((inputs.scenarios[selection.scenario], inputs.settings.get(selection.scenario)))
-    (reference_hash, reference_settings), (other_hash, other_settings) = recorded
-    if reference_hash == other_hash:
-        return []
-    if reference_settings is None or other_settings is None:
-        return [f"settings hash {reference_hash} vs {other_hash} (the settings are not recorded: a folder of an earlier "
-                "mmpc)"]
-    ours, theirs = _flat(reference_settings), _flat(other_settings)
-    return [f"{key}: {ours.get(key, '-')} vs {theirs.get(key, '-')}" for key in sorted(ours.keys() | theirs.keys())
-            if key != "name" and ours.get(key, "-") != theirs.get(key, "-")]
-
-
 def check_labels(compared: list[Selection]) -> None:
     """Refuse two compared runs of one label (a label keys the results, so the second would
     replace the first); the reference's label may be a compared run's (one driver, two folders)."""
@@ -136,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         reference = select(args.reference)
         compared = [select(spec) for spec in args.others]
         check_labels(compared)
-        differences = {selection.label: scenario_differences(reference, selection) for selection in compared}
+        differences = {selection.label: scenario_differences(reference.folder, reference.scenario, selection.folder,
+                                                             selection.scenario) for selection in compared}
         for label, lines in differences.items():
             if lines and not args.allow_different_scenarios:
                 raise ValueError(f"{label} ran another scenario than {reference.label} ({'; '.join(lines)}), so its "

@@ -9,7 +9,8 @@ Made for the batched simulator against highway-env, same driver, scenarios and s
     mmpc evaluate --scenarios cruise,high_speed --seeds 0-199 --lockstep 200 --sim batched --out runs/worlds/batched
     python scripts/compare_worlds.py runs/worlds/highway-env runs/worlds/batched --out runs/worlds
 
-Episodes are the units: a metric's interval is Student's t interval of the mean over episodes
+The two folders must hold the same seeds of each (driver, scenario) run with the same settings but
+the world (``scenarios.json``); other runs are refused. Episodes are the units: a metric's interval is Student's t interval of the mean over episodes
 (for collisions, the share of episodes with one, Wilson's interval); two worlds agree on a metric
 when Welch's t interval of the difference of means holds 0 (:mod:`mmpc.evaluate.intervals`).
 """
@@ -25,6 +26,7 @@ from typing import Optional, Sequence
 
 from mmpc.evaluate import read_episodes
 from mmpc.evaluate.intervals import mean_ci, welch_ci, wilson_ci
+from mmpc.evaluate.store import scenario_differences
 
 #: The metrics compared: (episodes.csv column, label).
 METRICS = (("collisions", "episodes with a collision"), ("fallback_steps", "fallback steps"),
@@ -42,18 +44,43 @@ def _bounds(centre: Optional[float], interval: Optional[Sequence[float]]) -> tup
     return (centre, -math.inf, math.inf) if interval is None else (centre, interval[0], interval[1])
 
 
+def check_alike(reference: Path, other: Path, *, allow_different_scenarios: bool = False) -> None:
+    """Refuse runs that are not the same episodes in two worlds: a folder without episodes, one
+    folder twice, or a (driver, scenario) in both whose finished seeds differ, or whose scenario
+    settings (other than the world, ``sim``) differ or are not recorded, unless
+    ``allow_different_scenarios``. ``ValueError`` saying which."""
+    for folder in (reference, other):
+        if not (folder / "episodes.csv").is_file():
+            raise ValueError(f"{folder} holds no episodes.csv; expected an `mmpc evaluate` output folder")
+    if reference.resolve() == other.resolve():
+        raise ValueError(f"{reference} and {other} are one folder; compare the runs of two worlds")
+    first, second = _groups(reference), _groups(other)
+    for key in sorted(set(first) & set(second)):
+        seeds = [sorted(row["seed"] for row in rows) for rows in (first[key], second[key])]
+        if seeds[0] != seeds[1]:
+            raise ValueError(f"{key[0]} on {key[1]} finished other seeds in the two folders ({len(seeds[0])} in {reference}, "
+                             f"{len(seeds[1])} in {other}, {len(set(seeds[0]) & set(seeds[1]))} in common); compare runs of "
+                             "the same seeds")
+        lines = scenario_differences(reference, key[1], other, key[1], ignore=("name", "sim"))
+        if lines and not allow_different_scenarios:
+            raise ValueError(f"{key[1]} was run with other settings in {other} than in {reference} ({'; '.join(lines)}); "
+                             "compare runs that differ in the world (--sim) only, or pass --allow-different-scenarios if that is meant")
+
+
+def _groups(folder: Path) -> dict[tuple[str, str], list[dict]]:
+    """A folder's finished episodes by (driver, scenario)."""
+    rows: dict[tuple[str, str], list[dict]] = {}
+    for row in read_episodes(folder / "episodes.csv"):
+        if row["status"] == "ok":
+            rows.setdefault((row["driver"], row["scenario"]), []).append(row)
+    return rows
+
+
 def compare(reference: Path, other: Path) -> list[dict]:
     """One row per (driver, scenario, metric) present with ``status == ok`` episodes in both folders
     (a metric is left out where an episode has none: ``verified_share`` of a driver not verified,
     the newer statistics of an evaluation older than them)."""
-    def groups(folder: Path) -> dict[tuple[str, str], list[dict]]:
-        rows: dict[tuple[str, str], list[dict]] = {}
-        for row in read_episodes(folder / "episodes.csv"):
-            if row["status"] == "ok":
-                rows.setdefault((row["driver"], row["scenario"]), []).append(row)
-        return rows
-
-    first, second = groups(reference), groups(other)
+    first, second = _groups(reference), _groups(other)
     results = []
     for key in sorted(set(first) & set(second)):
         for column, label in METRICS:
@@ -92,20 +119,33 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("reference", type=Path, help="evaluation folder of the reference world (highway-env)")
     parser.add_argument("other", type=Path, help="evaluation folder to compare (the batched simulator)")
     parser.add_argument("--out", type=Path, default=None, help="write compare_worlds.json and .md here")
+    parser.add_argument("--allow-different-scenarios", action="store_true",
+                        help="compare runs whose scenario settings differ beyond the world (or are not recorded)")
     args = parser.parse_args(argv)
-    rows = compare(args.reference, args.other)
+    try:
+        check_alike(args.reference, args.other, allow_different_scenarios=args.allow_different_scenarios)
+        rows = compare(args.reference, args.other)
+    except ValueError as error:
+        return _refuse(str(error))
     if not rows:
-        print(f"compare_worlds: error: no (driver, scenario) with finished episodes in both {args.reference} and {args.other}",
-              file=sys.stderr)
-        return 2
+        return _refuse(f"no (driver, scenario) with finished episodes in both {args.reference} and {args.other}")
     table = format_table(rows, (args.reference.name, args.other.name))
-    print(table)
     if args.out is not None:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "compare_worlds.json").write_text(json.dumps({"reference": str(args.reference), "other": str(args.other),
-                                                                  "rows": rows}, indent=2) + "\n")
-        (args.out / "compare_worlds.md").write_text(table + "\n")
+        try:
+            args.out.mkdir(parents=True, exist_ok=True)
+            (args.out / "compare_worlds.json").write_text(json.dumps({"reference": str(args.reference), "other": str(args.other),
+                                                                      "rows": rows}, indent=2) + "\n")
+            (args.out / "compare_worlds.md").write_text(table + "\n")
+        except OSError as error:
+            return _refuse(f"--out {args.out} must be a folder this process can create and write to; got {error}")
+    print(table)
     return 0
+
+
+def _refuse(message: str) -> int:
+    """Print ``message`` as the script's error; the exit status of a refusal."""
+    print(f"compare_worlds: error: {message}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -23,6 +23,8 @@ import torch
 
 from mmpc.drivers import make_driver
 from mmpc.evaluate.intervals import wilson_ci
+from mmpc.files import OutputFolderError
+from mmpc.rl.folders import run_folder
 from mmpc.rl.red_team import ACTION_NAMES, RedTeamVecEnv, score_red_team
 from mmpc.scenario import load_scenario
 
@@ -43,13 +45,30 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.steps < 1 or args.envs < 1 or args.episodes < 1:
         parser.error("--steps, --envs and --episodes must be >= 1")
+    if args.seeds < 0 or args.train_seed < 0:
+        parser.error(f"--seeds and --train-seed must be >= 0; got {args.seeds} and {args.train_seed}")
+    if args.model is not None and not args.model.is_file():
+        parser.error(f"--model {args.model} is not a file (a model.zip a red-team run wrote)")
     torch.set_num_threads(1)
+    try:
+        scenario = dataclasses.replace(load_scenario(args.scenario, {"sim": "batched"}), duration=args.duration)
+        driver = make_driver(args.driver, scenario)
+    except ValueError as error:  # an unknown scenario or driver, or one the check cannot cover
+        parser.error(str(error))
+    try:
+        with run_folder(args.out, ".red_team.lock", "another red-team run", fresh="a red-team run neither resumes nor "
+                        "replaces one (its model.zip and red_team.json)"):
+            return _run(args, scenario, driver)
+    except OutputFolderError as error:
+        print(f"red_team.py: error: {error}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace, scenario, driver) -> int:
+    """Train (or load) the red team into the held folder ``args.out``, score it, write and print the results."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecMonitor
 
-    scenario = dataclasses.replace(load_scenario(args.scenario, {"sim": "batched"}), duration=args.duration)
-    driver = make_driver(args.driver, scenario)
-    args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     if args.model is None:
         env = VecMonitor(RedTeamVecEnv(driver, scenario, args.envs, seed=args.train_seed, near_miss=args.near_miss))

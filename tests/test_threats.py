@@ -106,7 +106,10 @@ def drive_in_threats(verified: bool, envs: int = 16) -> tuple[torch.Tensor, int,
         ego, vehicles, mask = episodes.road_state()
         live = mask & ~episodes.state.crashed[:, 1:]
         moving = (ego[:, 3] > 0) & ~collided
-        broke = monitor.observe(ids, ego, vehicles, live) & moving[:, None]
+        # IDM reverses a car stopped closer to its leader than it wants (a breach the assumptions name
+        # and the monitor flags, :mod:`mmpc.verify.assumptions`): it moves away; any other breach counts
+        reversing = vehicles[..., 2] < 0
+        broke = monitor.observe(ids, ego, vehicles, live) & moving[:, None] & ~reversing
         outside += int(broke.sum())
         watched += int((live & moving[:, None]).sum())
         decision = driver.decide(Observation(ego, vehicles, mask, None, ids))

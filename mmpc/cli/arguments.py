@@ -178,6 +178,7 @@ DRIVER_ARGUMENTS = {
     "sb3": ":RUN/model.zip or :NAME (shipped)",
     "safe-random": "[:RL_CONFIG] (random goals behind the safety layer)",
     "safe-expert": "[:RL_CONFIG] (the expert behind the safety layer)",
+    "verified": ":DRIVER (any other spec behind the legal-safety check, e.g. verified:mpc)",
 }
 
 

@@ -19,7 +19,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mmpc.config import ConfigError
-    from mmpc.evaluate.evaluation import check_scenarios
+    from mmpc.evaluate.evaluation import check_drivers, check_scenarios
     from mmpc.scenario import load_scenario
 
     if args.seed is not None and args.seeds is not None:
@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
         scenarios.append(scenario)
     try:  # before the output folder is made
         check_scenarios(scenarios)
+        check_drivers(scenarios, (args.driver,))
     except ConfigError as error:
         print(f"mmpc drive: error: {error}", file=sys.stderr)
         return 2

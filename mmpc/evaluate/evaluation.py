@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple, Optional, Sequence
 
 from mmpc.config import ConfigError
+from mmpc.drivers import make_driver
 from mmpc.evaluate.backends import run_tasks
 from mmpc.evaluate.report import summarize, write_report
 from mmpc.evaluate.store import EpisodeFile, Key, check_inputs, read_episodes, row_key
@@ -87,6 +88,22 @@ def check_scenarios(scenarios: Sequence[ScenarioConfig]) -> None:
             raise ConfigError(f"scenario {scenario.name!r}: {missing}")
 
 
+def check_drivers(scenarios: Sequence[ScenarioConfig], drivers: Sequence[str]) -> None:
+    """Build every driver for every scenario once, before any folder or row: a driver that cannot
+    drive a scenario (a missing checkpoint, a check the scenario's settings are outside of) is
+    refused here, not as error rows.
+
+    Raises:
+        mmpc.config.ConfigError: the message names the driver, the scenario and why.
+    """
+    for spec in drivers:
+        for scenario in scenarios:
+            try:
+                make_driver(spec, scenario)
+            except (ValueError, OSError, KeyError) as error:
+                raise ConfigError(f"driver {spec!r} cannot drive scenario {scenario.name!r}: {error}") from error
+
+
 def evaluate(
     scenarios: Sequence[ScenarioConfig],
     out: Path,
@@ -110,7 +127,8 @@ def evaluate(
 
     Raises:
         mmpc.config.ConfigError (a ValueError): scenarios :func:`check_scenarios` refuses (none, two of
-            one name, one without its data), before ``out`` is made.
+            one name, one without its data), or a driver that cannot drive one (:func:`check_drivers`),
+            before ``out`` is made.
         EvaluationFolderError (a ValueError): ``out`` holds another scenario of the same name,
             episodes of a driver spec whose files changed since (:func:`mmpc.evaluate.store.check_inputs`),
             or a damaged ``episodes.csv`` or ``scenarios.json`` (the message names the file and line).
@@ -118,6 +136,7 @@ def evaluate(
             file ``.evaluate.lock``, removed when the call ends).
     """
     check_scenarios(scenarios)
+    check_drivers(scenarios, config.drivers)
     names = [s.name for s in scenarios]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import NamedTuple, Optional, Sequence
 
 from mmpc.collisions import CRASH_COLUMNS
-from mmpc.config import to_dict
+from mmpc.config import from_dict, to_dict
 from mmpc.drivers.registry import driver_files
 from mmpc.files import atomic_write_text
 from mmpc.scenario import ScenarioConfig
@@ -42,12 +42,12 @@ METRIC_COLUMNS = (
     "steps", "duration", "collisions", "collision_part", "ego_fault_collisions", "offroad", "mean_speed", "meta_cost_mean", "meta_cost_max", "plan_cost_mean",
     "task_return", "speed_residual_mean", "right_lane_distance_mean", "lin_acc_mean", "ang_acc_mean", "solve_ms_mean",
     "solve_ms_max", "solve_ms_per_episode_mean", "iterations_mean", "lane_changes", "fallback_steps", "verified_share",
-    "failsafe_steps", "min_clearance", "off_centre_share", "lane_change_s_mean", "min_ttc", "short_ttc_steps",
+    "first_verified_step", "failsafe_steps", "min_clearance", "off_centre_share", "lane_change_s_mean", "min_ttc", "short_ttc_steps",
     "near_lane_change_steps", "assumption_violations", *CRASH_COLUMNS, "crash_collider_outside",
 )
 COLUMNS = KEY_COLUMNS + RUN_COLUMNS + METRIC_COLUMNS
 _INT_COLUMNS = frozenset({"seed", "group", "group_size", "steps", "collisions", "ego_fault_collisions", "offroad",
-                          "lane_changes", "fallback_steps", "failsafe_steps", "short_ttc_steps", "near_lane_change_steps",
+                          "lane_changes", "fallback_steps", "first_verified_step", "failsafe_steps", "short_ttc_steps", "near_lane_change_steps",
                           "crash_fallback_steps",
                           "assumption_violations", "crash_collider_outside"})
 _TEXT_COLUMNS = frozenset({"driver", "scenario", "status", "error", "worker", "collision_part"})
@@ -244,6 +244,61 @@ def read_inputs(out: Path) -> FolderInputs:
     return inputs
 
 
+def _flat(settings: dict, prefix: str = "") -> dict:
+    """Nested settings as ``{"dotted.key": value}``."""
+    flat = {}
+    for key, value in settings.items():
+        flat.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+    return flat
+
+
+def scenario_differences(folder: Path, scenario: str, other_folder: Path, other_scenario: str,
+                         ignore: Sequence[str] = ("name",)) -> list[str]:
+    """How scenario ``other_scenario``'s episodes in ``other_folder`` were run differently from
+    ``scenario``'s in ``folder``, read from the folders' ``scenarios.json``: ``"key: value vs
+    other value"`` per setting but those in ``ignore``; empty where they agree; one line saying so
+    where a folder does not record its scenario's settings.
+
+    Raises:
+        EvaluationFolderError: a ``scenarios.json`` is corrupt.
+    """
+    recorded = []
+    for where, name in ((Path(folder), scenario), (Path(other_folder), other_scenario)):
+        inputs = read_inputs(where)
+        if name not in inputs.scenarios:
+            return [f"{where / 'scenarios.json'} does not record scenario {name!r}, so its settings cannot be compared"]
+        recorded.append((inputs.scenarios[name], inputs.settings.get(name)))
+    (first_hash, first_settings), (other_hash, other_settings) = recorded
+    if first_hash == other_hash:
+        return []
+    if first_settings is None or other_settings is None:
+        return [f"settings hash {first_hash} vs {other_hash} (the settings are not recorded: a folder of an earlier mmpc)"]
+    ours, theirs = _flat(first_settings), _flat(other_settings)
+    return [f"{key}: {ours.get(key, '-')} vs {theirs.get(key, '-')}" for key in sorted(ours.keys() | theirs.keys())
+            if key.split(".")[0] not in ignore and ours.get(key, "-") != theirs.get(key, "-")]
+
+
+def _reread(settings: Optional[dict], where: str) -> Optional[ScenarioConfig]:
+    """The scenario recorded as ``settings`` read as today's loader reads a file (retired keys
+    dropped, :meth:`ScenarioConfig.upgrade`); ``None`` where none is recorded or it no longer loads."""
+    if settings is None:
+        return None
+    try:
+        return from_dict(ScenarioConfig, {"sim": "highway-env", **settings}, where=where)
+    except ValueError:
+        return None
+
+
+def _changes(recorded: Optional[ScenarioConfig], scenario: ScenarioConfig) -> str:
+    """What differs between the scenario the episodes were run with and ``scenario``, in words."""
+    if recorded is None:
+        return "its settings changed, e.g. --duration or --set; the folder does not record them readably"
+    ours, theirs = _flat(scenario_settings(recorded)), _flat(scenario_settings(scenario))
+    lines = [f"{key}: {ours.get(key, '-')} then, {theirs.get(key, '-')} now" for key in sorted(ours.keys() | theirs.keys())
+             if ours.get(key, "-") != theirs.get(key, "-")]
+    return "settings changed: " + "; ".join(lines)
+
+
 def check_inputs(out: Path, scenarios: Sequence[ScenarioConfig], drivers: Sequence[str]) -> None:
     """Refuse to mix in ``out`` episodes of two different scenarios under one name, or of a driver
     spec whose files (:func:`mmpc.drivers.driver_files`) changed; record those of this run in ``scenarios.json``.
@@ -263,10 +318,13 @@ def check_inputs(out: Path, scenarios: Sequence[ScenarioConfig], drivers: Sequen
                     f"part of a scenario (mpc.compile, mpc.wheelbase), so its episodes of {scenario.name!r} cannot be "
                     f"matched to today's scenario; use another `out`, or delete {path} if the scenarios are unchanged "
                     "apart from those two settings")
-            raise EvaluationFolderError(
-                f"{out} holds episodes of another scenario named {scenario.name!r} (settings changed, e.g. --duration or "
-                f"--set); use another `out` or rename the scenario (--set name=...)"
-            )
+            recorded = _reread(known.settings.get(scenario.name), f"{path}: scenario {scenario.name!r}")
+            if recorded is None or scenario_fingerprint(recorded) != fingerprint:
+                raise EvaluationFolderError(
+                    f"{out} holds episodes of another scenario named {scenario.name!r} ({_changes(recorded, scenario)}); "
+                    "use another `out` or rename the scenario (--set name=...)")
+            # recorded with keys this mmpc reads away (retired options that were off): the same scenario
+            known.scenarios[scenario.name], known.settings[scenario.name] = fingerprint, scenario_settings(scenario)
         known.settings.setdefault(scenario.name, scenario_settings(scenario))
     for spec in drivers:
         fingerprint = driver_fingerprint(spec)

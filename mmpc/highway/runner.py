@@ -28,7 +28,7 @@ from mmpc.metrics import StepRecord, episode_metrics
 from mmpc.plotting import plot_episode
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
 from mmpc.scenario import CruiseObjective, ScenarioConfig
-from mmpc.verify import AssumptionMonitor
+from mmpc.verify import AssumptionMonitor, TrafficAssumptions
 
 logger = logging.getLogger(__name__)
 
@@ -331,7 +331,7 @@ def run_lockstep(
     world: Optional[World] = None
     records: list[list[StepRecord]] = [[] for _ in seeds]
     crashes: dict[int, Optional[Crash]] = {}  # environment -> its collision's scene
-    monitor = AssumptionMonitor(scenario.road, scenario.period)
+    monitor = AssumptionMonitor(scenario.road, scenario.period, TrafficAssumptions.for_scenario(scenario))
     monitored = [_Monitored(scenario.frequency) for _ in seeds]
     try:
         if video is not None:

@@ -11,8 +11,12 @@ no verification holds for it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from mmpc.config import require_field_types, require_non_negative, require_positive
+
+if TYPE_CHECKING:
+    from mmpc.scenario import ScenarioConfig
 
 
 @dataclass(frozen=True)
@@ -79,6 +83,14 @@ class TrafficAssumptions:
         require_non_negative("TrafficAssumptions", max_acceleration=self.max_acceleration, speed_limit=self.speed_limit,
                              lane_overreach=self.lane_overreach, lane_margin=self.lane_margin,
                              follower_reaction=self.follower_reaction)
+
+    @classmethod
+    def for_scenario(cls, scenario: "ScenarioConfig") -> "TrafficAssumptions":
+        """The assumptions for a scenario's cars (its vehicle size): a footprint wider than 2 m
+        reaches beyond a lane centre by half the extra width more."""
+        length, width = scenario.vehicle
+        default = cls()
+        return cls(length=length, width=width, lane_overreach=default.lane_overreach + 0.5 * (width - default.width))
 
     @property
     def half_length(self) -> float:

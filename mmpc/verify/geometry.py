@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 
 
-def rectangle_meets_box(x: torch.Tensor, y: torch.Tensor, heading: torch.Tensor, half_length: float, half_width: float,
+def rectangle_meets_box(x: torch.Tensor, y: torch.Tensor, heading: torch.Tensor, half_length: torch.Tensor | float,
+                        half_width: torch.Tensor | float,
                         x_low: torch.Tensor, x_high: torch.Tensor, y_low: torch.Tensor, y_high: torch.Tensor) -> torch.Tensor:
     """Bool, broadcast over every argument: the rectangle centred at (``x``, ``y``) [m], turned
     by ``heading`` [rad], of half sides ``half_length`` x ``half_width`` [m], overlaps the box

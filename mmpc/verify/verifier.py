@@ -3,7 +3,16 @@
 A candidate command of an environment is *verified* when the ego, after the command's control
 period, has a fail-safe (:mod:`mmpc.verify.failsafe`) whose whole path, to rest, meets no
 occupancy set (:mod:`mmpc.verify.occupancy`) of a car it answers for, the command's own period
-included. Every environment, candidate, fail-safe, car and time step is one tensor program.
+included, and that keeps the ego's centre on the road (the lane rules the sets rest on are about
+cars on their lanes). Every environment, candidate, fail-safe, car and time step is one tensor program.
+
+What "meets" means is the worlds' collision rule, which looks one frame ahead: after each frame,
+highway-env (and :mod:`mmpc.sim.collision`) crashes two cars at the next frame where their
+rectangles, each swept by its speed x ``dt`` along its body heading, overlap on every one of the
+eight separating axes. Where the ego's rectangle stretched forward by its own sweep misses a box
+that holds the car and the car's sweep over that frame (the box of the interval that starts at
+the pose), some of those axes separates the two: no crash. The sweep is ``speed x dt``, so it
+matters most at low frequencies (a 0.5 s frame at 2 Hz sweeps 5 m at 10 m/s).
 """
 
 from __future__ import annotations
@@ -56,6 +65,14 @@ class Verifier:
                  max_horizon: float = 12.0) -> None:
         if not (margin >= 0 and max_horizon > 0):
             raise ValueError(f"Verifier: `margin` must be >= 0 m and `max_horizon` > 0 s; got {margin!r}, {max_horizon!r}")
+        if sim.simulation_frequency < sim.kp_heading:
+            raise ValueError(
+                f"Verifier: verification needs frames of at most 1 / kp_heading = {1 / sim.kp_heading:.2f} s, a simulation "
+                f"frequency >= {sim.kp_heading:g} Hz (with longer frames the lane-keeping controller overshoots and the "
+                f"cars leave the assumed headings and lateral speeds); got {sim.simulation_frequency:g} Hz")
+        if sim.frames_per_command != 1:
+            raise ValueError(f"Verifier: the check samples the ego once per command, so it needs one simulation frame per "
+                             f"command; got {sim.simulation_frequency} Hz simulation for {sim.policy_frequency} Hz commands")
         self.road, self.sim, self.assumptions, self.failsafes = road, sim, assumptions, failsafes
         self.length, self.width = ego_size
         self.margin = margin
@@ -64,7 +81,13 @@ class Verifier:
 
     @classmethod
     def for_scenario(cls, scenario: ScenarioConfig, **settings) -> "Verifier":
-        """The check of a scenario's worlds: its road, command path and vehicle size (``settings``: the other arguments)."""
+        """The check of a scenario's worlds: its road, command path and vehicle size, the ego's and the
+        other cars' (``settings``: the other arguments).
+
+        Raises:
+            ValueError: a scenario the check cannot cover (a frequency below the lane-keeping controller's gain).
+        """
+        settings.setdefault("assumptions", TrafficAssumptions.for_scenario(scenario))
         return cls(scenario.road, sim_config(scenario), ego_size=scenario.vehicle, **settings)
 
     def body(self, ego: torch.Tensor) -> Body:
@@ -113,7 +136,7 @@ class Verifier:
         _check_inputs(ego, vehicles, mask, acceleration, steering)
         num_envs, num_candidates = acceleration.shape
         frames = self.frames(ego, vehicles, mask)
-        times = torch.arange(frames + 2, dtype=ego.dtype, device=ego.device) * self.period
+        times = torch.arange(frames + 3, dtype=ego.dtype, device=ego.device) * self.period  # an interval from each pose
         sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions,
                          ego_braking=max(self.failsafes.decelerations))
         now = self.body(ego)
@@ -125,9 +148,11 @@ class Verifier:
         path = rollout(start, lanes, decelerations, frames, self.length, self.road, self.sim)  # (E, K, F, frames)
         poses = Body(*(torch.cat([a[:, None, None, None].expand(num_envs, num_candidates, count, 1),
                                   b[..., None, None].expand(num_envs, num_candidates, count, 1), c], dim=-1)
-                       for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times
+                       for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times[:-1]
         meets = self._meets(poses, sets)  # (E, K, F)
-        verified_f = ~meets
+        left, right = self.road.bounds  # the lane rules hold for an ego on its lanes: it keeps its centre there
+        on_road = ((poses.y[..., 1:] >= left) & (poses.y[..., 1:] <= right)).all(dim=-1)
+        verified_f = ~meets & on_road
         verified = verified_f.any(dim=-1)
         first = verified_f.int().argmax(dim=-1, keepdim=True)
         lane = torch.where(verified, lanes.gather(-1, first)[..., 0], -1)
@@ -136,37 +161,34 @@ class Verifier:
         return Verdict(verified, lane, deceleration)
 
     def _meets(self, poses: Body, sets: Occupancy) -> torch.Tensor:
-        """(E, K, F) bool: a path of ``poses`` (E, K, F, T + 1) meets a relevant set of ``sets`` (T
-        intervals). Pose i is checked against the hull of the intervals it bounds, i - 1 and i;
-        only the (environment, car, pose) triples whose bounding boxes overlap get the exact test."""
+        """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a relevant set of ``sets`` (P
+        intervals): pose i, stretched forward by its frame's sweep (module docstring), against the
+        box of interval i. Only the (environment, car, pose) triples whose bounding boxes overlap
+        get the exact test."""
         variant = held_variant(sets.ego_lanes, poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F)
-        hull = [_pose_hull(bound) for bound in (sets.x_low, sets.x_high, sets.y_low, sets.y_high)]
-        x_low, x_high = torch.minimum(*hull[0]), torch.maximum(*hull[1])  # (E, M, T + 1)
-        y_low, y_high = torch.minimum(*hull[2]), torch.maximum(*hull[3])  # (E, H, M, T + 1)
-        half_length, half_width = 0.5 * self.length + self.margin, 0.5 * self.width + self.margin
-        reach = math.hypot(half_length, half_width)
-        flat = [field.flatten(1, 2) for field in poses[:2]]  # (E, K F, T + 1)
-        near = ((flat[0].amin(dim=1)[:, None] - reach <= x_high) & (flat[0].amax(dim=1)[:, None] + reach >= x_low)
-                & (flat[1].amin(dim=1)[:, None] - reach <= y_high.amax(dim=1))
-                & (flat[1].amax(dim=1)[:, None] + reach >= y_low.amin(dim=1)) & sets.relevant[..., None])
-        env, car, pose = near.nonzero(as_tuple=True)  # (P,)
+        sweep = poses.speed.clamp_min(0.0) * self.sim.dt  # (E, K, F, P) [m]
+        cos, sin = torch.cos(poses.heading), torch.sin(poses.heading)
+        x, y = poses.x + 0.5 * sweep * cos, poses.y + 0.5 * sweep * sin  # the swept rectangle's centre
+        half_length = 0.5 * self.length + self.margin + 0.5 * sweep
+        half_width = 0.5 * self.width + self.margin
+        reach = torch.hypot(half_length.amax() if half_length.numel() else half_length.new_zeros(()),
+                            half_length.new_tensor(half_width))
+        flat_x, flat_y = x.flatten(1, 2), y.flatten(1, 2)  # (E, K F, P)
+        near = ((flat_x.amin(dim=1)[:, None] - reach <= sets.x_high) & (flat_x.amax(dim=1)[:, None] + reach >= sets.x_low)
+                & (flat_y.amin(dim=1)[:, None] - reach <= sets.y_high.amax(dim=1))
+                & (flat_y.amax(dim=1)[:, None] + reach >= sets.y_low.amin(dim=1)) & sets.relevant[..., None])
+        env, car, pose = near.nonzero(as_tuple=True)  # (Q,)
         meets = torch.zeros(variant.shape, dtype=torch.int32, device=variant.device)
         if env.numel():
-            x, y, heading = (field[env, ..., pose] for field in poses[:3])  # (P, K, F)
-            chosen = variant[env]  # (P, K, F)
+            chosen = variant[env]  # (Q, K, F)
             rows = torch.arange(env.numel(), device=env.device)[:, None, None]
-            y_low_p = y_low[env, :, car, pose][rows, chosen]
-            y_high_p = y_high[env, :, car, pose][rows, chosen]
-            hit = rectangle_meets_box(x, y, heading, half_length, half_width, x_low[env, car, pose, None, None],
-                                      x_high[env, car, pose, None, None], y_low_p, y_high_p)
+            y_low = sets.y_low[env, :, car, pose][rows, chosen]
+            y_high = sets.y_high[env, :, car, pose][rows, chosen]
+            hit = rectangle_meets_box(x[env, ..., pose], y[env, ..., pose], poses.heading[env, ..., pose],
+                                      half_length[env, ..., pose], half_width, sets.x_low[env, car, pose, None, None],
+                                      sets.x_high[env, car, pose, None, None], y_low, y_high)
             meets.index_add_(0, env, hit.int())
         return meets > 0
-
-
-def _pose_hull(bound: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The bounds (..., T) of T intervals as seen from the T + 1 poses between them: for pose i
-    those of intervals i - 1 and i (the first and last pose: their one interval, twice)."""
-    return torch.cat([bound[..., :1], bound], dim=-1), torch.cat([bound, bound[..., -1:]], dim=-1)
 
 
 def _check_inputs(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
