@@ -1,6 +1,6 @@
 """mmpc: multi-modal model predictive control by batch non-holonomic trajectory optimization."""
 
-from mmpc.basis import Basis, bernstein_basis
+from mmpc.solver.basis import Basis, bernstein_basis
 from mmpc.goals import CruiseGoals, GoalSampler, HighSpeedGoals, NearLaneGoals
 from mmpc.meta_costs import CruiseCost, HighSpeedCost, MetaCost
 from mmpc.mpc import MPC, MPCConfig, Plan

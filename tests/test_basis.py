@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from mmpc.basis import bernstein_basis
+from mmpc.solver.basis import bernstein_basis
 
 
 def test_partition_of_unity_and_endpoints():

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.basis import bernstein_basis
-from mmpc.operators import build_operators, lane_keeping_profile, position_equality_matrix
+from mmpc.solver.basis import bernstein_basis
+from mmpc.solver.operators import build_operators, lane_keeping_profile, position_equality_matrix
 from mmpc.solver.config import OptimizerConfig
 
 

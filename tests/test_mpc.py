@@ -179,7 +179,7 @@ def test_auto_compile_is_the_float32_path_with_a_kernel_compiler(monkeypatch):
         mmpc.BatchOptimizer(compile="auto")
     monkeypatch.delenv(execution.COMPILE_ENV)
     assert mmpc.BatchOptimizer(compile="auto").compiled
-    assert not mmpc.BatchOptimizer(compile="auto", dtype=torch.float64).compiled  # mmpc.trig is float32-exact
+    assert not mmpc.BatchOptimizer(compile="auto", dtype=torch.float64).compiled  # mmpc.solver.trig is float32-exact
     monkeypatch.setattr(execution, "kernel_compiler_found", lambda on_cpu: False)
     assert not mmpc.BatchOptimizer(compile="auto").compiled
     with pytest.raises(ValueError, match="compile"):

@@ -1,11 +1,11 @@
-"""mmpc.trig: the polynomial sin/cos/atan2 of the compiled CPU path, against float64 references."""
+"""mmpc.solver.trig: the polynomial sin/cos/atan2 of the compiled CPU path, against float64 references."""
 
 import math
 
 import pytest
 import torch
 
-from mmpc import trig
+from mmpc.solver import trig
 
 # float32 rounding of values up to pi is 1.2e-7 (half an ulp of pi); the polynomials stay within
 # about two ulps.

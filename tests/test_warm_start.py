@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import mmpc
-from mmpc.basis import bernstein_basis
+from mmpc.solver.basis import bernstein_basis
 from mmpc.drivers import Observation
 from mmpc.drivers.mpc_driver import MPCDriver
 from mmpc.result import WarmStart

@@ -49,7 +49,7 @@ class OptimizerConfig:
             to the a_max disc: a harder brake than a plan may use would make every plan infeasible).
         lane_weight: lane keeping, ``lane_weight/2 sum_t s(t) (y(t) - y_goal)^2`` added to the
             lateral smoothness cost, with s rising from 0 at the start to 1 at
-            ``lane_settle_time`` (:func:`mmpc.operators.lane_keeping_profile`): the path reaches
+            ``lane_settle_time`` (:func:`mmpc.solver.operators.lane_keeping_profile`): the path reaches
             its goal's lane early and stays centred on it rather than drifting across over the
             whole horizon. Soft: the constraint penalties outgrow it as rho grows. 0: the
             paper's cost [1/s^4, like ``weight_xy``'s ``Pddot``].

@@ -18,7 +18,7 @@ One iteration, for every (problem, goal) element at once:
    reused by the next position QP.
 
 There is no Python branching on tensor values and no host synchronisation inside the loop.
-Compiled for the CPU in float32, the iterations take sin, cos and atan2 from :mod:`mmpc.trig`
+Compiled for the CPU in float32, the iterations take sin, cos and atan2 from :mod:`mmpc.solver.trig`
 (short polynomials the compiler fuses into the loops, float32-exact for headings below 1e4 rad);
 compiled for the CPU they contract multiply-adds; eager, in float64 and on the GPU they use the
 torch functions.
@@ -31,7 +31,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from mmpc import trig
+from mmpc.solver import trig
 from mmpc.problem import EGO_A, EGO_PSI, EGO_PSIDOT, EGO_V, EGO_X, EGO_Y
 from mmpc.result import Status, WarmStart
 from mmpc.solver.checks import replace_nonfinite
@@ -53,7 +53,7 @@ class Limits(NamedTuple):
     ellipse_a: float  # m, obstacle ellipse semi-axis along x
     ellipse_b: float  # m, along y
     obstacle_radius: float  # normalised radius the obstacle step projects onto (1 + back-off)
-    polynomial_trig: bool = False  # sin, cos, atan2 from mmpc.trig (compiled CPU float32) or torch
+    polynomial_trig: bool = False  # sin, cos, atan2 from mmpc.solver.trig (compiled CPU float32) or torch
 
 
 def _atan2(y: torch.Tensor, x: torch.Tensor, limits: Limits) -> torch.Tensor:
@@ -194,7 +194,7 @@ def iterate(
 
     Shapes: ``position`` (U, 2, K, D) when every problem has the same obstacle count, else
     (U, E, 2, K, D); ``gather`` (U, K, 3N); ``heading`` (U, K, N + K + 4); ``heading_gather``
-    (U, K, N); see :class:`mmpc.operators.Operators`; ``obstacles`` and ``axes`` as
+    (U, K, N); see :class:`mmpc.solver.operators.Operators`; ``obstacles`` and ``axes`` as
     :class:`Prepared`. Pure tensor code without host
     synchronisation, so that it can be compiled.
     """

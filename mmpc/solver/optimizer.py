@@ -15,8 +15,8 @@ from typing import Optional
 import torch
 from torch import nn
 
-from mmpc.basis import bernstein_basis, bernstein_shift
-from mmpc.operators import build_operators
+from mmpc.solver.basis import bernstein_basis, bernstein_shift
+from mmpc.solver.operators import build_operators
 from mmpc.problem import ProblemBatch
 from mmpc.result import SolveResult, Trajectories, WarmStart
 from mmpc.solver import checks, execution, iterations
@@ -134,7 +134,7 @@ class BatchOptimizer(nn.Module):
             raise ValueError(f"`compile_after` must be None or a number of seconds >= 0; got {compile_after!r}")
         self.compile_after = float(compile_after)
         self._eager_seconds: dict[tuple, float] = {}  # call layout -> estimated eager solving so far [s]
-        # mmpc.trig is exact to float32 rounding, not to float64's.
+        # mmpc.solver.trig is exact to float32 rounding, not to float64's.
         polynomial_trig = compile and on_cpu and dtype == torch.float32
         self._limits = iterations.Limits(
             cfg.v_min, cfg.v_max, cfg.a_max - cfg.acceleration_backoff, heading, cfg.ellipse_a, cfg.ellipse_b,

@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import torch
 
-from mmpc.basis import Basis
+from mmpc.solver.basis import Basis
 from mmpc.solver.config import OptimizerConfig
 
 
