@@ -106,7 +106,7 @@ def test_the_check_counts_the_worlds_look_ahead_of_one_frame():
 SETTINGS = [
     {"frequency": 5.0},
     {"frequency": 15.0},
-    {"frequency": 30.0, "duration": 4.0},
+    {"frequency": 30.0, "duration": 3.0},
     {"lanes": 2},
     {"lanes": 3},
     {"vehicle_size": [4.0, 1.8]},
