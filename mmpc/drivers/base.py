@@ -149,6 +149,9 @@ class Driver(abc.ABC):
     def reset(self, num_envs: int) -> None:
         """E new episodes start: forget anything carried from earlier steps."""
 
+    def close(self) -> None:
+        """Release what the driver holds beyond memory (worker processes); it is not used after."""
+
     @abc.abstractmethod
     def decide(self, observation: Observation) -> Decision:
         """Commands for the E environments of ``observation``."""

@@ -52,6 +52,9 @@ class VerifiedDriver(Driver):
         self.driver.reset(num_envs)
         self.guard.reset()
 
+    def close(self) -> None:
+        self.driver.close()
+
     def decide(self, observation: Observation) -> Decision:
         decision = self.driver.decide(observation)
         start = time.perf_counter()

@@ -99,7 +99,7 @@ def check_drivers(scenarios: Sequence[ScenarioConfig], drivers: Sequence[str]) -
     for spec in drivers:
         for scenario in scenarios:
             try:
-                make_driver(spec, scenario)
+                make_driver(spec, scenario).close()
             except (ValueError, OSError, KeyError) as error:
                 raise ConfigError(f"driver {spec!r} cannot drive scenario {scenario.name!r}: {error}") from error
 

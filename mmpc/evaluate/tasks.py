@@ -4,6 +4,7 @@ returned as one :data:`~mmpc.evaluate.store.COLUMNS` row per seed."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -154,7 +155,8 @@ def _write_episode(task: GroupTask, result: EpisodeResult) -> None:
     shutil.rmtree(staging, ignore_errors=True)
     write_outputs(result, staging)
     if task.collision_videos and result.metrics["collisions"]:
-        run_episode(task.scenario, result.seed, driver=make_driver(task.driver, task.scenario), video=staging / "episode.mp4")
+        with contextlib.closing(make_driver(task.driver, task.scenario)) as driver:
+            run_episode(task.scenario, result.seed, driver=driver, video=staging / "episode.mp4")
     shutil.rmtree(target, ignore_errors=True)
     os.replace(staging, target)
 
@@ -170,7 +172,8 @@ def run_group(task: GroupTask) -> list[dict]:
     """
     start = time.perf_counter()
     try:
-        results = run_lockstep(task.scenario, task.seeds, driver=make_driver(task.driver, task.scenario))
+        with contextlib.closing(make_driver(task.driver, task.scenario)) as driver:
+            results = run_lockstep(task.scenario, task.seeds, driver=driver)
         if task.episode_layout is not None:
             for result in results:
                 _write_episode(task, result)
