@@ -2,6 +2,7 @@
 any folder or row, and nothing a finished run wrote is replaced."""
 
 import json
+import shutil
 
 import pytest
 
@@ -85,3 +86,18 @@ def test_imitation_without_the_ngsim_recording_is_refused_before_any_folder(tmp_
     assert main(["imitate", verb, "--scenario", "cruise_ngsim", "--out", str(tmp_path / "out")]) == 2
     assert "the NGSIM recording is not shipped" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_rl_run_whose_config_switches_a_retired_option_on_is_refused_before_any_folder(tmp_path, capsys):
+    from mmpc.rl.runs import SHIPPED_MODELS
+
+    run = tmp_path / "old_run"
+    shutil.copytree(SHIPPED_MODELS / "cruise_task_ppo", run)
+    config = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(config.replace("      num_obstacles: 6\n", "      num_obstacles: 6\n      contingencies: 1\n", 1))
+    spec = f"sb3:{run / 'model.zip'}"
+    assert main(["evaluate", "--driver", spec, "--scenarios", "cruise", "--seeds", "0", "--duration", "0.2", "--out",
+                 str(tmp_path / "evaluation")]) == 2
+    err = capsys.readouterr().err
+    assert f"driver {spec!r} cannot drive scenario 'cruise'" in err and "no longer has" in err and err.count("\n") == 1
+    assert not (tmp_path / "evaluation").exists()

@@ -70,8 +70,10 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             evaluation = evaluate(scenarios, out, config, on_episode=progress)
-        # scenarios.json damaged, of other scenarios or driver files, or another evaluation writing there
-        except (EvaluationFolderError, OutputFolderError) as error:
+        # a driver that cannot be built, scenarios.json damaged, of other scenarios or driver files, or another
+        # evaluation writing there: the bar goes, the reason stays
+        except (ConfigError, EvaluationFolderError, OutputFolderError) as error:
+            bar.leave = False
             bar.close()
             print(f"mmpc evaluate: error: {error}", file=sys.stderr)
             return 2
