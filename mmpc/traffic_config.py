@@ -75,6 +75,11 @@ class IDMTraffic:
             (IDM only).
         threats: the cars near the ego threaten it within the rules (:class:`Threats`; the
             batched simulator only); ``None``: naturalistic traffic.
+        ego_as_follower: MOBIL reads the ego as an IDM follower at its present speed, so a car
+            may cut in directly ahead of it where that follower would brake at most
+            ``lane_change_max_braking_imposed`` (highway-env: the ego carries its speed as
+            ``target_speed``). ``False``: highway-env's own reading of a continuous-action ego, which
+            has no target speed: MOBIL predicts it braking enormously and no car cuts in ahead of it.
     """
 
     kind: ClassVar[str] = "idm"
@@ -85,6 +90,7 @@ class IDMTraffic:
     initial_clearance: float = 25.0
     lane_changes: bool = True
     threats: Optional[Threats] = None
+    ego_as_follower: bool = False
 
     def __post_init__(self) -> None:
         require_field_types(self)

@@ -102,7 +102,8 @@ def test_the_check_counts_the_worlds_look_ahead_of_one_frame():
 
 
 #: Settings the loader accepts, each swept in adversarial traffic (high_speed_threats): the
-#: frequencies from the floor up, few and many lanes, smaller and larger cars, fast traffic.
+#: frequencies from the floor up, few and many lanes, smaller and larger cars, fast traffic, traffic
+#: that reads the ego as an IDM follower.
 SETTINGS = [
     {"frequency": 5.0},
     {"frequency": 15.0},
@@ -112,6 +113,7 @@ SETTINGS = [
     {"vehicle_size": [4.0, 1.8]},
     {"vehicle_size": [6.0, 2.3], "optimizer": {"ellipse_a": 9.0, "ellipse_b": 4.5}},
     {"traffic": {"target_speeds": [20.0, 28.0]}, "ego": {"speed": 25.0}},
+    {"traffic.ego_as_follower": True},  # cut-ins directly ahead of the ego where MOBIL allows them
 ]
 
 

@@ -224,6 +224,8 @@ class HighwayEpisode:
         speed = float(self.ego.speed)
         acceleration = max(acceleration, -max(speed, 0.0) * self.scenario.frequency)
         pending = {id(v): (v, v.impact) for v in self.unwrapped.road.vehicles if v.impact is not None}
+        if getattr(self.scenario.traffic, "ego_as_follower", False):
+            self.ego.target_speed = speed  # MOBIL reads the ego as an IDM follower holding its speed
         _, reward, _, _, _ = self.env.step(command_to_action(acceleration, steering))
         # A push was applied where the vehicle no longer holds it (a vehicle that does not step, e.g. a replay, keeps it).
         self.pushes = {key: np.array(impact) for key, (v, impact) in pending.items() if v.impact is not impact}

@@ -42,6 +42,9 @@ class SimConfig:
             brake harder than this [m/s^2] (positive).
         lane_change_delay: a vehicle on its target lane evaluates MOBIL once its timer
             exceeds this, then restarts the timer [s].
+        ego_as_follower: MOBIL reads the ego (slot 0) as an IDM follower whose target speed is its
+            present speed; ``False``: as highway-env reads a continuous-action ego, with none
+            (:mod:`mmpc.sim.mobil`).
     """
 
     simulation_frequency: float = 10.0
@@ -66,6 +69,7 @@ class SimConfig:
     lane_change_min_acc_gain: float = 0.2
     lane_change_max_braking_imposed: float = 2.0
     lane_change_delay: float = 1.0
+    ego_as_follower: bool = False
 
     def __post_init__(self) -> None:
         require_field_types(self)

@@ -26,6 +26,9 @@ The ego (slot 0) never decides and, being highway-env's plain ``Vehicle`` under 
 continuous actions, has no target speed: as a follower MOBIL reads it as 0, which ``not_zero``
 makes 0.01 m/s, so the predicted braking of a moving ego is huge and no IDM vehicle cuts in
 directly ahead of it. It does not count in the abort rule either (not a ``ControlledVehicle``).
+With ``SimConfig.ego_as_follower`` MOBIL reads the ego's present speed as its target speed instead
+(an IDM follower that holds its speed), and cars cut in ahead of it where that follower would brake
+at most ``lane_change_max_braking_imposed``.
 
 Every vehicle's timer then grows by dt with the frame (:func:`advance_timers`).
 """
@@ -65,7 +68,8 @@ def _mobil(state: VehicleState, candidate: torch.Tensor, config: SimConfig, quer
     own = torch.arange(state.x.shape[1], device=state.x.device).expand(state.x.shape) if query is None else query
     everyone = torch.ones_like(own, dtype=torch.bool)
     delta = torch.gather(state.idm_delta, 1, own)
-    target_speed = torch.cat([torch.zeros_like(state.target_speed[:, :1]), state.target_speed[:, 1:]], dim=1)
+    ego_target = state.speed[:, :1] if config.ego_as_follower else torch.zeros_like(state.target_speed[:, :1])
+    target_speed = torch.cat([ego_target.to(state.target_speed.dtype), state.target_speed[:, 1:]], dim=1)
     on_road = (candidate >= 0) & (candidate < config.lanes)
     lane = candidate.clamp(0, config.lanes - 1)
     current_lane = torch.gather(state.lane, 1, own)

@@ -46,9 +46,11 @@ _EGO_LANE, _EGO_X, _LANE, _SPEED, _SPACING, _DELTA, _TARGET_SPEED, _CLEAR, _CLEA
 
 
 def sim_config(scenario: ScenarioConfig) -> SimConfig:
-    """The simulator's constants of a scenario (its lanes, and its frequency for both the
-    simulation and the commands, as :func:`mmpc.highway.episode.env_config` configures highway-env)."""
-    return SimConfig(simulation_frequency=scenario.frequency, policy_frequency=scenario.frequency, lanes=scenario.lanes)
+    """The simulator's constants of a scenario (its lanes, its frequency for both the simulation and
+    the commands, as :func:`mmpc.highway.episode.env_config` configures highway-env, and how MOBIL
+    reads the ego)."""
+    return SimConfig(simulation_frequency=scenario.frequency, policy_frequency=scenario.frequency, lanes=scenario.lanes,
+                     ego_as_follower=getattr(scenario.traffic, "ego_as_follower", False))
 
 
 def check_supported(scenario: ScenarioConfig) -> None:

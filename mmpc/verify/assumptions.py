@@ -86,11 +86,14 @@ class TrafficAssumptions:
 
     @classmethod
     def for_scenario(cls, scenario: "ScenarioConfig") -> "TrafficAssumptions":
-        """The assumptions for a scenario's cars (its vehicle size): a footprint wider than 2 m
-        reaches beyond a lane centre by half the extra width more."""
+        """The assumptions for a scenario's cars: their size (a footprint wider than 2 m reaches
+        beyond a lane centre by half the extra width more), and ``mobil_safety`` off where the traffic
+        reads the ego as an IDM follower (``traffic.ego_as_follower``: cars may then cut in ahead of it;
+        the sets let any car enter any lane until a rule for that reading is written)."""
         length, width = scenario.vehicle
         default = cls()
-        return cls(length=length, width=width, lane_overreach=default.lane_overreach + 0.5 * (width - default.width))
+        return cls(length=length, width=width, lane_overreach=default.lane_overreach + 0.5 * (width - default.width),
+                   mobil_safety=not getattr(scenario.traffic, "ego_as_follower", False))
 
     @property
     def half_length(self) -> float:
