@@ -43,6 +43,8 @@ def test_the_check_refuses_frequencies_at_which_the_traffic_leaves_its_assumptio
             load_scenario("high_speed_threats", {"frequency": frequency})
     with pytest.raises(ValueError, match="one simulation frame per command"):
         Verifier(mmpc.Road(num_lanes=4), SimConfig(simulation_frequency=20.0, policy_frequency=10.0))
+    with pytest.raises(ValueError, match="`margin` must cover the one-frame sweep"):
+        Verifier(mmpc.Road(num_lanes=4), SimConfig(simulation_frequency=5.0, policy_frequency=5.0), margin=0.05)
     Verifier.for_scenario(load_scenario("high_speed", {"frequency": 5.0}))  # the lowest covered
 
 

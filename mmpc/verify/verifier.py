@@ -56,7 +56,9 @@ class Verifier:
         assumptions: what the other cars may do.
         failsafes: the fail-safes tried from each end state.
         ego_size: the ego's (length, width) [m].
-        margin: kept between the ego's footprint and every set [m].
+        margin: kept between the ego's footprint and every set [m]; it also holds the one-frame sweep
+            across the road of a car the lane rule keeps in its band (``|vy| <= change_speed``), which
+            the band does not widen by, so it must be at least ``change_speed x dt``.
         max_horizon: the longest fail-safe checked [s] (one that has not come to rest by then fails).
     """
 
@@ -70,6 +72,9 @@ class Verifier:
                 f"Verifier: verification needs frames of at most 1 / kp_heading = {1 / sim.kp_heading:.2f} s, a simulation "
                 f"frequency >= {sim.kp_heading:g} Hz (with longer frames the lane-keeping controller overshoots and the "
                 f"cars leave the assumed headings and lateral speeds); got {sim.simulation_frequency:g} Hz")
+        if margin < assumptions.change_speed * sim.dt - 1e-12:
+            raise ValueError(f"Verifier: `margin` must cover the one-frame sweep across the road of a car the lane rule "
+                             f"holds (change_speed x dt = {assumptions.change_speed * sim.dt:g} m); got {margin!r}")
         if sim.frames_per_command != 1:
             raise ValueError(f"Verifier: the check samples the ego once per command, so it needs one simulation frame per "
                              f"command; got {sim.simulation_frequency} Hz simulation for {sim.policy_frequency} Hz commands")
