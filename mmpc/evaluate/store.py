@@ -273,6 +273,9 @@ def scenario_differences(folder: Path, scenario: str, other_folder: Path, other_
         return []
     if first_settings is None or other_settings is None:
         return [f"settings hash {first_hash} vs {other_hash} (the settings are not recorded: a folder of an earlier mmpc)"]
+    # read as today's loader reads them: a setting added since (at its default) or retired (off) is no difference
+    first_settings, other_settings = (scenario_settings(scenario) if (scenario := _reread(settings, "")) is not None
+                                      else settings for settings in (first_settings, other_settings))
     ours, theirs = _flat(first_settings), _flat(other_settings)
     return [f"{key}: {ours.get(key, '-')} vs {theirs.get(key, '-')}" for key in sorted(ours.keys() | theirs.keys())
             if key.split(".")[0] not in ignore and ours.get(key, "-") != theirs.get(key, "-")]
