@@ -385,10 +385,11 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_igno
     assert yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())["env"] == "highway"
     # the shipped recipe starts PPO at the expert; it reproduces the shipped agent's settings, but for the
     # layer's warm starts: the agents were trained before the scenarios warm-started (every decision solve cold),
-    # and before `env.verify` existed (unverified, its default)
+    # and before `env.verify` and `traffic.ego_as_follower` existed (their defaults)
     def settings(config: dict) -> dict:
         config["scenario"]["mpc"].pop("warm_iterations")
         config["env"].setdefault("verify", False)
+        config["scenario"]["traffic"].setdefault("ego_as_follower", False)
         return config
 
     recipe = load_config(RLConfig, "high_speed")
