@@ -19,7 +19,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from mmpc.config import ConfigError
-    from mmpc.evaluate.evaluation import check_drivers, check_scenarios
+    from mmpc.evaluate.evaluation import build_driver, check_drivers, check_scenarios
     from mmpc.scenario import load_scenario
 
     if args.seed is not None and args.seeds is not None:
@@ -35,7 +35,10 @@ def run(args: argparse.Namespace) -> int:
         scenarios.append(scenario)
     try:  # before the output folder is made
         check_scenarios(scenarios)
-        check_drivers(scenarios, (args.driver,))
+        if args.seeds is None and len(scenarios) == 1:  # one episode: the driver built here drives it
+            driver = build_driver(args.driver, scenarios[0])
+        else:
+            check_drivers(scenarios, (args.driver,))
     except ConfigError as error:
         print(f"mmpc drive: error: {error}", file=sys.stderr)
         return 2
@@ -69,7 +72,6 @@ def run(args: argparse.Namespace) -> int:
     if len(scenarios) != 1:
         print("mmpc drive: error: several scenarios need --seeds", file=sys.stderr)
         return 2
-    from mmpc.drivers import make_driver
     from mmpc.highway.runner import Observer, run_episode, write_outputs
 
     class Progress(Observer):
@@ -77,7 +79,6 @@ def run(args: argparse.Namespace) -> int:
             bar.update(1)
 
     scenario = scenarios[0]
-    driver = make_driver(args.driver, scenario)
     seed = scenario.seeds[0] if args.seed is None else args.seed
     video = None if args.no_video or scenario.sim == "batched" else out / "episode.mp4"
     if video is None and not args.no_video:

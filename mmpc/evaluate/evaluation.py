@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Callable, NamedTuple, Optional, Sequence
 
 from mmpc.config import ConfigError
-from mmpc.drivers import make_driver
+from mmpc.drivers import Driver, make_driver
 from mmpc.evaluate.backends import run_tasks
 from mmpc.evaluate.report import summarize, write_report
 from mmpc.evaluate.store import EpisodeFile, Key, check_inputs, read_episodes, row_key
@@ -98,10 +98,16 @@ def check_drivers(scenarios: Sequence[ScenarioConfig], drivers: Sequence[str]) -
     """
     for spec in drivers:
         for scenario in scenarios:
-            try:
-                make_driver(spec, scenario).close()
-            except (ValueError, OSError, KeyError) as error:
-                raise ConfigError(f"driver {spec!r} cannot drive scenario {scenario.name!r}: {error}") from error
+            build_driver(spec, scenario).close()
+
+
+def build_driver(spec: str, scenario: ScenarioConfig) -> Driver:
+    """:func:`mmpc.drivers.make_driver`, its refusal as a :class:`mmpc.config.ConfigError` naming the
+    driver, the scenario and why."""
+    try:
+        return make_driver(spec, scenario)
+    except (ValueError, OSError, KeyError) as error:
+        raise ConfigError(f"driver {spec!r} cannot drive scenario {scenario.name!r}: {error}") from error
 
 
 def evaluate(
