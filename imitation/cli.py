@@ -51,7 +51,7 @@ def _demos(args: argparse.Namespace) -> int:
         try:
             report = generate_demonstrations(scenario, seeds, Path(args.out), workers=args.workers,
                                              lockstep=args.lockstep, threads=args.threads,
-                                             expert="verified:mpc" if args.verified else "mpc", on_progress=progress)
+                                             expert=args.expert, on_progress=progress)
         except DemonstrationsError as error:
             bar.close()
             print(f"mmpc imitate demos: error: {error}", file=sys.stderr)
@@ -207,6 +207,7 @@ def _scenario_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_subcommands(sub) -> None:
     """Add ``mmpc imitate {demos, bc, dagger, proposer, export}``."""
+    from mmpc.imitation.dataset import EXPERTS
 
     imitate = sub.add_parser("imitate", help="imitation learning from the MPC: demos, bc, dagger, proposer, export")
     commands = imitate.add_subparsers(dest="imitate_command", required=True)
@@ -220,8 +221,11 @@ def add_subcommands(sub) -> None:
     demos.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
     demos.add_argument("--lockstep", type=int, default=4,
                        help="episodes per optimizer call (chunk k = seeds with seed // lockstep == k) (default 4)")
-    demos.add_argument("--verified", action="store_true",
-                       help="the MPC behind the check (mmpc.verify): every recorded action keeps a verified way out")
+    demos.add_argument("--expert", choices=EXPERTS, default="verified:mpc",
+                       help="who drives: verified:mpc, the MPC behind the check (mmpc.verify: every recorded action keeps "
+                            "a verified way out; the default), or mpc, the MPC alone (default verified:mpc)")
+    demos.add_argument("--verified", dest="expert", action="store_const", const="verified:mpc",
+                       help="the default now; same as --expert verified:mpc")
     demos.add_argument("--out", default="runs/demos", help="demonstrations directory (default runs/demos)")
     demos.set_defaults(func=_demos, kept="the finished episodes stay staged in {out}")
 

@@ -201,7 +201,8 @@ class DemonstrationsDir:
                     changed.append(f"expert ({existing.expert} there, {manifest.expert} asked)")
                 raise DemonstrationsError(
                     f"{self.root} holds demonstrations of another configuration (differs in: {', '.join(changed) or 'format'}); "
-                    "re-run with the same scenario and --lockstep to resume, or choose another --out")
+                    f"re-run with the same scenario, --lockstep and --expert ({existing.expert}) to resume, or choose "
+                    "another --out")
         elif self.root.exists() and any(self.root.iterdir()):
             raise DemonstrationsError(f"{self.root} is not empty and has no {MANIFEST}: it is not an mmpc demonstrations "
                                       "directory; refusing to write into it (choose another --out)")
@@ -336,6 +337,7 @@ def build_minari(directory: DemonstrationsDir, scenario: ScenarioConfig, seeds: 
             "mmpc_scenario": to_dict(scenario),
             "mmpc_seeds": [int(s) for s in seeds],
             "mmpc_lockstep": directory.manifest.lockstep,
+            "mmpc_expert": directory.manifest.expert,
             "mmpc_packages": package_versions(),
         })
     env.close()

@@ -84,7 +84,7 @@ class DemoTask(NamedTuple):
     seeds: tuple[int, ...]
     missing: tuple[int, ...]
     episodes_dir: Path
-    expert: str = "mpc"
+    expert: str = "verified:mpc"
 
     @property
     def label(self) -> str:
@@ -161,7 +161,7 @@ def generate_demonstrations(
     workers: int = 1,
     lockstep: int = 4,
     threads: int = 1,
-    expert: str = "mpc",
+    expert: str = "verified:mpc",
     on_progress: Optional[Callable[[int, int], None]] = None,
 ) -> DemosReport:
     """Drive the expert over ``seeds``, stage every episode, build the Minari dataset.
@@ -177,8 +177,9 @@ def generate_demonstrations(
         workers: parallel processes (1: in this process).
         lockstep: the grouping of the episodes (part of the directory's identity).
         threads: torch threads per worker.
-        expert: ``"mpc"`` or ``"verified:mpc"``, the MPC behind the check (:mod:`mmpc.verify`): every
-            recorded action keeps a verified way out (part of the directory's identity).
+        expert: ``"verified:mpc"``, the MPC behind the check (:mod:`mmpc.verify`: every recorded
+            action keeps a verified way out), or ``"mpc"``, the MPC alone (part of the directory's
+            identity and the dataset's metadata, ``mmpc_expert``).
         on_progress: called as ``on_progress(finished, total)`` while episodes get staged.
 
     Returns:

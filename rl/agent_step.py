@@ -105,7 +105,8 @@ class AgentStep:
 
 class StepTally:
     """What E environments' agent step adds up, on one device: the reward, less the intervention
-    penalty per overridden frame, and the counts and last values ``info`` reports."""
+    penalty per overridden frame, and the counts and last values ``info`` reports (with a
+    verifying layer also the frames whose command verified and those the stored fail-safe drove)."""
 
     def __init__(self, count: int, device: torch.device, intervention_penalty: float) -> None:
         self.penalty = intervention_penalty
@@ -118,6 +119,9 @@ class StepTally:
         self.feasible_goals = torch.zeros(count, dtype=torch.long, device=device)
         self.agent_feasible = torch.zeros(count, dtype=torch.bool, device=device)
         self.residuals = torch.zeros(count, 3, dtype=torch.float64, device=device)
+        self.verified = torch.zeros(count, dtype=torch.long, device=device)
+        self.failsafes = torch.zeros(count, dtype=torch.long, device=device)
+        self.checked = False
         self.solve_ms: list[float] = []
 
     def add(self, rows: torch.Tensor, control: FrameControl, rewards: torch.Tensor, speeds: torch.Tensor) -> None:
@@ -132,6 +136,10 @@ class StepTally:
         self.feasible_goals[rows] = control.feasible_goals
         self.agent_feasible[rows] = control.agent_feasible
         self.residuals[rows] = control.residuals.double()
+        if control.verified is not None:
+            self.checked = True
+            self.verified[rows] += control.verified.long()
+            self.failsafes[rows] += control.failsafe.long()
 
     def infos(self, commands: torch.Tensor, speed: torch.Tensor, crashed: torch.Tensor,
               solve_ms: float) -> tuple[np.ndarray, list[dict]]:
@@ -145,7 +153,8 @@ class StepTally:
             solve_ms: the ``solve_ms`` every info reports (a :class:`mmpc.rl.envs.WallTime`).
         """
         counts = torch.stack([self.interventions, self.fallbacks, self.solved, self.frames, self.feasible_goals,
-                              self.agent_feasible.long(), crashed.long().to(self.frames.device)], dim=1).cpu().numpy()
+                              self.agent_feasible.long(), crashed.long().to(self.frames.device), self.verified,
+                              self.failsafes], dim=1).cpu().numpy()
         mean_speed = self.speed_sum / self.frames.clamp(min=1)
         reals = torch.cat([self.rewards[:, None], speed.double().to(self.rewards.device)[:, None], mean_speed[:, None],
                            commands.double().to(self.rewards.device), self.residuals], dim=1).cpu().numpy()
@@ -156,6 +165,9 @@ class StepTally:
             "feasible_goals": int(count[4]), "agent_feasible": bool(count[5]),
             "residuals": {"obstacle": float(real[5]), "acceleration": float(real[6]), "nonholonomic": float(real[7])},
         } for count, real in zip(counts.tolist(), reals.tolist())]
+        if self.checked:
+            for info, count in zip(infos, counts.tolist()):
+                info.update(verified_frames=int(count[7]), failsafe_frames=int(count[8]))
         return reals[:, 0].copy(), infos
 
 

@@ -6,6 +6,8 @@ same event files as SB3's ``rollout/`` and ``train/`` scalars):
 
 - ``solver/solve_ms``: mean wall time of an optimizer call (one call serves all environments);
 - ``safety/intervention_rate``: share of simulation frames on which the layer overrode the agent;
+- ``safety/verified_share``, ``safety/failsafe_rate`` (a verifying layer, ``env.verify``): share of
+  simulation frames whose command kept a verified way out, and of frames the stored fail-safe drove;
 - ``safety/collision_rate``: share of the last 100 finished episodes that ended in a collision;
 - ``safety/crashes``, ``safety/episodes``: collisions and finished episodes since the start of the
   run (crashes per 10^5 training steps = ``crashes`` / step x 10^5);
@@ -30,8 +32,8 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 #: The custom scalar tags.
-SCALAR_TAGS = ("solver/solve_ms", "safety/intervention_rate", "safety/collision_rate", "safety/crashes",
-               "safety/episodes", "driving/mean_speed")
+SCALAR_TAGS = ("solver/solve_ms", "safety/intervention_rate", "safety/verified_share", "safety/failsafe_rate",
+               "safety/collision_rate", "safety/crashes", "safety/episodes", "driving/mean_speed")
 #: The columns of a :class:`CrashLog`.
 CRASH_LOG_COLUMNS = ("timesteps", "env", "episode_seed", "step", "time_s", "actions")
 
@@ -107,6 +109,9 @@ class SafetyTensorboardCallback(BaseCallback):
         self.solve_ms: list[float] = []
         self.frames = 0
         self.intervened = 0
+        self.checked_frames = 0
+        self.verified = 0
+        self.failsafes = 0
         self.speed_sum = 0.0
         self.speed_count = 0
 
@@ -126,6 +131,10 @@ class SafetyTensorboardCallback(BaseCallback):
             if "intervention_frames" in info:
                 self.frames += frames
                 self.intervened += int(info["intervention_frames"])
+            if "verified_frames" in info:
+                self.checked_frames += frames
+                self.verified += int(info["verified_frames"])
+                self.failsafes += int(info["failsafe_frames"])
             speed = info.get("mean_speed", info.get("speed"))
             if speed is not None and np.isfinite(speed):
                 self.speed_sum += float(speed) * frames
@@ -164,6 +173,9 @@ class SafetyTensorboardCallback(BaseCallback):
             self.logger.record("solver/solve_ms", float(np.mean(self.solve_ms)))
         if self.frames:
             self.logger.record("safety/intervention_rate", self.intervened / self.frames)
+        if self.checked_frames:
+            self.logger.record("safety/verified_share", self.verified / self.checked_frames)
+            self.logger.record("safety/failsafe_rate", self.failsafes / self.checked_frames)
         if self.crashes:
             self.logger.record("safety/collision_rate", float(np.mean(self.crashes)))
         self.logger.record("safety/crashes", self.total_crashes)

@@ -175,8 +175,11 @@ class SafeEnvConfig:
         kinematics_vehicles: rows of highway-env's ``Kinematics`` observation (ego first).
         verify: every frame's command is taken only if it keeps a verified way out
             (:class:`mmpc.verify.Guard`: else braking, the plan's other feasible candidates, a
-            fail-safe); an override counts as an intervention. The batched simulator's
-            environments and the safe-agent drivers; highway-env's training environments refuse it.
+            fail-safe); an override counts as an intervention. On by default, in both worlds:
+            whatever the agent asks, no collision while the traffic keeps
+            :class:`mmpc.verify.TrafficAssumptions`. ``false`` is the layer alone (the MPC's
+            feasible candidates, no way-out check); runs recorded before the setting existed
+            are read so (:func:`mmpc.rl.runs.recorded_config`).
     """
 
     decision_frames: int = 5
@@ -192,7 +195,7 @@ class SafeEnvConfig:
     intervention_penalty: float = 0.1
     intervention_speed_scale: float = 5.0
     kinematics_vehicles: int = 5
-    verify: bool = False
+    verify: bool = True
 
     def __post_init__(self) -> None:
         where = "env"
@@ -216,6 +219,7 @@ class SafeEnvConfig:
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
         require_non_negative(where, intervention_penalty=self.intervention_penalty)
         require_int(where, low=1, kinematics_vehicles=self.kinematics_vehicles)
+        require(isinstance(self.verify, bool), f"{where}: `verify` must be true or false; got {self.verify!r}")
 
     @property
     def num_discrete_goals(self) -> int:

@@ -39,7 +39,7 @@ from mmpc.rl.config import RL_SCENARIO, RewardConfig, SafeEnvConfig
 from mmpc.highway.kinematics import DeferredKinematics
 from mmpc.rl.agent_step import AgentStep, StepTally, run_agent_step
 from mmpc.rl.safety import FEATURES_PER_GOAL, SafetyLayer
-from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
+from mmpc.scenario import ScenarioConfig, load_scenario
 
 #: Features per row of highway-env's Kinematics observation (its defaults).
 KINEMATICS_FEATURES = ("presence", "x", "y", "vx", "vy")
@@ -189,7 +189,12 @@ class SafeHighwayEnv(gym.Env):
     ``solve_ms`` (mean wall time of the optimizer calls of this step; in a vectorized batch
     one call serves every environment), ``residuals`` (the executed candidate's obstacle,
     acceleration and non-holonomic residuals at the last frame), ``speed`` (end) and
-    ``mean_speed`` (over the frames) [m/s], ``crashed``, ``goal`` (the held command y, v).
+    ``mean_speed`` (over the frames) [m/s], ``crashed``, ``goal`` (the held command y, v); with
+    ``env.verify``, ``verified_frames`` (frames whose command kept a verified way out) and
+    ``failsafe_frames`` (frames the stored fail-safe drove).
+
+    Environments that share a layer get distinct ids from it (:meth:`SafetyLayer.new_env_id`), which
+    key their warm starts and stored fail-safes; a reset forgets its environment's.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -215,15 +220,17 @@ class SafeHighwayEnv(gym.Env):
             raise ValueError(f"`render_mode` must be None or 'rgb_array'; got {render_mode!r}")
         self.render_mode = render_mode
         self.continuous = bool(continuous)
-        refuse_verify(self.config)
-        # no warm starts: environments reset one by one are solved alone, numbered from 0 (no ids to keep them apart)
-        self.layer = layer if layer is not None else SafetyLayer(build_mpc(scenario), self.config, warm_starts=False)
+        # no warm starts: an environment reset alone is solved alone; the decision solves of its
+        # neighbours in a vectorized batch would not be one decision period apart
+        self.layer = layer if layer is not None else SafetyLayer.for_scenario(scenario, self.config, warm_starts=False)
         if self.layer.config != self.config:
             raise ValueError("`layer` was built for other environment settings than `config`")
         if self.layer.road != scenario.road:
             raise ValueError(f"`layer` plans on {self.layer.road}, the scenario's road is {scenario.road}")
         self.action_space = action_space(self.config, self.continuous)
         self.observation_space = observation_space(self.config)
+        #: this environment's id among those of its layer (keys its stored fail-safe)
+        self.env_id = self.layer.new_env_id()
         self.episode: Optional[HighwayEpisode] = None
         self.episode_seed: Optional[int] = None
 
@@ -255,6 +262,7 @@ class SafeHighwayEnv(gym.Env):
         self.close()
         self.episode_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31 - 1))
         self.episode = HighwayEpisode(self.scenario, self.episode_seed, render=self.render_mode == "rgb_array")
+        self.layer.forget(torch.tensor([self.env_id]))
         self._kinematics = DeferredKinematics(self.episode.unwrapped, self.config.kinematics_vehicles)
         self.episode.unwrapped.observation_type = self._kinematics
 
@@ -284,15 +292,7 @@ def episodes_world(envs: Sequence[SafeHighwayEnv]) -> HighwayEnvWorld:
     the layer (its dtype and device, no Kinematics rows)."""
     layer = envs[0].layer
     return HighwayEnvWorld([env.episode for env in envs], dtype=layer.mpc.optimizer.dtype, kinematics=False,
-                           device=layer.device)
-
-
-def refuse_verify(config: SafeEnvConfig) -> None:
-    """highway-env's training environments run without ``verify`` (``ValueError`` saying where it runs)."""
-    if config.verify:
-        raise ValueError("env `verify` runs on the batched simulator's environments (--sim batched) and in the "
-                         "safe-agent drivers; highway-env's training environments number their environments from 0 "
-                         "as they reset, with no ids to keep the stored fail-safes apart")
+                           device=layer.device, env_ids=[env.env_id for env in envs])
 
 
 def reset_many(envs: Sequence[SafeHighwayEnv], seeds: Sequence[Optional[int]]) -> list[tuple[np.ndarray, dict]]:

@@ -4,6 +4,7 @@ agent, ``models/<name>/``) with the configuration it was trained with."""
 from __future__ import annotations
 
 import importlib
+import logging
 from pathlib import Path
 from typing import Any, NamedTuple, Optional
 
@@ -11,6 +12,8 @@ import yaml
 
 from mmpc.config import from_dict
 from mmpc.rl.config import RLConfig
+
+logger = logging.getLogger(__name__)
 
 #: stable-baselines3 classes by algorithm name.
 ALGORITHM_CLASSES = {"dqn": "DQN", "ppo": "PPO", "sac": "SAC"}
@@ -55,7 +58,19 @@ def recorded_config(path: str | Path) -> Optional[RLConfig]:
         return None
     if not (isinstance(record, dict) and {"algo", "config"} <= set(record)):
         return None
-    return from_dict(RLConfig, record["config"], where=f"{path}: config")
+    return run_config(record["config"], path)
+
+
+def run_config(values: Any, path: Path) -> RLConfig:
+    """The RL config recorded in a run's ``config.yaml`` (``path``), read as the run was trained: a
+    run recorded before ``env.verify`` existed trained without the check, so its ``verify`` is
+    read ``false`` (and a warning says so; ``verified:sb3:RUN`` drives it behind the check)."""
+    env = values.get("env") if isinstance(values, dict) else None
+    if isinstance(env, dict) and "verify" not in env:
+        logger.warning("%s: recorded before `env.verify` existed, so trained without the check; read as "
+                       "`env.verify: false` (drive it behind the check with verified:sb3:...)", path)
+        values = {**values, "env": {**env, "verify": False}}
+    return from_dict(RLConfig, values, where=f"{path}: config")
 
 
 def run_files(path: str | Path) -> tuple[Path, Path]:
@@ -82,6 +97,6 @@ def load_run(path: str | Path) -> TrainedRun:
     (:func:`shipped_models`) where no such file exists."""
     path, config_path = run_files(path)
     run = yaml.safe_load(config_path.read_text())
-    config = from_dict(RLConfig, run["config"], where=f"{config_path}: config")
+    config = run_config(run["config"], config_path)
     model = algorithm_class(run["algo"]).load(str(path), device="cpu")
     return TrainedRun(model, run["algo"], run["env"], run["action"] == "continuous", config)

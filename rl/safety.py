@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Observation
-from mmpc.drivers.verified import cheapest_goals
+from mmpc.drivers.verified import guarded_command
 from mmpc.mpc import MPC, Plan, Scored, Selector
 from mmpc.problem import EGO_X, EGO_Y, ProblemBatch
 from mmpc.ranking import Selection
@@ -51,9 +51,6 @@ from mmpc.warm import WarmStarts
 
 #: Solver features per goal of the grid: feasible flag, squashed meta cost, clearance.
 FEATURES_PER_GOAL = 3
-#: With ``verify``, at most this many of a fresh plan's other feasible candidates are tried where
-#: the executed one does not verify (as :class:`mmpc.drivers.verified.VerifiedDriver`).
-VERIFIED_ALTERNATIVES = 8
 
 
 def follow_agent(agent_index: torch.Tensor, goals: torch.Tensor, speed_scale: float, horizon: float, lane_width: float) -> Selector:
@@ -230,10 +227,10 @@ class SafetyLayer:
     Example:
         >>> import torch
         >>> from mmpc.rl.config import RL_SCENARIO, SafeEnvConfig
-        >>> from mmpc.scenario import build_mpc, load_scenario
+        >>> from mmpc.scenario import load_scenario
         >>> from mmpc.drivers import Observation
         >>> from mmpc.problem import ego_state
-        >>> layer = SafetyLayer(build_mpc(load_scenario(RL_SCENARIO)), SafeEnvConfig())
+        >>> layer = SafetyLayer.for_scenario(load_scenario(RL_SCENARIO), SafeEnvConfig())
         >>> ego = ego_state(0.0, 4.0, 0.0, 25.0)
         >>> observation = Observation(ego, torch.tensor([[[60.0, 4.0, 20.0, 0.0]]]))
         >>> commands = layer.discrete_commands(ego, torch.tensor([8]))  # right lane at 15 m/s
@@ -259,12 +256,19 @@ class SafetyLayer:
         device = mpc.optimizer.device
         self._grid_offsets = torch.as_tensor(offsets.reshape(-1), dtype=torch.long, device=device)  # (A,)
         self._grid_speeds = torch.as_tensor(speeds.reshape(-1), dtype=mpc.optimizer.dtype, device=device)  # (A,)
+        self._env_ids_given = 0
 
     @classmethod
     def for_scenario(cls, scenario: ScenarioConfig, config: SafeEnvConfig, *, warm_starts: bool = True) -> "SafetyLayer":
         """The layer of ``scenario``'s MPC, with its verifier where ``config.verify`` asks for one."""
         verifier = Verifier.for_scenario(scenario) if config.verify else None
         return cls(build_mpc(scenario), config, warm_starts=warm_starts, verifier=verifier)
+
+    def new_env_id(self) -> int:
+        """An environment id no other environment of this layer was given (0, 1, 2, ...): the key of
+        its warm starts and stored fail-safe (:class:`mmpc.rl.envs.SafeHighwayEnv`)."""
+        self._env_ids_given += 1
+        return self._env_ids_given - 1
 
     def forget(self, ids: Optional[torch.Tensor] = None) -> None:
         """Environments ``ids`` (long tensor; ``None``: all) start new episodes: their warm starts
@@ -479,20 +483,13 @@ class SafetyLayer:
     # ------------------------------------------------------------------ frame pieces
 
     def _guarded(self, observation: Observation, control: FrameControl) -> FrameControl:
-        """``control`` with each command taken only where it verifies (:class:`mmpc.verify.Guard`;
+        """``control`` with each command taken only where it verifies (:func:`mmpc.drivers.verified.guarded_command`;
         a fresh plan's other feasible candidates are the alternatives); an override is an intervention."""
-        host = observation.to("cpu")
-        alternatives = None
-        if control.plan is not None:
-            plan = control.plan.plan
-            alternatives = lambda rows: cheapest_goals(plan, self.mpc, rows, VERIFIED_ALTERNATIVES)  # noqa: E731
-        asked = control.acceleration.cpu(), control.steering.cpu()
-        guarded = self.guard.choose(host.ego, host.vehicles, host.vehicle_mask, host.ids().tolist(), *asked, alternatives)
-        acceleration, steering = guarded.acceleration.to(asked[0].dtype), guarded.steering.to(asked[1].dtype)
-        changed = ((acceleration != asked[0]) | (steering != asked[1])).to(self.device)
-        return control._replace(acceleration=acceleration.to(self.device), steering=steering.to(self.device),
-                                intervention=control.intervention | changed, verified=guarded.verified.to(self.device),
-                                failsafe=guarded.failsafe.to(self.device))
+        plan = None if control.plan is None else control.plan.plan
+        guarded = guarded_command(self.guard, observation, control.acceleration, control.steering, plan, self.mpc)
+        return control._replace(acceleration=guarded.acceleration, steering=guarded.steering,
+                                intervention=control.intervention | guarded.changed, verified=guarded.verified,
+                                failsafe=guarded.failsafe)
 
     def _selector(self, agent_index: torch.Tensor, problem: ProblemBatch) -> Selector:
         return follow_agent(agent_index, problem.goals, self.config.intervention_speed_scale, self.horizon, self.road.lane_width)

@@ -19,9 +19,9 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepR
 
 from mmpc.config import require_int
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
-from mmpc.rl.envs import SafeHighwayEnv, advance, refuse_verify, reset_many
+from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
 from mmpc.rl.safety import SafetyLayer
-from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.scenario import ScenarioConfig
 
 
 class SafeHighwayVecEnv(DummyVecEnv):
@@ -50,8 +50,7 @@ class SafeHighwayVecEnv(DummyVecEnv):
         batched: bool = True,
     ) -> None:
         require_int("", low=1, num_envs=num_envs)
-        refuse_verify(config)
-        layer = SafetyLayer(build_mpc(scenario), config, warm_starts=False)  # as SafeHighwayEnv's own (mmpc.rl.envs)
+        layer = SafetyLayer.for_scenario(scenario, config, warm_starts=False)  # as SafeHighwayEnv's own (mmpc.rl.envs)
         self.batched = batched
 
         def make() -> SafeHighwayEnv:

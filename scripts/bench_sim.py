@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -45,6 +46,8 @@ from mmpc.scenario import PAPER_SCHEDULE, ScenarioConfig, load_scenario
 #: The world table's command of every ego, (acceleration [m/s^2], steering [rad]): a world's cost
 #: does not depend on who drives (egos that crash keep being stepped in both worlds).
 CONSTANT_COMMAND = (0.0, 0.0)
+#: The worlds of the safe RL table.
+RL_WORLDS = ("highway-env", "batched")
 
 
 def _world_steps_per_second(world, num_envs: int, steps: int) -> float:
@@ -147,10 +150,12 @@ def mpc_rows(scenario_name: str, envs: Sequence[int], steps: int, schedules: Seq
     return rows
 
 
-def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int, rl_config: Optional[str] = None) -> list[dict]:
+def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int, rl_config: Optional[str] = None,
+            worlds: Sequence[str] = RL_WORLDS, verify: Sequence[bool] = (True, False)) -> list[dict]:
     """Table 4: agent steps per second of the safe RL vector environment (the RL config
     ``rl_config``, default the defaults; random goals of the grid, the same seeds and actions in
-    every row) on highway-env and on the batched simulator, for each replanning mode (:attr:`mmpc.rl.config.SafeEnvConfig.replan`).
+    every row) in each of ``worlds``, for each replanning mode (:attr:`mmpc.rl.config.SafeEnvConfig.replan`)
+    and each ``verify`` (the check's cost: the rows with it against those without).
     ``warmup`` untimed steps come first; what later solves spend compiling new layouts is taken
     out of the time (it is paid once per layout in a run)."""
     import numpy as np
@@ -166,40 +171,40 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
         rng = np.random.default_rng(0)
         actions = [rng.integers(0, config.env.num_discrete_goals, num_envs) for _ in range(warmup + steps)]
         reference = None
-        for world in ("highway-env", "batched"):
-            for replan in replans:
-                env = dataclasses.replace(config.env, replan=replan, expert_action=config.env.expert_action and replan == "decision")
-                if world == "highway-env":
-                    venv = SafeHighwayVecEnv(num_envs, config.scenario, env, config.reward)
-                else:
-                    venv = SafeSimVecEnv(num_envs, config.scenario.replace(sim="batched"), env, config.reward)
-                mpc = venv.layer.mpc
-                compile_ms = []
-                score = mpc.score
+        for world, replan, checked in itertools.product(worlds, replans, verify):
+            env = dataclasses.replace(config.env, replan=replan, verify=checked,
+                                      expert_action=config.env.expert_action and replan == "decision")
+            if world == "highway-env":
+                venv = SafeHighwayVecEnv(num_envs, config.scenario, env, config.reward)
+            else:
+                venv = SafeSimVecEnv(num_envs, config.scenario.replace(sim="batched"), env, config.reward)
+            mpc = venv.layer.mpc
+            compile_ms = []
+            score = mpc.score
 
-                def timed_score(problem, *args, score=score, compile_ms=compile_ms):
-                    scored = score(problem, *args)
-                    compile_ms.append(scored.compile_ms)
-                    return scored
+            def timed_score(problem, *args, score=score, compile_ms=compile_ms):
+                scored = score(problem, *args)
+                compile_ms.append(scored.compile_ms)
+                return scored
 
-                mpc.score = timed_score
-                venv.seed(0)
-                venv.reset()
-                elapsed, solved, frames = 0.0, 0, 0
-                for step, action in enumerate(actions):
-                    compile_ms.clear()
-                    start = time.perf_counter()
-                    _, _, _, infos = venv.step(action)
-                    if step >= warmup:
-                        elapsed += time.perf_counter() - start - sum(compile_ms) / 1e3
-                        solved += sum(info["solved_frames"] for info in infos)
-                        frames += sum(info["frames"] for info in infos)
-                venv.close()
-                rate = num_envs * steps / elapsed
-                reference = reference or rate
-                rows.append({"table": "rl", "config": rl_config or "defaults", "world": world, "replan": replan,
-                             "expert_action": env.expert_action, "num_envs": num_envs, "agent_steps_per_s": rate,
-                             "solved_frame_share": solved / frames, "speedup": rate / reference})
+            mpc.score = timed_score
+            venv.seed(0)
+            venv.reset()
+            elapsed, solved, frames = 0.0, 0, 0
+            for step, action in enumerate(actions):
+                compile_ms.clear()
+                start = time.perf_counter()
+                _, _, _, infos = venv.step(action)
+                if step >= warmup:
+                    elapsed += time.perf_counter() - start - sum(compile_ms) / 1e3
+                    solved += sum(info["solved_frames"] for info in infos)
+                    frames += sum(info["frames"] for info in infos)
+            venv.close()
+            rate = num_envs * steps / elapsed
+            reference = reference or rate
+            rows.append({"table": "rl", "config": rl_config or "defaults", "world": world, "replan": replan, "verify": checked,
+                         "expert_action": env.expert_action, "num_envs": num_envs, "agent_steps_per_s": rate,
+                         "solved_frame_share": solved / frames, "speedup": rate / reference})
     return rows
 
 
@@ -264,8 +269,8 @@ TABLES = (
         ("env-steps/s", 12, lambda r: f"{r['env_steps_per_s']:.1f}"), ("solve share", 12, lambda r: f"{r['solve_share']:.0%}"),
         ("min/1024x40s", 13, lambda r: f"{r['evaluation_minutes']:.1f}"), ("x highway-env", 14, lambda r: f"{r['speedup']:.1f}"))),
     ("rl", "safe RL vector environment: agent steps/s (env.decision_frames frames each; one solve for all E when any row solves)", (
-        ("world", -12, lambda r: r["world"]), ("replan", -9, lambda r: r["replan"]), ("E", 6, lambda r: r["num_envs"]),
-        ("agent steps/s", 14, lambda r: f"{r['agent_steps_per_s']:.1f}"),
+        ("world", -12, lambda r: r["world"]), ("replan", -9, lambda r: r["replan"]),
+        ("verify", -7, lambda r: "on" if r["verify"] else "off"), ("E", 6, lambda r: r["num_envs"]), ("agent steps/s", 14, lambda r: f"{r['agent_steps_per_s']:.1f}"),
         ("frames solved", 14, lambda r: f"{r['solved_frame_share']:.0%}"),
         ("x first row", 12, lambda r: f"{r['speedup']:.1f}"))),
     ("memory", "memory per environment", (
@@ -298,6 +303,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--rl-warmup", type=int, default=2, help="untimed agent steps before them (default 2)")
     parser.add_argument("--rl-replan", type=lambda text: tuple(text.split(",")), default=("frame", "decision"),
                         help="replanning modes of the RL table, comma-separated (default frame,decision)")
+    parser.add_argument("--rl-worlds", type=lambda text: tuple(text.split(",")), default=RL_WORLDS,
+                        help=f"worlds of the safe RL table (default {','.join(RL_WORLDS)})")
+    parser.add_argument("--rl-verify", type=lambda text: tuple(part == "on" for part in text.split(",")), default=(True, False),
+                        help="env.verify of the safe RL table's rows: on, off or on,off (default on,off: the check's cost)")
     parser.add_argument("--rl-config", default=None, help="RL config of the safe RL table (a shipped name or a YAML path; default: the defaults)")
     parser.add_argument("--no-rl", action="store_true", help="skip the safe RL table")
     parser.add_argument("--memory-envs", type=int_list, default=(1024, 4096), help="E of the memory table")
@@ -331,7 +340,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         for name in args.mpc_scenarios or (args.scenario,):
             rows += mpc_rows(name, args.mpc_envs, args.mpc_steps, args.mpc_schedules)
     if not args.no_rl:
-        rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup, args.rl_config)
+        unknown = sorted(set(args.rl_worlds) - set(RL_WORLDS))
+        if unknown or not args.rl_worlds:
+            parser.error(f"--rl-worlds takes names of {list(RL_WORLDS)}; got {list(args.rl_worlds)}")
+        rows += rl_rows(args.rl_envs, args.rl_steps, args.rl_replan, args.rl_warmup, args.rl_config, args.rl_worlds,
+                        args.rl_verify)
     if not args.no_memory:
         rows += memory_rows(args.scenario, args.memory_envs, max(2, args.steps // 4))
     print(format_rows(rows))

@@ -14,7 +14,6 @@ from mmpc.drivers import Observation
 from mmpc.rl.agent_step import AgentStep
 from mmpc.rl.config import RLConfig
 from mmpc.rl.safety import SafetyLayer, observation_rows
-from mmpc.scenario import build_mpc
 from mmpc.sim import SimEpisodes
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -27,7 +26,7 @@ ACTIONS = torch.tensor([3, 0, 5])  # smoke grid (offset-major, speeds 15, 25)
 def setup(request):
     smoke = load_config(RLConfig, "smoke")
     config = dataclasses.replace(smoke.env, replan=request.param, decision_frames=3)
-    layer = SafetyLayer(build_mpc(smoke.scenario), config)
+    layer = SafetyLayer.for_scenario(smoke.scenario, config)
     return smoke.scenario, layer
 
 

@@ -88,7 +88,7 @@ def test_minari_loads_the_demonstrations_and_iterates_their_episodes(demos_dir, 
     assert dataset.observation_space.shape == (5, 5)
     assert np.allclose(dataset.action_space.high, [5.0, math.pi / 4])
     metadata = dataset.storage.metadata
-    assert metadata["mmpc_seeds"] == SEEDS
+    assert metadata["mmpc_seeds"] == SEEDS and metadata["mmpc_expert"] == "verified:mpc"  # the default expert
     assert metadata["mmpc_scenario"]["objective"]["v_cruise"] == 15.0
     assert metadata["mmpc_packages"]["minari"] == minari.__version__
     episodes = list(dataset.iterate_episodes())
@@ -165,16 +165,16 @@ def test_rerun_reuses_everything_and_foreign_or_other_runs_directories_are_refus
     assert list(lockstep_groups([1000, 1001, 1002, 1005], 4).values()) == [[1000, 1001, 1002], [1005]]
 
 
-def test_demonstrations_of_the_verified_expert_are_their_own_directory(demos_dir, tmp_path):
-    verified = tmp_path / "verified"
-    report = generate_demonstrations(short_cruise(1.0), SEEDS[:2], verified, lockstep=2, expert="verified:mpc")
+def test_demonstrations_record_the_verified_expert_unless_told_the_mpc_alone(demos_dir, tmp_path):
+    assert json.loads((demos_dir / MANIFEST).read_text())["expert"] == "verified:mpc"
+    plain = tmp_path / "plain"
+    report = generate_demonstrations(short_cruise(1.0), SEEDS[:2], plain, lockstep=2, expert="mpc")
     assert report.generated == SEEDS[:2]
-    manifest = json.loads((verified / MANIFEST).read_text())
-    assert manifest["expert"] == "verified:mpc"
+    assert json.loads((plain / MANIFEST).read_text())["expert"] == "mpc"
+    with pytest.raises(DemonstrationsError, match=r"differs in: expert \(mpc there, verified:mpc asked\).*--expert \(mpc\)"):
+        generate_demonstrations(short_cruise(1.0), SEEDS[:2], plain, lockstep=2)
     with pytest.raises(DemonstrationsError, match=r"differs in: expert \(verified:mpc there, mpc asked\)"):
-        generate_demonstrations(short_cruise(1.0), SEEDS[:2], verified, lockstep=2)
-    with pytest.raises(DemonstrationsError, match=r"differs in: expert \(mpc there, verified:mpc asked\)"):
-        generate_demonstrations(short_cruise(), SEEDS, demos_dir, lockstep=2, expert="verified:mpc")
+        generate_demonstrations(short_cruise(), SEEDS, demos_dir, lockstep=2, expert="mpc")
     with pytest.raises(ValueError, match="`expert` must be one of"):
         generate_demonstrations(short_cruise(1.0), SEEDS[:2], tmp_path / "other", lockstep=2, expert="verified:bc")
     assert not (tmp_path / "other").exists()  # refused before anything was written

@@ -23,7 +23,7 @@ from mmpc.config import from_dict, load_config, to_dict
 from mmpc.rl.config import RLConfig, TrainConfig
 from mmpc.rl.envs import frame_reward
 from mmpc.rl.safety import SafetyLayer
-from mmpc.scenario import build_mpc, load_scenario
+from mmpc.scenario import load_scenario
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +82,7 @@ def test_frame_reward_equals_highway_envs_own(smoke, one_thread):
 
 
 def test_layer_follows_a_feasible_agent_and_intervenes_otherwise(smoke, one_thread):
-    layer = SafetyLayer(build_mpc(smoke.scenario), smoke.env)
+    layer = SafetyLayer.for_scenario(smoke.scenario, smoke.env)
     ego = ego_state([0.0, 0.0], [4.0, 4.0], [0.0, 0.0], [25.0, 25.0])
     # a slow car 50 m ahead in the ego's lane (both environments); the left lane is free
     vehicles = torch.tensor([[[50.0, 4.0, 10.0, 0.0]], [[50.0, 4.0, 10.0, 0.0]]])
@@ -102,7 +102,7 @@ def test_layer_follows_a_feasible_agent_and_intervenes_otherwise(smoke, one_thre
 
 
 def test_discrete_and_continuous_commands(smoke):
-    layer = SafetyLayer(build_mpc(smoke.scenario), smoke.env)
+    layer = SafetyLayer.for_scenario(smoke.scenario, smoke.env)
     ego = ego_state([0.0, 0.0], [0.0, 8.0], [0.0, 0.0], [20.0, 20.0])
     speeds = len(smoke.env.speeds)
     # offset -1 from lane 0 clamps to lane 0; offset +1 from lane 2 (the right lane) clamps to lane 2
@@ -384,11 +384,12 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_igno
     train(config, "ppo", 16, tmp_path / "plain", env_kind="highway", evaluate_after=False)
     assert yaml.safe_load((tmp_path / "plain" / "config.yaml").read_text())["env"] == "highway"
     # the shipped recipe starts PPO at the expert; it reproduces the shipped agent's settings, but for the
-    # layer's warm starts: the agents were trained before the scenarios warm-started (every decision solve cold),
-    # and before `env.verify` and `traffic.ego_as_follower` existed (their defaults)
+    # layer's warm starts and the check: the agents were trained before the scenarios warm-started (every
+    # decision solve cold), before `env.verify` existed (read false, as trained) and before
+    # `traffic.ego_as_follower` (its default)
     def settings(config: dict) -> dict:
         config["scenario"]["mpc"].pop("warm_iterations")
-        config["env"].setdefault("verify", False)
+        config["env"].pop("verify", None)
         config["scenario"]["traffic"].setdefault("ego_as_follower", False)
         return config
 

@@ -43,7 +43,8 @@ class FixedModel:
 
 
 def make_driver(smoke: RLConfig, replan: str, actions=ACTIONS, continuous: bool = False) -> SafeAgentDriver:
-    env = dataclasses.replace(smoke.env, replan=replan)
+    """The layer's replanning alone (``verify`` off: the check's overrides are tested in test_sim_vec_env.py)."""
+    env = dataclasses.replace(smoke.env, replan=replan, verify=False)
     run = types.SimpleNamespace(model=FixedModel(actions), continuous=continuous, config=types.SimpleNamespace(env=env))
     return SafeAgentDriver(run, smoke.scenario)
 

@@ -18,7 +18,7 @@ from mmpc.problem import ego_state
 from mmpc.rl.config import RLConfig
 from mmpc.rl.envs import SafeHighwayEnv
 from mmpc.rl.safety import SafetyLayer
-from mmpc.scenario import EgoConfig, build_mpc, load_scenario
+from mmpc.scenario import EgoConfig, load_scenario
 from mmpc.traffic_config import ScriptedTraffic, ScriptedVehicle
 from mmpc.tracking import plan_clearance
 
@@ -32,8 +32,8 @@ def smoke() -> RLConfig:
 
 @pytest.fixture(scope="module")
 def layers(smoke) -> dict[str, SafetyLayer]:
-    mpc = build_mpc(smoke.scenario)
-    return {mode: SafetyLayer(mpc, dataclasses.replace(smoke.env, replan=mode)) for mode in ("frame", "decision")}
+    return {mode: SafetyLayer.for_scenario(smoke.scenario, dataclasses.replace(smoke.env, replan=mode))
+            for mode in ("frame", "decision")}
 
 
 def random_scenes(seed: int, count: int, vehicles: int) -> Observation:
@@ -166,7 +166,7 @@ def test_a_collision_free_scripted_scene_stays_collision_free_whatever_the_agent
     scenario = dataclasses.replace(scenario, name="boxed_in", duration=6.0, ego=EgoConfig(speed=25.0, lane=1),
                                    traffic=ScriptedTraffic(BOXED_IN))
     config = dataclasses.replace(smoke.env, replan=replan, speeds=(15.0, 28.0))
-    layer = SafetyLayer(build_mpc(scenario), config)
+    layer = SafetyLayer.for_scenario(scenario, config)
     env = SafeHighwayEnv(scenario, config, smoke.reward, layer=layer)
     fastest = len(config.speeds) - 1
     # into the car on the left, into the slow car ahead, into the car on the right: each at full speed
@@ -189,7 +189,7 @@ def test_a_collision_free_scripted_scene_stays_collision_free_whatever_the_agent
 
 def test_the_expert_action_drives_exactly_what_the_mpc_expert_would(smoke):
     config = dataclasses.replace(smoke.env, replan="decision", expert_action=True)
-    layer = SafetyLayer(build_mpc(smoke.scenario), config)
+    layer = SafetyLayer.for_scenario(smoke.scenario, config)
     grid = layer.num_discrete_goals
     assert layer.num_actions == grid + 1
     observation = random_scenes(11, count=8, vehicles=8)

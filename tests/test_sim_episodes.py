@@ -287,10 +287,11 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
     assert [(r["warm_iterations"], r["exit_checks"]) for r in mpc] == [(0, [])] * 2 + [(10, [])] * 2
     for r in mpc:  # the projection of 1,024 episodes x 40 s at the row's rate, one process
         assert r["evaluation_minutes"] == pytest.approx(1024 * 400 / r["env_steps_per_s"] / 60)
-    assert [(r["world"], r["replan"], r["num_envs"]) for r in rows if r["table"] == "rl"] == [
-        ("highway-env", "frame", 2), ("highway-env", "decision", 2), ("batched", "frame", 2), ("batched", "decision", 2)]
+    assert [(r["world"], r["replan"], r["verify"], r["num_envs"]) for r in rows if r["table"] == "rl"] == [
+        (world, replan, verify, 2) for world in ("highway-env", "batched") for replan in ("frame", "decision")
+        for verify in (True, False)]  # the check's cost: with and without it, side by side
     # at every frame a solve served every environment when replanning at every frame; at the decision at least with decisions
-    assert [r["solved_frame_share"] == 1.0 for r in rows if r["table"] == "rl"] == [True, False, True, False]
+    assert [r["solved_frame_share"] == 1.0 for r in rows if r["table"] == "rl"] == [True, True, False, False] * 2
     assert all(0.2 <= r["solved_frame_share"] <= 1 for r in rows if r["table"] == "rl")
     assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] in ("world", "mpc"))
     assert all(r["agent_steps_per_s"] > 0 for r in rows if r["table"] == "rl")
@@ -304,7 +305,7 @@ def test_the_simulator_benchmark_writes_its_three_tables(tmp_path, capsys):
         bench_sim.main(["--mpc-schedules", "warm", "--out", str(tmp_path)])
     assert "--mpc-schedules takes names of ['paper', 'shipped']" in capsys.readouterr().err
     # a recipe with the expert action: it stays in the decision rows (frame replanning cannot have it)
-    recipe = bench_sim.rl_rows([2], steps=1, replans=("frame", "decision"), warmup=0, rl_config="high_speed")
+    recipe = bench_sim.rl_rows([2], steps=1, replans=("frame", "decision"), warmup=0, rl_config="high_speed", verify=(True,))
     assert [(r["world"], r["replan"], r["expert_action"], r["config"]) for r in recipe] == [
         ("highway-env", "frame", False, "high_speed"), ("highway-env", "decision", True, "high_speed"),
         ("batched", "frame", False, "high_speed"), ("batched", "decision", True, "high_speed")]

@@ -6,12 +6,15 @@ command that verifies: the driver's own, its own steering braking harder, the dr
 feasible candidates cheapest first (planning drivers: the MPC's goals), a fail-safe's first
 command, else the fail-safe verified at the last step. By induction the ego never collides
 while every car keeps :class:`mmpc.verify.TrafficAssumptions`.
+
+:func:`guarded_command` is that guarded command, written once: the verified driver and the
+RL safety layer (:class:`mmpc.rl.safety.SafetyLayer` with ``env.verify``) both take it.
 """
 
 from __future__ import annotations
 
 import time
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 
@@ -19,6 +22,52 @@ from mmpc.drivers.base import Decision, Driver, Observation
 from mmpc.drivers.registry import driver_files, make_driver
 from mmpc.scenario import ScenarioConfig
 from mmpc.verify import Guard, Verifier
+
+#: At most this many of a plan's other feasible candidates are tried where the asked command does not verify.
+ALTERNATIVES = 8
+
+
+class GuardedCommand(NamedTuple):
+    """The commands driven in E environments (:func:`guarded_command`), on the device and in the
+    dtype of the commands asked for.
+
+    Fields:
+        acceleration, steering: (E,) [m/s^2], [rad].
+        verified: (E,) bool, the command driven verified.
+        failsafe: (E,) bool, nothing verified and the stored fail-safe drove.
+        changed: (E,) bool, the command driven is not the one asked for.
+    """
+
+    acceleration: torch.Tensor
+    steering: torch.Tensor
+    verified: torch.Tensor
+    failsafe: torch.Tensor
+    changed: torch.Tensor
+
+
+def guarded_command(guard: Guard, observation: Observation, acceleration: torch.Tensor, steering: torch.Tensor,
+                    plan=None, mpc=None, alternatives: int = ALTERNATIVES) -> GuardedCommand:
+    """The command asked for where it keeps a verified way out; else braking, the plan's other
+    feasible candidates, a fail-safe (:class:`mmpc.verify.Guard`). The check runs on the CPU.
+
+    Args:
+        guard: the check and the fail-safes it stored per environment id (``observation``'s ids).
+        observation: the E environments' road-frame state (any device).
+        acceleration, steering: (E,) the commands asked for [m/s^2], [rad].
+        plan: the :class:`mmpc.mpc.Plan` of ``mpc`` that made them, whose cheapest other feasible
+            candidates (at most ``alternatives``) are tried before the fail-safes; ``None``: none.
+    """
+    host = observation.to("cpu")
+    asked = acceleration.cpu(), steering.cpu()
+    others = None
+    if plan is not None and mpc is not None and alternatives:
+        others = lambda rows: cheapest_goals(plan, mpc, rows, alternatives)  # noqa: E731
+    chosen = guard.choose(host.ego, host.vehicles, host.vehicle_mask, host.ids().tolist(), *asked, others)
+    driven = chosen.acceleration.to(asked[0].dtype), chosen.steering.to(asked[1].dtype)
+    changed = (driven[0] != asked[0]) | (driven[1] != asked[1])
+    device = acceleration.device
+    return GuardedCommand(driven[0].to(device), driven[1].to(device), chosen.verified.to(device),
+                          chosen.failsafe.to(device), changed.to(device))
 
 
 class VerifiedDriver(Driver):
@@ -32,7 +81,8 @@ class VerifiedDriver(Driver):
         name: the driver's name in tables; default ``verified:<driver's name>``.
     """
 
-    def __init__(self, driver: Driver, verifier: Verifier, *, alternatives: int = 8, name: Optional[str] = None) -> None:
+    def __init__(self, driver: Driver, verifier: Verifier, *, alternatives: int = ALTERNATIVES,
+                 name: Optional[str] = None) -> None:
         if not (isinstance(alternatives, int) and alternatives >= 0):
             raise ValueError(f"`alternatives` must be an int >= 0; got {alternatives!r}")
         self.driver = driver
@@ -58,21 +108,13 @@ class VerifiedDriver(Driver):
     def decide(self, observation: Observation) -> Decision:
         decision = self.driver.decide(observation)
         start = time.perf_counter()
-        observation = observation.to("cpu")
         decision = decision.commands_to("cpu")
-        plan, mpc = decision.plan, getattr(self.driver, "mpc", None)
-        alternatives = None
-        if plan is not None and mpc is not None and self.alternatives:
-            alternatives = lambda rows: cheapest_goals(plan, mpc, rows, self.alternatives)  # noqa: E731
-        guarded = self.guard.choose(observation.ego, observation.vehicles, observation.vehicle_mask, observation.ids().tolist(),
-                                    decision.acceleration, decision.steering, alternatives)
-        acceleration = guarded.acceleration.to(decision.acceleration.dtype)
-        steering = guarded.steering.to(decision.steering.dtype)
-        changed = (acceleration != decision.acceleration) | (steering != decision.steering)
+        guarded = guarded_command(self.guard, observation, decision.acceleration, decision.steering, decision.plan,
+                                  getattr(self.driver, "mpc", None), self.alternatives)
         return decision._replace(
-            acceleration=acceleration, steering=steering, verified=guarded.verified, failsafe=guarded.failsafe,
-            solve_ms=decision.solve_ms + (time.perf_counter() - start) * 1e3,
-            goal_index=torch.where(changed, -1, decision.goal_index),
+            acceleration=guarded.acceleration, steering=guarded.steering, verified=guarded.verified,
+            failsafe=guarded.failsafe, solve_ms=decision.solve_ms + (time.perf_counter() - start) * 1e3,
+            goal_index=torch.where(guarded.changed, -1, decision.goal_index),
         )
 
 

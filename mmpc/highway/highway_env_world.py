@@ -21,11 +21,16 @@ class HighwayEnvWorld:
         dtype: the dtype of the states observed.
         kinematics: observations carry highway-env's ``Kinematics`` rows.
         device: where :meth:`done` and :meth:`speeds` are (observations are on the host).
+        env_ids: the environments' ids in observations (stable over their episodes); default
+            their rows.
     """
 
     def __init__(self, episodes: Sequence[HighwayEpisode], *, dtype: torch.dtype = torch.float32, kinematics: bool = True,
-                 device: torch.device | str = "cpu") -> None:
+                 device: torch.device | str = "cpu", env_ids: Optional[Sequence[int]] = None) -> None:
         self.episodes = list(episodes)
+        self.env_ids = list(range(len(self.episodes))) if env_ids is None else [int(i) for i in env_ids]
+        if len(self.env_ids) != len(self.episodes) or len(set(self.env_ids)) != len(self.env_ids):
+            raise ValueError(f"`env_ids` must name each of the {len(self.episodes)} environments once; got {self.env_ids}")
         self.dtype = dtype
         self.kinematics = kinematics
         self.device = torch.device(device)
@@ -50,7 +55,7 @@ class HighwayEnvWorld:
     def observe(self, rows: torch.Tensor | Sequence[int]) -> tuple[Observation, list[Observation]]:
         rows = _row_list(rows)
         singles = [self.episodes[i].observe(self.dtype, kinematics=self.kinematics) for i in rows]
-        return stack_observations(singles, rows), singles
+        return stack_observations(singles, [self.env_ids[i] for i in rows]), singles
 
     def apply(self, rows: torch.Tensor | Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
         for i, a, s in zip(_row_list(rows), acceleration.tolist(), steering.tolist()):

@@ -37,7 +37,8 @@ class World(Protocol):
         """E."""
 
     def observe(self, rows: torch.Tensor | Sequence[int]) -> tuple[Observation, Sequence[Observation]]:
-        """The batch of the environments ``rows`` (one row each, ``env_ids`` = ``rows``; with
+        """The batch of the environments ``rows`` (one row each, ``env_ids`` their ids: ``rows``
+        unless the world was given stable ids of its own; with
         highway-env's ``Kinematics`` rows where the world observes them) and each row alone (E = 1)."""
 
     def apply(self, rows: torch.Tensor | Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
