@@ -7,20 +7,18 @@ each frame the safety layer executes it for the environments still running, in O
 - :class:`AgentStep` is that state: the commands, the plan decided at the decision, the plans
   held from frame to frame. The safe-agent driver (:class:`mmpc.rl.driver.SafeAgentDriver`) steps
   it one frame per runner call.
-- :func:`run_agent_step` runs a whole step in a :class:`mmpc.highway.worlds.World` (highway-env's
-  episodes in :mod:`mmpc.rl.envs`, the batched simulator in :mod:`mmpc.rl.sim_vec_env`) and tallies
-  what the environments' ``info`` reports (:class:`StepTally`).
+- :class:`mmpc.rl.engine.SafeEnvs` runs whole steps in any :class:`mmpc.highway.worlds.World`
+  (the safe environments) and tallies what the environments' ``info`` reports (:class:`StepTally`).
 """
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 import torch
 
 from mmpc.drivers import Observation
-from mmpc.highway.worlds import World
 from mmpc.rl.safety import DecisionSolve, FrameControl, HeldPlan, SafePlan, SafetyLayer
 
 
@@ -150,7 +148,7 @@ class StepTally:
             commands: (E, 2) the goal commands held.
             speed: (E,) the egos' speeds at the end of the step [m/s].
             crashed: (E,) bool, the ego crashed.
-            solve_ms: the ``solve_ms`` every info reports (a :class:`mmpc.rl.envs.WallTime`).
+            solve_ms: the ``solve_ms`` every info reports (a :class:`mmpc.rl.spaces.WallTime`).
         """
         counts = torch.stack([self.interventions, self.fallbacks, self.solved, self.frames, self.feasible_goals,
                               self.agent_feasible.long(), crashed.long().to(self.frames.device), self.verified,
@@ -169,19 +167,3 @@ class StepTally:
             for info, count in zip(infos, counts.tolist()):
                 info.update(verified_frames=int(count[7]), failsafe_frames=int(count[8]))
         return reals[:, 0].copy(), infos
-
-
-def run_agent_step(step: AgentStep, world: World, tally: StepTally, rewards: Callable[[torch.Tensor], torch.Tensor]) -> None:
-    """Run ``step`` to its end in ``world`` (observing without Kinematics rows, on the safety
-    layer's device and dtype): at every frame ONE layer call for the environments still running,
-    their commands applied, the frame tallied with ``rewards(rows)``, the (R,) float64 rewards of
-    the states ``rows`` reached (:class:`mmpc.rl.config.RewardConfig`). Stops early when every episode ended."""
-    while not step.over:
-        rows = (~world.done()).nonzero()[:, 0]
-        if rows.numel() == 0:
-            return
-        control = step.frame(world.observe(rows)[0], rows)
-        if step.frame_solved:
-            tally.solve_ms.append(control.solve_ms)
-        world.apply(rows, control.acceleration, control.steering)
-        tally.add(rows, control, rewards(rows), world.speeds(rows))

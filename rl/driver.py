@@ -399,7 +399,7 @@ def make_random_safe_driver(scenario: "ScenarioConfig", config: Optional[str]) -
     grid, ``replan``, ...) of the RL config ``RL_CONFIG`` (a shipped name such as ``high_speed``,
     a YAML path, or a training run's folder: the agent's own settings; default: the defaults,
     :class:`mmpc.rl.config.SafeEnvConfig`)."""
-    from mmpc.rl.envs import KINEMATICS_FEATURES
+    from mmpc.rl.spaces import KINEMATICS_FEATURES
 
     run = _stand_in_run(scenario, config)
     env = run.config.env

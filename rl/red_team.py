@@ -27,7 +27,7 @@ import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
 
 from mmpc.drivers import Driver, Observation
-from mmpc.rl.sim_vec_env import TensorVecEnv
+from mmpc.rl.vec_env import TensorVecEnv
 from mmpc.scenario import ScenarioConfig, batched_unsupported
 from mmpc.sim import SimEpisodes
 from mmpc.sim.threats import Orders

@@ -41,7 +41,7 @@ from mmpc.config import ConfigError, is_finite_number, require, require_int, to_
 from mmpc.files import atomic_write_text
 from mmpc.highway.runner import Observer, Step
 from mmpc.rl.config import ALGORITHMS, RLConfig
-from mmpc.rl.envs import frame_reward, vehicle_meta_cost_reward
+from mmpc.rl.reward import frame_reward, vehicle_reward
 from mmpc.rl.folders import run_folder
 from mmpc.rl.runs import ALGORITHM_CLASSES, TrainedRun, algorithm_class
 
@@ -104,7 +104,7 @@ class HighwayBaseline(gym.Wrapper):
         info = dict(info, mean_speed=float(info.get("speed", ego.speed)), frames=self.frames)
         info["crashed"] = bool(ego.crashed)
         if self.reward.source == "meta_cost":
-            reward = self.frames * vehicle_meta_cost_reward(ego, self.scenario, self.reward)
+            reward = self.frames * vehicle_reward(ego, self.scenario, self.reward)
         return observation, reward, terminated, truncated, info
 
 
@@ -228,7 +228,7 @@ class _PolicyModel:
 
 
 class _FrameTally(Observer):
-    """Sums, per environment, the RL reward (:func:`mmpc.rl.envs.frame_reward`) and the ego's
+    """Sums, per environment, the RL reward (:func:`mmpc.rl.reward.frame_reward`) and the ego's
     speed after every frame, as the safe environments count them."""
 
     def __init__(self, config: RLConfig) -> None:
@@ -278,14 +278,10 @@ def make_training_env(config: RLConfig, *, env_kind: str, continuous: bool, seed
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     n_envs = config.train.n_envs
-    if env_kind == "safe" and config.scenario.sim == "batched":
-        from mmpc.rl.sim_vec_env import SafeSimVecEnv
+    if env_kind == "safe":
+        from mmpc.rl.vec_env import SafeVecEnv
 
-        venv = SafeSimVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous, seed=seed)
-    elif env_kind == "safe":
-        from mmpc.rl.vec_env import SafeHighwayVecEnv
-
-        venv = SafeHighwayVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous)
+        venv = SafeVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous, seed=seed)
     elif env_kind == "highway":
         venv = DummyVecEnv([lambda: make_highway_env(config, continuous=continuous) for _ in range(n_envs)])
     else:

@@ -1,105 +1,128 @@
-"""A stable-baselines3 ``VecEnv`` of safe environments that solves them all in one optimizer call.
+"""The safe environments as vector environments: E environments of one world (highway-env's
+episodes or the batched simulator, ``scenario.sim``) with ONE optimizer call per simulation frame
+for all of them, as a stable-baselines3 ``VecEnv`` (:class:`SafeVecEnv`) and a gymnasium 1.x
+``VectorEnv`` (:class:`SafeVectorEnv`); both are views of :class:`mmpc.rl.engine.SafeEnvs`.
 
-:class:`SafeHighwayVecEnv` holds E :class:`mmpc.rl.envs.SafeHighwayEnv` sharing one safety
-layer. Its ``step`` advances them together (:func:`mmpc.rl.envs.advance`): at every simulation
-frame the problems of all E environments (each its agent's goal plus the standard goals) go to
-the optimizer as ONE (E, 1 + G0) batch. With ``batched=False`` each environment is solved on its
-own instead (E calls per frame), the reference the benchmark (:mod:`mmpc.rl.bench`) compares with.
-The shared layer's MPC computes on the run's device (:func:`mmpc.device.run_device`); it moves
-highway-env's CPU states there itself.
+Observations, actions, rewards and ``info`` mean what they mean in :mod:`mmpc.rl.envs`.
+Episodes that end are started again at once from a new seed (SB3's auto-reset; gymnasium's
+``SAME_STEP`` mode).
 """
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Any, Optional, Sequence
 
+import gymnasium as gym
 import numpy as np
-from stable_baselines3.common.vec_env import DummyVecEnv
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, VecEnvStepReturn
 
-from mmpc.config import require_int
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
-from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
+from mmpc.rl.engine import SafeEnvs
 from mmpc.rl.safety import SafetyLayer
+from mmpc.rl.spaces import action_space, observation_space
 from mmpc.scenario import ScenarioConfig
 
 
-class SafeHighwayVecEnv(DummyVecEnv):
-    """E safe environments stepped in lockstep with one batched solve per frame.
+class TensorVecEnv(VecEnv):
+    """A stable-baselines3 ``VecEnv`` whose environments are rows of tensors, not objects: nothing to
+    close, attributes are the whole batch's, no per-environment setters or methods."""
 
-    Args:
-        num_envs: E.
-        scenario: the driving scenario.
-        config: environment settings.
-        reward: reward settings.
-        continuous: Box goal actions instead of the discrete grid.
-        batched: solve all environments in one call per frame (``False``: one call each).
+    def close(self) -> None:
+        """Nothing to release (tensors only)."""
 
-    Auto-reset follows SB3: an environment whose episode ends is reset at once; its last
-    observation is in ``info["terminal_observation"]``.
+    def get_attr(self, attr_name: str, indices=None) -> list[Any]:
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices=None) -> None:
+        raise AttributeError(f"{type(self).__name__} holds its environments as tensors; `{attr_name}` cannot be set per "
+                             "environment")
+
+    def env_method(self, method_name: str, *method_args, indices=None, **method_kwargs) -> list[Any]:
+        raise AttributeError(f"{type(self).__name__} holds its environments as tensors; they have no method `{method_name}`")
+
+    def env_is_wrapped(self, wrapper_class: type, indices=None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+
+class SafeVecEnv(TensorVecEnv):
+    """E safe environments on the world of ``scenario.sim`` as a stable-baselines3 ``VecEnv``, ONE
+    optimizer call per frame for all of them.
+
+    Arguments as :class:`mmpc.rl.engine.SafeEnvs`. An environment whose episode ends is reset at
+    once; its last observation is in ``info["terminal_observation"]`` and
+    ``info["TimeLimit.truncated"]`` says whether time ran out.
     """
 
-    def __init__(
-        self,
-        num_envs: int,
-        scenario: ScenarioConfig,
-        config: SafeEnvConfig,
-        reward: RewardConfig,
-        *,
-        continuous: bool = False,
-        batched: bool = True,
-    ) -> None:
-        require_int("", low=1, num_envs=num_envs)
-        layer = SafetyLayer.for_scenario(scenario, config, warm_starts=False)  # as SafeHighwayEnv's own (mmpc.rl.envs)
-        self.batched = batched
-
-        def make() -> SafeHighwayEnv:
-            return SafeHighwayEnv(scenario, config, reward, continuous=continuous, layer=layer)
-
-        super().__init__([make for _ in range(num_envs)])
-        self.layer = layer
+    def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
+                 continuous: bool = False, seed: Optional[int] = None) -> None:
+        self.batch = SafeEnvs(num_envs, scenario, config, reward, continuous=continuous, seed=seed)
+        self.render_mode = None
+        super().__init__(num_envs, observation_space(config), action_space(config, continuous))
+        self._actions: Sequence[Any] = ()
 
     @property
-    def safe_envs(self) -> list[SafeHighwayEnv]:
-        return [env.unwrapped for env in self.envs]  # type: ignore[misc]
-
-    def step_wait(self) -> VecEnvStepReturn:
-        envs = self.safe_envs
-        actions = list(self.actions)
-        if self.batched:
-            outcomes = advance(envs, actions)
-        else:
-            outcomes = [advance([env], [action])[0] for env, action in zip(envs, actions)]
-        finished = []
-        for index, (observation, reward, terminated, truncated, info) in enumerate(outcomes):
-            self.buf_rews[index] = reward
-            self.buf_dones[index] = terminated or truncated
-            info["TimeLimit.truncated"] = truncated and not terminated
-            if self.buf_dones[index]:
-                info["terminal_observation"] = observation
-                finished.append(index)
-            self.buf_infos[index] = info
-            self._save_obs(index, observation)
-        self._reset_envs(finished)
-        return self._obs_from_buf(), np.copy(self.buf_rews), np.copy(self.buf_dones), list(self.buf_infos)
+    def layer(self) -> SafetyLayer:
+        return self.batch.layer
 
     def reset(self) -> VecEnvObs:
-        self._reset_envs(list(range(self.num_envs)), [self._seeds[i] for i in range(self.num_envs)])
+        observations, infos = self.batch.reset(list(self._seeds))
+        self.reset_infos = infos
         self._reset_seeds()
         self._reset_options()
-        return self._obs_from_buf()
+        return observations
 
-    def _reset_envs(self, indices: list[int], seeds: Optional[list[Optional[int]]] = None) -> None:
-        """Reset the environments ``indices`` (one features solve for all of them, or one each
-        when not ``batched``)."""
-        if not indices:
-            return
-        envs = self.safe_envs
-        seeds = seeds if seeds is not None else [None] * len(indices)
-        if self.batched:
-            results = reset_many([envs[i] for i in indices], seeds)
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = list(actions)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        step = self.batch.advance(self._actions)
+        dones = step.terminated | step.truncated
+        for index, info in enumerate(step.infos):
+            info["TimeLimit.truncated"] = bool(step.truncated[index])
+            if index in step.final:
+                info["terminal_observation"] = step.final[index]
+                self.reset_infos[index] = step.reset_infos[index]
+        return step.observations, step.rewards.astype(np.float32), dones, step.infos
+
+
+class SafeVectorEnv(gym.vector.VectorEnv):
+    """E safe environments on the world of ``scenario.sim`` as a gymnasium 1.x ``VectorEnv``
+    (``SAME_STEP`` auto-reset: ``infos["final_obs"]`` / ``infos["final_info"]`` hold the
+    ended episodes' last step). Arguments as :class:`mmpc.rl.engine.SafeEnvs`."""
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
+                 continuous: bool = False, seed: Optional[int] = None) -> None:
+        self.batch = SafeEnvs(num_envs, scenario, config, reward, continuous=continuous, seed=seed)
+        self.num_envs = num_envs
+        self.single_observation_space = observation_space(config)
+        self.single_action_space = action_space(config, continuous)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+
+    def reset(self, *, seed: int | Sequence[Optional[int]] | None = None, options: Optional[dict] = None):
+        if seed is None:
+            seeds: list[Optional[int]] = [None] * self.num_envs
+        elif isinstance(seed, (int, np.integer)):
+            self.batch.rng = np.random.default_rng(int(seed))
+            seeds = [int(seed) + i for i in range(self.num_envs)]
         else:
-            results = [reset_many([envs[i]], [seed])[0] for i, seed in zip(indices, seeds)]
-        for index, (observation, info) in zip(indices, results):
-            self.reset_infos[index] = info
-            self._save_obs(index, observation)
+            seeds = list(seed)
+        observations, env_infos = self.batch.reset(seeds)
+        infos: dict = {}
+        for index, info in enumerate(env_infos):
+            infos = self._add_info(infos, info, index)
+        return observations, infos
+
+    def step(self, actions):
+        step = self.batch.advance(list(actions))
+        infos: dict = {}
+        for index, info in enumerate(step.infos):
+            if index in step.final:
+                infos = self._add_info(infos, {"final_obs": step.final[index], "final_info": info}, index)
+                info = step.reset_infos[index]
+            infos = self._add_info(infos, info, index)
+        return step.observations, step.rewards, step.terminated, step.truncated, infos

@@ -41,19 +41,25 @@ def run_benchmark(config: RLConfig, *, num_envs: int = 64, steps: int = 3, seed:
     Returns:
         The report: machine, settings and one row per variant.
     """
-    from mmpc.rl.vec_env import SafeHighwayVecEnv
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from mmpc.rl.envs import SafeHighwayEnv
+    from mmpc.rl.safety import SafetyLayer
+    from mmpc.rl.vec_env import SafeVecEnv
 
     if num_envs < 1 or steps < 1:
         raise ValueError(f"`num_envs` and `steps` must be >= 1; got {num_envs}, {steps}")
     torch.set_num_threads(threads)
     rng = np.random.default_rng(seed)
     actions = [rng.integers(0, config.env.num_discrete_goals, num_envs) for _ in range(steps + 1)]
-    variants = {}
-    for name, batched in (("batched", True), ("per_env", False)):
-        venv = SafeHighwayVecEnv(num_envs, config.scenario, config.env, config.reward, batched=batched)
+    layer = SafetyLayer.for_scenario(config.scenario, config.env)  # the single environments share one optimizer
+    variants = {
+        "batched": SafeVecEnv(num_envs, config.scenario, config.env, config.reward),
+        "per_env": DummyVecEnv([lambda: SafeHighwayEnv(config.scenario, config.env, config.reward, layer=layer)] * num_envs),
+    }
+    for venv in variants.values():
         venv.seed(seed)
         venv.reset()
-        variants[name] = venv
     timings: dict[str, list[tuple[float, float, int]]] = {name: [] for name in variants}
     frames = config.env.decision_frames
     for step, action in enumerate(actions):

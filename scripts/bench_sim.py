@@ -13,7 +13,7 @@ Four tables, one torch thread unless ``--threads``:
    (``--mpc-schedules``): the paper's (every step cold, all iterations) and the scenario's as shipped
    (its warm starts);
 3. **safe RL**: agent steps per second of the safe vector environment (:mod:`mmpc.rl`) on
-   highway-env (``SafeHighwayVecEnv``) and on the batched simulator (``SafeSimVecEnv``), with the
+   highway-env and on the batched simulator (``SafeVecEnv`` in each world), with the
    safety layer replanning at every frame and at the agent's decisions only;
 4. **memory** (Linux): the simulator state's bytes per environment, and in a fresh process per E
    the peak resident memory while stepping E environments, whole and per environment above
@@ -162,8 +162,7 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
 
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
-    from mmpc.rl.sim_vec_env import SafeSimVecEnv
-    from mmpc.rl.vec_env import SafeHighwayVecEnv
+    from mmpc.rl.vec_env import SafeVecEnv
 
     config = load_config(RLConfig, rl_config)
     rows = []
@@ -174,10 +173,7 @@ def rl_rows(envs: Sequence[int], steps: int, replans: Sequence[str], warmup: int
         for world, replan, checked in itertools.product(worlds, replans, verify):
             env = dataclasses.replace(config.env, replan=replan, verify=checked,
                                       expert_action=config.env.expert_action and replan == "decision")
-            if world == "highway-env":
-                venv = SafeHighwayVecEnv(num_envs, config.scenario, env, config.reward)
-            else:
-                venv = SafeSimVecEnv(num_envs, config.scenario.replace(sim="batched"), env, config.reward)
+            venv = SafeVecEnv(num_envs, config.scenario.replace(sim=world), env, config.reward)
             mpc = venv.layer.mpc
             compile_ms = []
             score = mpc.score

@@ -68,7 +68,7 @@ def test_rl_training_on_the_batched_simulator_and_its_evaluation_on_cuda(tmp_pat
 def test_the_safe_environments_on_cuda_step_like_those_on_the_cpu(monkeypatch):
     from mmpc.rl.config import RewardConfig, SafeEnvConfig
     from mmpc.rl.envs import SafeHighwayEnv
-    from mmpc.rl.sim_vec_env import SafeSimVecEnv
+    from mmpc.rl.vec_env import SafeVecEnv
     from mmpc.scenario import load_scenario
 
     scenario = dataclasses.replace(load_scenario("rl_highway_fast"), duration=1.0)
@@ -77,13 +77,13 @@ def test_the_safe_environments_on_cuda_step_like_those_on_the_cpu(monkeypatch):
         runs = {}
         for device in ("cpu", "cuda"):
             monkeypatch.setenv(DEVICE_ENV, device)
-            venv = SafeSimVecEnv(2, dataclasses.replace(scenario, sim="batched"), config, RewardConfig(), seed=0)
+            venv = SafeVecEnv(2, dataclasses.replace(scenario, sim="batched"), config, RewardConfig(), seed=0)
             assert venv.batch.device.type == device
             venv.seed(3)
             first = venv.reset()
             venv.step_async(np.array([4, 6]))
             observations, rewards, dones, infos = venv.step_wait()
-            assert venv.batch.sim.device.type == device
+            assert venv.batch.world.sim.device.type == device
             assert observations.dtype == np.float32 and isinstance(rewards, np.ndarray) and dones.dtype == np.bool_
             assert all(type(info["crashed"]) is bool and type(info["frames"]) is int for info in infos)
             runs[device] = (first, rewards)

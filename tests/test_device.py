@@ -71,15 +71,15 @@ def test_device_cpu_gives_the_episodes_of_no_flag(tmp_path, monkeypatch):
 
 def _steps(monkeypatch, device):
     """Observations, rewards, dones and infos of a few steps of the batched safe environments."""
-    from mmpc.rl.sim_vec_env import SafeSimVecEnv
+    from mmpc.rl.vec_env import SafeVecEnv
 
     if device is None:
         monkeypatch.delenv(DEVICE_ENV, raising=False)
     else:
         monkeypatch.setenv(DEVICE_ENV, device)
     scenario = dataclasses.replace(load_scenario("rl_highway_fast"), sim="batched", duration=1.0)
-    venv = SafeSimVecEnv(2, scenario, SafeEnvConfig(), RewardConfig(), seed=0)
-    assert venv.batch.sim is None and venv.batch.device == torch.device("cpu")
+    venv = SafeVecEnv(2, scenario, SafeEnvConfig(), RewardConfig(), seed=0)
+    assert venv.batch.world is None and venv.batch.device == torch.device("cpu")
     venv.seed(3)
     trace = [venv.reset()]
     actions = np.array([4, 6])  # keep lane at 15 and 25 m/s
@@ -90,7 +90,7 @@ def _steps(monkeypatch, device):
             info.pop("solve_ms")
             info.pop("terminal_observation", None)
         trace.append((observations, rewards, dones, infos))
-    assert venv.batch.sim.device == torch.device("cpu")
+    assert venv.batch.world.sim.device == torch.device("cpu")
     return trace
 
 

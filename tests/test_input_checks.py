@@ -326,14 +326,13 @@ def test_continuous_safe_env_names_the_shape_and_refuses_nan(smoke):
 
 @pytest.mark.usefixtures("one_thread")
 def test_batched_advance_names_the_environment_with_a_bad_action(smoke):
-    from mmpc.rl.envs import SafeHighwayEnv, advance, reset_many
+    from mmpc.rl.vec_env import SafeVecEnv
 
-    first = _safe_env(smoke, continuous=False)
-    second = SafeHighwayEnv(smoke.scenario, smoke.env, smoke.reward, layer=first.layer)
+    venv = SafeVecEnv(2, smoke.scenario, smoke.env, smoke.reward)
     try:
-        reset_many([first, second], [1, 2])
+        venv.reset()
         with pytest.raises(ValueError, match=r"environment 1: `action` must be an int .*got 1.5 \(float\)"):
-            advance([first, second], [np.int64(0), 1.5])
+            venv.step([np.int64(0), 1.5])
+        assert [episode.time for episode in venv.batch.world.episodes] == [0.0, 0.0]  # nothing was driven
     finally:
-        first.close()
-        second.close()
+        venv.close()

@@ -19,7 +19,7 @@ from mmpc.highway.batched_world import BatchedWorld
 from mmpc.rl.config import RLConfig, SafeEnvConfig
 from mmpc.rl.driver import SafeAgentDriver
 from mmpc.rl.safety import observation_rows
-from mmpc.rl.sim_vec_env import SafeSimBatch
+from mmpc.rl.engine import SafeEnvs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -151,7 +151,7 @@ def test_rows_leaving_the_batch_keep_the_others_held_plans(smoke):
 def test_the_driver_drives_two_agent_steps_as_the_training_environment(replan, continuous, smoke):
     actions = [[0.0, 1.0], [-1.0, -0.5], [1.0, 0.3]] if continuous else ACTIONS
     driver = make_driver(smoke, replan, actions, continuous)
-    batch = SafeSimBatch(len(SEEDS), smoke.scenario, driver.config, smoke.reward, continuous=continuous)
+    batch = SafeEnvs(len(SEEDS), smoke.scenario.replace(sim="batched"), driver.config, smoke.reward, continuous=continuous)
     batch.reset(SEEDS)
     world = BatchedWorld.start(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
@@ -166,7 +166,7 @@ def test_the_driver_drives_two_agent_steps_as_the_training_environment(replan, c
             decision = driver.decide(observation)
             world.apply(active, decision.acceleration, decision.steering)
         for name in ("x", "y", "heading", "speed"):
-            assert torch.equal(getattr(world.sim.state, name)[:, 0], getattr(batch.sim.state, name)[:, 0]), name
+            assert torch.equal(getattr(world.sim.state, name)[:, 0], getattr(batch.world.sim.state, name)[:, 0]), name
     assert [driver.intervention_frames[i] for i in active] == interventions
 
 

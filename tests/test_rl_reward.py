@@ -12,8 +12,8 @@ import torch
 from mmpc.config import ConfigError, load_config
 from mmpc.highway import HighwayEpisode
 from mmpc.rl.config import RewardConfig, RLConfig
-from mmpc.rl.envs import frame_reward
-from mmpc.rl.sim_vec_env import SafeSimBatch
+from mmpc.rl.reward import frame_reward
+from mmpc.rl.engine import SafeEnvs
 from mmpc.rl.train import make_highway_env
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -55,11 +55,11 @@ def test_highway_env_frames_earn_the_meta_cost_reward_of_the_ego_state(smoke):
 
 
 def test_the_batched_simulator_earns_the_same_meta_cost_reward(smoke):
-    batch = SafeSimBatch(3, smoke.scenario.replace(sim="batched"), smoke.env, META, seed=0)
+    batch = SafeEnvs(3, smoke.scenario.replace(sim="batched"), smoke.env, META, seed=0)
     batch.reset([0, 1, 2])
-    state = batch.sim.state
+    state = batch.world.sim.state
     expected = [1.0 - (float(v) - smoke.scenario.objective.v_cruise) ** 2 / 50.0 for v in state.speed[:, 0]]
-    assert batch._frame_rewards().tolist() == pytest.approx(expected)
+    assert batch.task_rewards(torch.arange(3)).tolist() == pytest.approx(expected)
     step = batch.advance([0, 1, 2])
     # a step's reward sums its frames' rewards (less the intervention penalty): within [frames x (-2), frames]
     frames = np.array([info["frames"] for info in step.infos])

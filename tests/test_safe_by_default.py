@@ -20,7 +20,7 @@ from mmpc.problem import ego_state
 from mmpc.rl.config import RLConfig, SafeEnvConfig
 from mmpc.rl.envs import SafeHighwayEnv
 from mmpc.rl.runs import load_run, recorded_config
-from mmpc.rl.vec_env import SafeHighwayVecEnv
+from mmpc.rl.vec_env import SafeVecEnv
 
 RECIPES = ("smoke", "high_speed", "high_speed_task", "cruise_task")
 
@@ -41,36 +41,36 @@ def test_the_layer_verifies_by_default_in_every_shipped_recipe():
 
 
 def test_highway_env_training_envs_verify_each_under_its_own_id(smoke, one_thread):
-    """Environments that share a layer get distinct ids, so each keeps its own stored fail-safe;
+    """Environments get distinct ids from their layer, so each keeps its own stored fail-safe;
     every frame's command verified or the fail-safe drove (infos count both); a reset forgets
     only its own environment's fail-safe."""
-    assert smoke.env.verify
-    venv = SafeHighwayVecEnv(2, smoke.scenario, smoke.env, smoke.reward)
-    envs = venv.safe_envs
-    assert [env.env_id for env in envs] == [0, 1] and venv.layer.guard is not None
+    assert smoke.env.verify and smoke.scenario.sim == "highway-env"
+    venv = SafeVecEnv(2, smoke.scenario, smoke.env, smoke.reward)
+    assert venv.batch.ids.tolist() == [0, 1] and venv.layer.guard is not None
     venv.reset()
     fastest = smoke.env.num_actions - 1
     for _ in range(2):
-        venv.step_async(np.array([fastest, 0]))
-        _, _, _, infos = venv.step_wait()
+        _, _, _, infos = venv.step(np.array([fastest, 0]))
         for info in infos:
             assert info["verified_frames"] + info["failsafe_frames"] == info["frames"] >= 1
     assert set(venv.layer.guard._stored) == {0, 1}
-    envs[0].begin_episode(7)
-    assert set(venv.layer.guard._stored) == {1}
-    # one at a time (SafeHighwayVecEnv(batched=False)) the environments keep their ids too
-    alone = SafeHighwayVecEnv(2, smoke.scenario, smoke.env, smoke.reward, batched=False)
-    alone.reset()
-    alone.step_async(np.array([fastest, fastest]))
-    alone.step_wait()
-    assert set(alone.layer.guard._stored) == {0, 1}
+    # single environments that share a layer keep their fail-safes apart too, and a reset drops its own
+    first = SafeHighwayEnv(smoke.scenario, smoke.env, smoke.reward)
+    second = SafeHighwayEnv(smoke.scenario, smoke.env, smoke.reward, layer=first.layer)
+    assert (first.env_id, second.env_id) == (0, 1)
+    first.reset(seed=1)
+    second.reset(seed=2)
+    first.step(fastest)
+    second.step(fastest)
+    assert set(first.layer.guard._stored) == {0, 1}
+    first.reset(seed=3)
+    assert set(first.layer.guard._stored) == {1}
     # without the check the infos say nothing of it
     plain = SafeHighwayEnv(smoke.scenario, dataclasses.replace(smoke.env, verify=False), smoke.reward)
     plain.reset(seed=3)
     assert plain.layer.guard is None and "verified_frames" not in plain.step(0)[4]
-    venv.close()
-    alone.close()
-    plain.close()
+    for env in (venv, first, second, plain):
+        env.close()
 
 
 def test_one_guarded_command_serves_the_verified_driver_and_the_layer(smoke, monkeypatch):

@@ -12,7 +12,7 @@ import torch
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.envs import SafeHighwayEnv
 from mmpc.rl.safety import SafetyLayer
-from mmpc.rl.sim_vec_env import SafeSimVecEnv, SafeSimVectorEnv
+from mmpc.rl.vec_env import SafeVecEnv, SafeVectorEnv
 from mmpc.scenario import build_mpc, load_scenario
 from mmpc.sim.observation import kinematics_observation
 from mmpc.sim.reward import highway_reward
@@ -23,14 +23,14 @@ REWARD = RewardConfig()
 
 
 def test_sb3_vec_env_steps_every_environment_with_the_highway_env_meaning():
-    venv = SafeSimVecEnv(4, SCENARIO, CONFIG, REWARD, seed=0)
+    venv = SafeVecEnv(4, SCENARIO, CONFIG, REWARD, seed=0)
     venv.seed(7)
     observations = venv.reset()
     reference = SafeHighwayEnv(SCENARIO, CONFIG, REWARD)
     assert venv.observation_space == reference.observation_space and venv.action_space == reference.action_space
     assert observations.shape == (4, reference.observation_space.shape[0]) and observations.dtype == np.float32
     assert [info["episode_seed"] for info in venv.reset_infos] == [7, 8, 9, 10]
-    kinematics = kinematics_observation(venv.batch.sim.state, venv.batch.sim.config, vehicles_count=CONFIG.kinematics_vehicles)
+    kinematics = kinematics_observation(venv.batch.world.sim.state, venv.batch.world.sim.config, vehicles_count=CONFIG.kinematics_vehicles)
     assert np.allclose(observations[:, :kinematics[0].numel()], kinematics.flatten(1).clamp(-1, 1).numpy(), atol=1e-6)
     venv.step_async(np.array([4, 4, 5, 6]))  # keep lane at 15 / 15 / 20 / 25 m/s
     observations, rewards, dones, infos = venv.step_wait()
@@ -45,22 +45,22 @@ def test_sb3_vec_env_steps_every_environment_with_the_highway_env_meaning():
     venv.step_async(np.array([4, 4, 5, 6]))
     _, _, dones, infos = venv.step_wait()  # 1 s episodes: time is up, auto-reset
     assert dones.all() and all(info["TimeLimit.truncated"] and "terminal_observation" in info for info in infos)
-    assert bool((venv.batch.sim.steps == 0).all()) and [i["episode_seed"] for i in venv.reset_infos] != [7, 8, 9, 10]
+    assert bool((venv.batch.world.sim.steps == 0).all()) and [i["episode_seed"] for i in venv.reset_infos] != [7, 8, 9, 10]
     reference.close()
 
 
 def test_reward_is_highway_env_s_reward_summed_over_the_frames():
     config = dataclasses.replace(CONFIG, intervention_penalty=0.0, decision_frames=1)
-    venv = SafeSimVecEnv(3, SCENARIO, config, REWARD, seed=1)
+    venv = SafeVecEnv(3, SCENARIO, config, REWARD, seed=1)
     venv.reset()
     venv.step_async(np.array([5, 5, 5]))
     _, rewards, _, _ = venv.step_wait()
-    expected = highway_reward(venv.batch.sim.state, venv.batch.sim.config).double().numpy()
+    expected = highway_reward(venv.batch.world.sim.state, venv.batch.world.sim.config).double().numpy()
     assert np.allclose(rewards, expected, atol=1e-6)
 
 
 def test_gymnasium_vector_env_resets_from_seeds_and_reports_final_observations():
-    first, second = SafeSimVectorEnv(3, SCENARIO, CONFIG, REWARD), SafeSimVectorEnv(3, SCENARIO, CONFIG, REWARD)
+    first, second = SafeVectorEnv(3, SCENARIO, CONFIG, REWARD), SafeVectorEnv(3, SCENARIO, CONFIG, REWARD)
     observations, infos = first.reset(seed=11)
     again, _ = second.reset(seed=11)
     assert np.array_equal(observations, again) and infos["episode_seed"].tolist() == [11, 12, 13]
@@ -73,7 +73,7 @@ def test_gymnasium_vector_env_resets_from_seeds_and_reports_final_observations()
 
 
 def test_continuous_actions_drive_too():
-    venv = SafeSimVecEnv(2, SCENARIO, CONFIG, REWARD, continuous=True, seed=2)
+    venv = SafeVecEnv(2, SCENARIO, CONFIG, REWARD, continuous=True, seed=2)
     venv.reset()
     venv.step_async(np.array([[0.0, 1.0], [1.0, -1.0]], dtype=np.float32))
     _, _, _, infos = venv.step_wait()
@@ -81,7 +81,7 @@ def test_continuous_actions_drive_too():
 
 
 def test_bad_input_is_refused():
-    venv = SafeSimVecEnv(2, SCENARIO, CONFIG, REWARD)
+    venv = SafeVecEnv(2, SCENARIO, CONFIG, REWARD)
     with pytest.raises(RuntimeError, match="reset"):
         venv.step_async(np.array([0, 0]))
         venv.step_wait()
@@ -90,10 +90,10 @@ def test_bad_input_is_refused():
         venv.step_async(np.array([0, 99]))
         venv.step_wait()
     with pytest.raises(ValueError, match="`num_envs` must be an int >= 1"):
-        SafeSimVecEnv(0, SCENARIO, CONFIG, REWARD)
-    with pytest.raises(ValueError, match="--sim highway-env"):
-        SafeSimVecEnv(2, load_scenario("cruise_ngsim"), CONFIG, REWARD)
-    assert torch.equal(venv.batch.sim.steps, torch.zeros(2, dtype=torch.long))  # the refused step moved nothing
+        SafeVecEnv(0, SCENARIO, CONFIG, REWARD)
+    with pytest.raises(ValueError, match="--sim highway-env"):  # the world the scenario names must run it
+        load_scenario("cruise_ngsim", {"sim": "batched"})
+    assert torch.equal(venv.batch.world.sim.steps, torch.zeros(2, dtype=torch.long))  # the refused step moved nothing
 
 
 def test_rl_train_on_the_batched_simulator_records_the_world(tmp_path):
@@ -113,7 +113,7 @@ def test_the_verified_layer_executes_only_commands_that_keep_a_way_out():
     """``env.verify``: every frame's executed command verifies at the state it was taken in (or,
     where none did, the stored fail-safe drove and says so); an override is an intervention."""
     config = dataclasses.replace(CONFIG, verify=True)
-    venv = SafeSimVecEnv(4, dataclasses.replace(SCENARIO, duration=2.0), config, REWARD, seed=0)
+    venv = SafeVecEnv(4, dataclasses.replace(SCENARIO, duration=2.0), config, REWARD, seed=0)
     layer = venv.layer
     executed = []
     guarded = layer._guarded

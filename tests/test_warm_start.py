@@ -230,12 +230,12 @@ def test_a_solver_of_some_goals_is_warm_only_where_it_solved_every_one_of_them_b
 def test_the_safety_layer_warm_starts_its_decision_solves_and_a_new_episode_solves_cold():
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
-    from mmpc.rl.sim_vec_env import SafeSimBatch
+    from mmpc.rl.engine import SafeEnvs
 
     config = load_config(RLConfig, "cruise_task")
     scenario = config.scenario.replace(sim="batched", duration=0.6)  # 3 agent steps of 0.2 s
     assert scenario.mpc.warm_iterations == 10  # the shipped scenarios warm-start
-    batch = SafeSimBatch(2, scenario, config.env, config.reward, seed=0)
+    batch = SafeEnvs(2, scenario, config.env, config.reward, seed=0)
     batch.reset([5, 6])
     iterations = lambda: batch._decision.scored.result.iterations.float().mean(dim=1).tolist()
     assert min(iterations()) > 10  # the first decision: cold

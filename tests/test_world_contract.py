@@ -2,9 +2,9 @@
 highway-env's and the batched simulator's, as the episode runner makes them (Kinematics rows,
 float32) and as the safe RL agent step does (no Kinematics rows, float64).
 
-Shapes, dtypes and devices of what ``observe`` / ``done`` / ``speeds`` / ``observe_impact``
-return, the per-environment views the runner reads, that ``apply`` advances exactly the rows
-asked, episodes that end stay ended, and ``close``.
+Shapes, dtypes and devices of what ``observe`` / ``done`` / ``speeds`` / ``observe_impact`` /
+``kinematics`` / ``ego_terms`` return, the per-environment views the runner reads, that ``apply``
+advances and ``restart`` starts again exactly the rows asked, episodes that end stay ended, and ``close``.
 """
 
 from __future__ import annotations
@@ -121,17 +121,34 @@ def test_episodes_end_with_their_time_and_stay_ended(world):
     assert impact.vehicles.dim() == 3 and impact.vehicles.shape[0] == 1
 
 
-def test_a_batched_world_restarts_the_rows_asked():
-    world = BatchedWorld.start(SCENARIO.replace(sim="batched"), SEEDS)
+def test_restart_starts_the_rows_asked_from_their_seeds(world):
     start, _ = world.observe([0, 1, 2])
     world.apply([0, 1, 2], torch.ones(3), torch.zeros(3))
-    assert world.episodes[1].reward == world.status().rewards[1]
     world.restart(torch.tensor([1]), [SEEDS[1]])
     again, _ = world.observe([0, 1, 2])
     assert torch.equal(again.ego[1], start.ego[1]) and not torch.equal(again.ego[0], start.ego[0])
     world.restart(torch.tensor([2]), [9])
-    assert [episode.seed for episode in world.episodes] == [3, 4, 9]
-    assert torch.equal(world.observe([2])[0].ego, BatchedWorld.start(SCENARIO, [9]).observe([0])[0].ego)
+    assert [episode.seed for episode in world.episodes] == [3, 4, 9] and not bool(world.done().any())
+    scenario = SCENARIO.replace(sim="batched") if isinstance(world, BatchedWorld) else SCENARIO
+    reference = make_world(scenario, [9])
+    torch.testing.assert_close(world.observe([2])[0].ego.double(), reference.observe([0])[0].ego.double())
+    reference.close()
+
+
+def test_kinematics_and_ego_terms_of_the_rows_asked(world):
+    """What the safe environments read: the agent's Kinematics rows and what a task reward reads of the egos."""
+    kinematics = world.kinematics_rows([2, 0], 4)
+    assert kinematics.shape == (2, 4, 5) and kinematics.dtype == np.float32
+    assert (kinematics[:, 0, 0] == 1).all()  # the ego's row is present
+    np.testing.assert_array_equal(kinematics[1], world.kinematics_rows([0], 4)[0])
+    terms = world.ego_terms([2, 0])
+    for term in terms:
+        assert term.shape == (2,) and term.dtype == torch.float64 and term.device == world.device
+    assert torch.equal(terms.speed, world.speeds([2, 0]))
+    observed = world.observe([2, 0])[0].ego.double()
+    torch.testing.assert_close(terms.y, observed[:, 1], atol=1e-4, rtol=0)
+    assert terms.crashed.tolist() == [0, 0] and terms.on_road.tolist() == [1, 1]
+    assert all(0 <= lane < SCENARIO.lanes for lane in terms.lane.tolist())
 
 
 def test_make_world_chooses_the_scenario_s_world():

@@ -9,9 +9,11 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Observation
+from mmpc.highway.ego_terms import EgoTerms
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim import SimEpisodes, kinematics_observation
 from mmpc.sim.reward import highway_reward
+from mmpc.sim.state import on_road
 
 
 class EgoStatus(NamedTuple):
@@ -158,6 +160,16 @@ class BatchedWorld:
         for row, seed in zip(rows.tolist(), seeds):
             self.seeds[row] = int(seed)
         self._status = None
+
+    def kinematics_rows(self, rows: torch.Tensor | Sequence[int], vehicles_count: int) -> np.ndarray:
+        observation = kinematics_observation(self.sim.state, self.sim.config, vehicles_count=vehicles_count, check=False)
+        return observation[self._rows(rows)].float().cpu().numpy()
+
+    def ego_terms(self, rows: torch.Tensor | Sequence[int]) -> EgoTerms:
+        state, rows = self.sim.state, self._rows(rows)
+        speed, heading, y = state.speed[rows, 0].double(), state.heading[rows, 0].double(), state.y[rows, 0].double()
+        return EgoTerms(speed, speed * torch.cos(heading), y, state.lane[rows, 0].double(), state.crashed[rows, 0].double(),
+                        on_road(state.y[rows, 0], self.sim.config).double())
 
     def observe_impact(self, index: int) -> Observation:
         ego, vehicles, mask = (field[index:index + 1].cpu() for field in self.sim.road_state(at_impact=True))

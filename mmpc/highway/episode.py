@@ -18,7 +18,7 @@ command's steering ``atan(L psidot / v)`` inverts it to first order.
 from __future__ import annotations
 
 import math
-from typing import Mapping, NamedTuple
+from typing import Mapping, NamedTuple, Optional
 
 import gymnasium as gym
 import highway_env  # noqa: F401  (registers the highway-v0 family)
@@ -31,6 +31,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from mmpc.drivers import Decision, Driver, Observation
 from mmpc.scenario import ScenarioConfig
 from mmpc.traffic_config import IDMTraffic
+from mmpc.highway.kinematics import DeferredKinematics
 from mmpc.highway.traffic import TrafficController, make_traffic, resize
 
 #: Acceleration [m/s^2] and steering [rad] ranges that highway-env's [-1, 1] action maps onto.
@@ -194,9 +195,17 @@ class HighwayEpisode:
         """The ego crashed or the scenario's duration is over."""
         return bool(self.ego.crashed) or self.time >= self.scenario.duration - 1e-9
 
-    def kinematics(self) -> np.ndarray:
-        """highway-env's ``Kinematics`` observation of the current state, (rows, features) float32."""
-        return np.asarray(self.unwrapped.observation_type.observe(), dtype=np.float32)
+    def kinematics(self, vehicles_count: Optional[int] = None) -> np.ndarray:
+        """highway-env's ``Kinematics`` observation of the current state, (rows, features) float32:
+        the scenario's rows, or ``vehicles_count`` rows computed only when asked for (highway-env then
+        stops building an observation at every frame, :class:`mmpc.highway.kinematics.DeferredKinematics`)."""
+        observer = self.unwrapped.observation_type
+        if vehicles_count is not None and not (isinstance(observer, DeferredKinematics)
+                                               and observer.vehicles_count == vehicles_count):
+            observer = self.unwrapped.observation_type = DeferredKinematics(self.unwrapped, vehicles_count)
+        if isinstance(observer, DeferredKinematics):
+            return observer.compute()
+        return np.asarray(observer.observe(), dtype=np.float32)
 
     def observe(self, dtype: torch.dtype = torch.float32, *, kinematics: bool = True) -> Observation:
         """The current state for a driver (E = 1), with highway-env's ``Kinematics`` rows unless ``kinematics`` is off."""

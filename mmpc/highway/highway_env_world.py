@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Observation
+from mmpc.highway.ego_terms import EgoTerms
 from mmpc.highway.episode import HighwayEpisode
 from mmpc.scenario import ScenarioConfig
 
@@ -20,24 +21,22 @@ class HighwayEnvWorld:
         episodes: one episode per environment (the world steps and closes them).
         dtype: the dtype of the states observed.
         kinematics: observations carry highway-env's ``Kinematics`` rows.
-        device: where :meth:`done` and :meth:`speeds` are (observations are on the host).
-        env_ids: the environments' ids in observations (stable over their episodes); default
-            their rows.
+        device: where :meth:`done`, :meth:`speeds` and :meth:`ego_terms` are (observations are on the host).
+        render: episodes it starts (:meth:`restart`) draw frames.
     """
 
     def __init__(self, episodes: Sequence[HighwayEpisode], *, dtype: torch.dtype = torch.float32, kinematics: bool = True,
-                 device: torch.device | str = "cpu", env_ids: Optional[Sequence[int]] = None) -> None:
+                 device: torch.device | str = "cpu", render: bool = False) -> None:
         self.episodes = list(episodes)
-        self.env_ids = list(range(len(self.episodes))) if env_ids is None else [int(i) for i in env_ids]
-        if len(self.env_ids) != len(self.episodes) or len(set(self.env_ids)) != len(self.env_ids):
-            raise ValueError(f"`env_ids` must name each of the {len(self.episodes)} environments once; got {self.env_ids}")
+        self.render = render
         self.dtype = dtype
         self.kinematics = kinematics
         self.device = torch.device(device)
 
     @classmethod
-    def start(cls, scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False) -> "HighwayEnvWorld":
-        """A new episode of ``scenario`` per seed (``render``: drawn frames), observed with Kinematics rows."""
+    def start(cls, scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False, **settings) -> "HighwayEnvWorld":
+        """A new episode of ``scenario`` per seed (``render``: drawn frames); ``settings``: the
+        other arguments (by default observed with Kinematics rows)."""
         episodes: list[HighwayEpisode] = []
         try:
             for seed in seeds:
@@ -46,7 +45,7 @@ class HighwayEnvWorld:
             for episode in episodes:
                 episode.close()
             raise
-        return cls(episodes)
+        return cls(episodes, render=render, **settings)
 
     @property
     def num_envs(self) -> int:
@@ -55,11 +54,23 @@ class HighwayEnvWorld:
     def observe(self, rows: torch.Tensor | Sequence[int]) -> tuple[Observation, list[Observation]]:
         rows = _row_list(rows)
         singles = [self.episodes[i].observe(self.dtype, kinematics=self.kinematics) for i in rows]
-        return stack_observations(singles, [self.env_ids[i] for i in rows]), singles
+        return stack_observations(singles, rows), singles
 
     def apply(self, rows: torch.Tensor | Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
         for i, a, s in zip(_row_list(rows), acceleration.tolist(), steering.tolist()):
             self.episodes[i].apply(a, s)
+
+    def restart(self, rows: torch.Tensor | Sequence[int], seeds: Sequence[int]) -> None:
+        for row, seed in zip(_row_list(rows), seeds):
+            scenario = self.episodes[row].scenario
+            self.episodes[row].close()
+            self.episodes[row] = HighwayEpisode(scenario, int(seed), render=self.render)
+
+    def kinematics_rows(self, rows: torch.Tensor | Sequence[int], vehicles_count: int) -> np.ndarray:
+        return np.stack([self.episodes[i].kinematics(vehicles_count) for i in _row_list(rows)])
+
+    def ego_terms(self, rows: torch.Tensor | Sequence[int]) -> EgoTerms:
+        return vehicle_terms([self.episodes[i].ego for i in _row_list(rows)], self.device)
 
     def observe_impact(self, index: int) -> Observation:
         return self.episodes[index].observe_impact()
@@ -73,6 +84,14 @@ class HighwayEnvWorld:
     def close(self) -> None:
         for episode in self.episodes:
             episode.close()
+
+
+def vehicle_terms(vehicles: Sequence, device: torch.device | str = "cpu") -> EgoTerms:
+    """What a task reward reads of highway-env vehicles (:class:`mmpc.highway.ego_terms.EgoTerms`):
+    the lane is the one highway-env places the vehicle on (0 where it has none)."""
+    values = torch.tensor([[v.speed, v.speed * np.cos(v.heading), v.position[1], v.lane_index[2] if v.lane_index is not None
+                            else 0, v.crashed, v.on_road] for v in vehicles], dtype=torch.float64, device=device)
+    return EgoTerms(*values.reshape(-1, 6).T)
 
 
 def _row_list(rows: torch.Tensor | Sequence[int]) -> list[int]:

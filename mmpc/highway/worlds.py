@@ -11,13 +11,16 @@ from __future__ import annotations
 
 from typing import Protocol, Sequence
 
+import numpy as np
 import torch
 
 from mmpc.device import run_device
 from mmpc.drivers import Observation
 from mmpc.highway.batched_world import BatchedWorld
+from mmpc.highway.ego_terms import EgoTerms
 from mmpc.highway.highway_env_world import HighwayEnvWorld
 from mmpc.scenario import ScenarioConfig
+from mmpc.sim import SimEpisodes
 
 
 class World(Protocol):
@@ -45,6 +48,15 @@ class World(Protocol):
         """Apply one command per environment of ``rows``, (R,) each [m/s^2], [rad], and advance
         those environments one frame (the others stay as they are)."""
 
+    def restart(self, rows: torch.Tensor, seeds: Sequence[int]) -> None:
+        """Start a new episode in each environment of ``rows`` (R,) from its seed in ``seeds``."""
+
+    def kinematics_rows(self, rows: torch.Tensor | Sequence[int], vehicles_count: int) -> np.ndarray:
+        """(R, vehicles_count, 5) float32 highway-env ``Kinematics`` observations of the environments ``rows``."""
+
+    def ego_terms(self, rows: torch.Tensor | Sequence[int]) -> EgoTerms:
+        """What a task reward reads of the egos of ``rows`` (:class:`EgoTerms`)."""
+
     def observe_impact(self, index: int) -> Observation:
         """Environment ``index`` (E = 1) after the step in which its ego crashed, with that step's
         collision pushes taken back: the cars where they met (both worlds push colliding cars apart)."""
@@ -59,11 +71,21 @@ class World(Protocol):
         """Release the environments."""
 
 
-def make_world(scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False) -> World:
-    """The world of ``scenario.sim`` with one environment per seed (``render``: highway-env only);
-    the batched simulator runs on the run's device (:func:`mmpc.device.run_device`)."""
+def make_world(scenario: ScenarioConfig, seeds: Sequence[int], *, render: bool = False, dtype: torch.dtype = torch.float32,
+               kinematics: bool = True, device: torch.device | str | None = None) -> World:
+    """The world of ``scenario.sim`` with one environment per seed.
+
+    Args:
+        render: highway-env draws frames (the batched simulator refuses).
+        dtype: the dtype of the states observed.
+        kinematics: observations carry highway-env's ``Kinematics`` rows.
+        device: where the batched simulator runs and where highway-env's :meth:`World.done` and
+            :meth:`World.speeds` are; default the run's (:func:`mmpc.device.run_device`; highway-env: the host).
+    """
     if scenario.sim == "batched":
         if render:
             raise ValueError(f"scenario {scenario.name!r}: videos are drawn by highway-env; run it with --sim highway-env")
-        return BatchedWorld.start(scenario, seeds, device=run_device())
-    return HighwayEnvWorld.start(scenario, seeds, render=render)
+        sim = SimEpisodes(scenario, [int(seed) for seed in seeds], device=run_device() if device is None else device)
+        return BatchedWorld(sim, dtype=dtype, kinematics=kinematics)
+    return HighwayEnvWorld.start(scenario, seeds, render=render, dtype=dtype, kinematics=kinematics,
+                                 device="cpu" if device is None else device)
