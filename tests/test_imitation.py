@@ -101,9 +101,9 @@ def test_minari_loads_the_demonstrations_and_iterates_their_episodes(demos_dir, 
         np.testing.assert_array_equal(episode.actions, staged.actions)
         assert episode.truncations[-1] and not episode.terminations.any()  # 2 s, no collision
         assert (episode.rewards > 0).all()
-        # infos: the expert's decision at each observation; the last row has none
-        assert episode.infos["goal_index"].shape == (21,)
-        assert (episode.infos["goal_index"][:-1] >= 0).all() and episode.infos["goal_index"][-1] == -1
+        # infos: the expert's decision at each observation (-1 where the check drove another command); the last row has none
+        goals = episode.infos["goal_index"]
+        assert goals.shape == (21,) and (goals[:-1] >= -1).all() and (goals[:-1] >= 0).mean() > 0.5 and goals[-1] == -1
         assert np.isfinite(episode.infos["residual_nonholonomic"][:-1]).all()
         # the ego's speed in the observation (feature vx, normalised by 80 m/s) is the road-frame v
         np.testing.assert_allclose(episode.observations[:, 0, 3] * 80.0, episode.infos["ego"][:, 3], atol=0.05)
