@@ -38,8 +38,10 @@ from mmpc.imitation.proposer_driver import DEFAULT_KEEP, ProposerDriver
 from mmpc.imitation.rollout import Rollout, rollout_lockstep
 from mmpc.mpc import MPC
 from mmpc.problem import EGO_V
+from mmpc.drivers.verified import guarded_command
 from mmpc.ranking import Selection
 from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.verify import Guard, Verifier
 from mmpc.warm import WarmStarts
 
 
@@ -74,12 +76,13 @@ class RankingExpert(Driver):
         period: the control period [s] (default: the MPC's): the expert's solves are warm-started
             from each environment's last one (:class:`mmpc.warm.WarmStarts`) when the MPC's config
             says so (:attr:`mmpc.MPCConfig.warm_iterations`); its episodes are labelled in order.
+        verifier: the check behind which it labels and drives (module docstring); ``None``: the MPC alone.
 
     It computes on its MPC's device (:attr:`device`); its labels come to the host once per step.
     """
 
     def __init__(self, mpc: MPC, proposer: Optional[ModeProposer] = None, *, beta: float = 1.0, keep: int = DEFAULT_KEEP,
-                 seed: int = 0, period: Optional[float] = None) -> None:
+                 seed: int = 0, period: Optional[float] = None, verifier: Optional[Verifier] = None) -> None:
         if not 0.0 <= beta <= 1.0:
             raise ValueError(f"`beta` must be in [0, 1]; got {beta!r}")
         if proposer is None and beta < 1.0:
@@ -87,6 +90,7 @@ class RankingExpert(Driver):
         self.mpc = mpc
         self.learner = None if proposer is None else ProposerDriver(mpc, proposer, keep=keep, period=period)
         self.warm_starts = WarmStarts(mpc, period)
+        self.guard = None if verifier is None else Guard(verifier)
         self.beta = beta
         self.rng = np.random.default_rng(seed)
         self.name = "ranking-expert"
@@ -99,6 +103,8 @@ class RankingExpert(Driver):
 
     def reset(self, num_envs: int) -> None:
         self.warm_starts.reset()
+        if self.guard is not None:
+            self.guard.reset()
         if self.learner is not None:
             self.learner.reset(num_envs)
 
@@ -115,6 +121,8 @@ class RankingExpert(Driver):
         warm = self.warm_starts.start(ids, observation.ego)
         scored = self.mpc.score(problem, warm.warm)
         self.warm_starts.keep(ids, observation.ego, scored.result, warm)
+        if self.guard is not None:  # a goal is usable only where its first command keeps a verified way out
+            scored = scored._replace(result=scored.result._replace(feasible=self._usable(observation, problem, scored)))
         expert = self.mpc.select(problem, scored)
         draws = self.rng.random(count) >= self.beta
         learner_rows = torch.as_tensor(draws, device=device)
@@ -139,9 +147,22 @@ class RankingExpert(Driver):
         trajectories = plan.result.trajectories
         candidates = Candidates(torch.stack([trajectories.x, trajectories.y], dim=-1), plan.result.feasible,
                                 selection.index, problem.goals)
-        return Decision(plan.acceleration, plan.steering, (time.perf_counter() - start) * 1e3 - plan.compile_ms,
-                        selection.index, plan.result.feasible.sum(dim=1), ~selection.feasible, selection.cost,
-                        candidates, plan)
+        decision = Decision(plan.acceleration, plan.steering, 0.0, selection.index, plan.result.feasible.sum(dim=1),
+                            ~selection.feasible, selection.cost, candidates, plan)
+        if self.guard is not None:  # no usable goal: braking, the other candidates, a fail-safe
+            guarded = guarded_command(self.guard, observation, plan.acceleration, plan.steering, plan, self.mpc)
+            decision = decision._replace(acceleration=guarded.acceleration, steering=guarded.steering,
+                                         verified=guarded.verified, failsafe=guarded.failsafe,
+                                         goal_index=torch.where(guarded.changed, -1, selection.index))
+        return decision._replace(solve_ms=(time.perf_counter() - start) * 1e3 - plan.compile_ms)
+
+    def _usable(self, observation: Observation, problem, scored) -> torch.Tensor:
+        """(E, G) bool: the feasible goals whose first command verifies from the observed states."""
+        acceleration, steering = self.mpc.candidate_commands(problem.ego, scored.result.trajectories)
+        host = observation.to("cpu")
+        verdict = self.guard.verifier.check(host.ego, host.vehicles, host.vehicle_mask, acceleration.cpu().to(host.ego.dtype),
+                                            steering.cpu().to(host.ego.dtype))
+        return scored.result.feasible & verdict.verified.to(scored.result.feasible.device)
 
 
 class LabelReport(NamedTuple):
@@ -166,6 +187,7 @@ def label_episodes(
     lockstep: int = 64,
     seed: int = 0,
     dataset_id: str,
+    verify: bool = True,
     on_progress: Optional[Callable[[int, int], None]] = None,
 ) -> LabelReport:
     """Drive and label ``seeds`` (see the module docstring); re-run after an interruption to resume.
@@ -179,6 +201,8 @@ def label_episodes(
         seed: seeds the draw of who drives (each group's stream from it and its first seed, so a
             resumed group draws as it would have).
         dataset_id: the Minari id of the round's dataset.
+        verify: label and drive behind the scenario's check (:class:`RankingExpert`; part of the
+            directory's identity: its manifest's ``expert`` is ``verified:mpc``).
         on_progress: called as ``on_progress(finished, total)`` as episodes get staged.
 
     Raises:
@@ -189,8 +213,10 @@ def label_episodes(
     if not seeds or len(set(seeds)) != len(seeds) or min(seeds) < 0:
         raise ValueError(f"`seeds` must be distinct non-negative ints, at least one; got {seeds[:10]}")
     mpc = build_mpc(scenario)
+    verifier = Verifier.for_scenario(scenario) if verify else None
     fields = ranking_fields(goal_count(mpc))
-    with locked_directory(Path(out), Manifest(to_dict(scenario), lockstep, package_versions()),
+    manifest = Manifest(to_dict(scenario), lockstep, package_versions(), "verified:mpc" if verify else "mpc")
+    with locked_directory(Path(out), manifest,
                           "another `mmpc imitate proposer` labelling run") as directory, \
             sigterm_as_interrupt():
         staged = directory.finished_seeds()
@@ -210,14 +236,15 @@ def label_episodes(
             if all(s in staged for s in group):
                 continue
             stream = zlib.crc32(f"{seed}:{group[0]}".encode())
-            driver = RankingExpert(mpc, proposer, beta=beta, keep=keep, seed=stream)
+            driver = RankingExpert(mpc, proposer, beta=beta, keep=keep, seed=stream, verifier=verifier)
             with torch.inference_mode():
                 rollout_lockstep(scenario, group, driver, on_finished=stage, extra_fields=fields, extra_infos=driver.labels)
         seconds = time.perf_counter() - start
         if built_seeds(directory.root, dataset_id) != seeds:
             build_minari(directory, scenario, seeds, identifier=dataset_id, driver="mmpc MPC expert with a mode proposer",
                          description=(f"Ranking labels of highway-env scenario '{scenario.name}': the multi-modal MPC "
-                                      f"(mmpc) drove with probability {beta:g} per step, its mode proposer otherwise; "
+                                      f"(mmpc) drove with probability {beta:g} per step, its mode proposer otherwise"
+                                      f"{', behind the check (a goal is feasible only where its first command verifies)' if verify else ''}; "
                                       "infos also hold the expert's verdict on every goal of its goal set (goal_cost, "
                                       "goal_feasible), its choice (expert_goal) and whether the proposer's choice was executed (learner_drove)."))
     return LabelReport(seeds, generated, states, seconds, dataset_id)

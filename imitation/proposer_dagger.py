@@ -9,6 +9,7 @@ each round a new proposer is trained from scratch on all labels so far
 (:func:`mmpc.imitation.listwise.train_proposer`) and drives ``check_episodes`` held-out seeds
 alone (:class:`mmpc.imitation.proposer_driver.ProposerDriver`, the same seeds every round) beside
 the expert: collisions, mean meta cost and the share of escalated steps are the round's check.
+With ``verify`` (the default) the labels are the verified expert's and both drive behind the check.
 
 Writes ``RUN/labels/round_<i>/`` (staged episodes and the round's Minari dataset),
 ``RUN/round_<i>/proposer.pt``, ``RUN/proposer.json`` (config, per round: beta, labelled states,
@@ -40,8 +41,10 @@ from mmpc.imitation.listwise import ProposerTrainConfig, RankingLabels, train_pr
 from mmpc.imitation.proposer import ModeProposer, load_proposer, save_proposer
 from mmpc.imitation.proposer_driver import ProposerDriver
 from mmpc.rl.folders import run_folder
-from mmpc.drivers import MPCDriver
+from mmpc.drivers import Driver, MPCDriver
+from mmpc.drivers.verified import VerifiedDriver
 from mmpc.scenario import ScenarioConfig, build_mpc
+from mmpc.verify import Verifier
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +70,10 @@ class ProposerDaggerConfig:
         check_episodes: held-out episodes each round's proposer drives alone (0: no check) [-].
         check_seed_start: first seed of those episodes.
         train: training of each round's proposer (its ``keep`` is the driver's).
+        verify: labels behind the check (a goal is usable only where its first command keeps a
+            verified way out, :class:`mmpc.imitation.labels.RankingExpert`), and the rounds' checks
+            drive the proposer and the expert behind it (``verified:``). Runs recorded before the
+            setting existed resume as they were labelled, without it.
     """
 
     rounds: int = 7
@@ -78,9 +85,12 @@ class ProposerDaggerConfig:
     check_episodes: int = 32
     check_seed_start: int = 49000
     train: ProposerTrainConfig = field(default_factory=ProposerTrainConfig)
+    verify: bool = True
 
     def __post_init__(self) -> None:
         require_int("", low=1, episodes=self.episodes, lockstep=self.lockstep)
+        if not isinstance(self.verify, bool):
+            raise ValueError(f"`verify` must be true or false; got {self.verify!r}")
         require_int("", low=0, rounds=self.rounds, seed_start=self.seed_start, check_episodes=self.check_episodes,
                     check_seed_start=self.check_seed_start)
         for name in ("beta", "beta_decay"):
@@ -100,6 +110,11 @@ class ProposerDaggerConfig:
     def seeds_of(self, round_index: int) -> list[int]:
         first = self.seed_start + round_index * self.episodes
         return list(range(first, first + self.episodes))
+
+
+def behind_check(driver: Driver, scenario: ScenarioConfig, verify: bool) -> Driver:
+    """``driver`` behind the scenario's check where ``verify`` asks for it (``verified:``), else itself."""
+    return VerifiedDriver(driver, Verifier.for_scenario(scenario)) if verify else driver
 
 
 def check_drive(scenario: ScenarioConfig, driver, seeds: list[int], lockstep: int) -> dict:
@@ -133,9 +148,12 @@ def _read_report(path: Path, identity: dict) -> list[dict]:
     except (ValueError, KeyError, TypeError) as error:
         raise ValueError(f"{path} is corrupt ({type(error).__name__}: {error}); remove the run folder or choose "
                          "another --out") from error
-    if report.get("identity") != identity:
+    recorded = report.get("identity")
+    if isinstance(recorded, dict) and isinstance(recorded.get("config"), dict) and "verify" not in recorded["config"]:
+        recorded = {**recorded, "config": {**recorded["config"], "verify": False}}  # labelled before the check existed
+    if recorded != identity:
         raise ValueError(f"{path.parent} holds a proposer run of another configuration; re-run with the same scenario "
-                         "and config to resume, or choose another --out")
+                         "and config to resume (a run labelled without the check: --set verify=false), or choose another --out")
     return rounds
 
 
@@ -192,7 +210,7 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: ProposerDaggerConfi
             report = label_episodes(
                 scenario, config.seeds_of(index), out / "labels" / f"round_{index}", proposer=proposer, beta=beta,
                 keep=config.train.keep, lockstep=config.lockstep, seed=index,
-                dataset_id=f"mmpc/{name}-rankings-round{index}-v0", on_progress=on_progress,
+                dataset_id=f"mmpc/{name}-rankings-round{index}-v0", verify=config.verify, on_progress=on_progress,
             )
             first_episode = 0 if labels is None else int(labels.episodes.max()) + 1
             new = read_labels([out / "labels" / f"round_{index}"], first_episode=first_episode)
@@ -211,11 +229,13 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: ProposerDaggerConfi
                           info={"keep": config.train.keep, "round": index, "states": labels.num_states})
             if check_seeds:
                 driver = ProposerDriver(build_mpc(scenario), trained, keep=config.train.keep)
-                entry["check"] = check_drive(scenario, driver, check_seeds, config.lockstep)
+                entry["check"] = check_drive(scenario, behind_check(driver, scenario, config.verify), check_seeds,
+                                             config.lockstep)
                 entry["check"]["escalated_share"] = driver.escalated_rows / max(driver.decided_rows, 1)
                 if expert_check is None:
                     expert = MPCDriver(build_mpc(scenario), period=scenario.period)
-                    expert_check = check_drive(scenario, expert, check_seeds, config.lockstep)
+                    expert_check = check_drive(scenario, behind_check(expert, scenario, config.verify), check_seeds,
+                                               config.lockstep)
                 entry["expert_check"] = expert_check
                 writer.add_scalar("check/collisions", entry["check"]["collisions"], labels.num_states)
                 writer.add_scalar("check/meta_cost_mean", entry["check"]["meta_cost_mean"], labels.num_states)

@@ -220,11 +220,31 @@ def test_the_labelling_driver_labels_the_full_set_whoever_drives(scenario, mpc, 
         RankingExpert(mpc, beta=0.5)
 
 
+def test_behind_the_check_a_goal_is_usable_only_where_its_first_command_verifies(scenario, mpc, states):
+    from mmpc.verify import Verifier
+
+    verifier = Verifier.for_scenario(scenario)
+    plain, checked = RankingExpert(mpc), RankingExpert(mpc, verifier=verifier)
+    plain.decide(states)
+    decision = checked.decide(states)
+    feasible, usable = plain.labels()["goal_feasible"], checked.labels()["goal_feasible"]
+    result = decision.plan.result
+    acceleration, steering = mpc.candidate_commands(decision.plan.problem.ego, result.trajectories)
+    verdict = verifier.check(states.ego, states.vehicles, states.vehicle_mask, acceleration, steering)
+    np.testing.assert_array_equal(usable, feasible & verdict.verified.numpy())
+    assert usable.any(axis=1).all() and not usable.all()  # the check rules some feasible goals out here
+    expert = checked.labels()["expert_goal"]
+    assert usable[np.arange(len(expert)), expert].all()  # the expert's choice is a usable goal
+    assert bool(decision.verified.all()) and not bool(decision.failsafe.any())
+    assert torch.equal(decision.goal_index, torch.as_tensor(expert))
+
+
 def test_labels_stream_to_disk_resume_and_load_as_a_minari_dataset(scenario, tmp_path, monkeypatch):
     out = tmp_path / "round_0"
     seeds = [600, 601, 602]
     report = label_episodes(scenario, seeds, out, lockstep=1, dataset_id="mmpc/test-rankings-v0")
     assert sorted(report.generated) == seeds and report.states == 15
+    assert json.loads((out / "manifest.json").read_text())["expert"] == "verified:mpc"  # labelled behind the check
     labels = read_labels([out])
     assert labels.num_states == 15 and labels.cost.shape == (15, 35) and labels.feasible.dtype == np.bool_
     assert sorted(set(labels.episodes.tolist())) == [0, 1, 2]
@@ -288,6 +308,12 @@ def test_cli_runs_dagger_rounds_resumes_and_the_proposer_drives_in_evaluate(tmp_
     assert (out / "round_1" / "proposer.pt").stat().st_mtime == mtime
     assert main(args[:-2] + ["--set", "beta=0.2", "--out", str(out)]) == 2
     assert "another configuration" in capsys.readouterr().err
+    assert report["identity"]["config"]["verify"] is True
+    recorded = json.loads((out / "proposer.json").read_text())  # a run labelled before the check existed ...
+    del recorded["identity"]["config"]["verify"]
+    (out / "proposer.json").write_text(json.dumps(recorded))
+    assert main(args) == 2 and "--set verify=false" in capsys.readouterr().err
+    assert main(args[:-2] + ["--set", "verify=false", "--out", str(out)]) == 0  # ... resumes as it was labelled
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     events = EventAccumulator(str(out / "tb"))
     events.Reload()
