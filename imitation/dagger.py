@@ -58,6 +58,7 @@ import torch
 
 from mmpc.config import from_dict, require_int, to_dict
 from mmpc.drivers import Decision, Driver, Observation
+from mmpc.drivers.verified import VerifiedDriver
 from mmpc.highway.highway_env_world import stack_observations
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
@@ -71,6 +72,7 @@ from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
 from mmpc.rl.folders import run_folder
 from mmpc.scenario import ScenarioConfig
+from mmpc.verify import Verifier
 
 logger = logging.getLogger(__name__)
 
@@ -110,6 +112,9 @@ class DaggerConfig:
             round's policy is returned) [-].
         check_seed_start: first seed of those episodes.
         train: training of each round's policy.
+        verify: the expert that drives and labels is the MPC behind the check (``verified:mpc``:
+            every label keeps a verified way out from its state; a ``--dataset`` must hold that
+            expert's demonstrations). Runs recorded before the setting existed resume without it.
     """
 
     iterations: int = 12
@@ -126,6 +131,7 @@ class DaggerConfig:
     check_episodes: int = 20
     check_seed_start: int = 3000
     train: TrainConfig = field(default_factory=lambda: TrainConfig(policy=DAGGER_POLICY))
+    verify: bool = True
 
     def __post_init__(self) -> None:
         require_int("", low=1, initial_episodes=self.initial_episodes, episodes_per_iteration=self.episodes_per_iteration,
@@ -143,6 +149,8 @@ class DaggerConfig:
             raise ValueError(f"`label_window` must be null or a finite number > 0 s; got {self.label_window}")
         if self.duration is not None and not (self.duration > 0 and math.isfinite(self.duration)):
             raise ValueError(f"`duration` must be null or a finite number > 0 s; got {self.duration}")
+        if not isinstance(self.verify, bool):
+            raise ValueError(f"`verify` must be true or false; got {self.verify!r}")
 
     def beta_of(self, round_index: int) -> float:
         """beta_i of round i >= 1 (the expert's share of the driving; :func:`mmpc.imitation.dagger_rounds.beta_of`)."""
@@ -345,6 +353,7 @@ def _resume(out: Path, identity: dict) -> tuple[list[dict], Optional[Transitions
         report = json.loads(path.read_text())
         earlier = {key: report[key] for key in identity}
         rounds = list(report["rounds"])
+        earlier["config"] = {"verify": False, **earlier["config"]}  # a run recorded before the check existed
     except (ValueError, KeyError, TypeError) as error:
         raise ValueError(f"{path} is not a readable DAgger report ({type(error).__name__}: {error}); "
                          "remove it or choose another --out") from error
@@ -354,6 +363,9 @@ def _resume(out: Path, identity: dict) -> tuple[list[dict], Optional[Transitions
         raise ValueError(f"{path} holds a scenario this mmpc cannot read ({error}); choose another --out") from error
     if earlier != identity:
         changed = sorted(k for k in identity if earlier[k] != identity[k])
+        if "config" in changed:
+            changed[changed.index("config")] = "config: " + ", ".join(
+                sorted(k for k in identity["config"] if earlier["config"].get(k) != identity["config"][k]))
         raise ValueError(f"{out} holds a DAgger run of another configuration (differs in: {', '.join(changed)}); "
                          "re-run with the same settings to resume, or choose another --out")
     if not rounds:
@@ -419,7 +431,9 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, datas
     if config.label_window is not None:
         expert_scenario = scenario.replace(mpc=dataclasses.replace(scenario.mpc, command_window=config.label_window))
     # cold solves: it labels recorded states off-line, where a warm start from the last call's states would not apply
-    expert = MPCDriver(build_mpc(expert_scenario.replace(mpc=dataclasses.replace(expert_scenario.mpc, warm_iterations=0))))
+    expert: Driver = MPCDriver(build_mpc(expert_scenario.replace(mpc=dataclasses.replace(expert_scenario.mpc, warm_iterations=0))))
+    if config.verify:
+        expert = VerifiedDriver(expert, Verifier.for_scenario(scenario))
     road = scenario.road
     policy = load_policy(out / f"round_{rounds[-1]['round']}" / "policy.pt") if rounds else None
     with SummaryWriter(str(out / "tb")) as writer, torch.inference_mode(False):
@@ -435,6 +449,12 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, datas
                 dataset = open_dataset(Path(dataset_dir))
                 if dataset_road(dataset) != road:
                     raise ValueError(f"dataset {dataset_dir} was driven on {dataset_road(dataset)}; the scenario has {road}")
+                recorded_expert = dataset.storage.metadata.get("mmpc_expert", "mpc")
+                if recorded_expert != ("verified:mpc" if config.verify else "mpc"):
+                    raise ValueError(f"dataset {dataset_dir} holds demonstrations of {recorded_expert}; this run labels with "
+                                     f"{'verified:mpc' if config.verify else 'mpc'} (`verify`): record them with "
+                                     f"`mmpc imitate demos --expert {'verified:mpc' if config.verify else 'mpc'}`, or "
+                                     f"--set verify={'false' if config.verify else 'true'}")
                 window = dataset.storage.metadata["mmpc_scenario"]["mpc"]["command_window"]
                 if window != expert_scenario.mpc.command_window:
                     raise ValueError(f"dataset {dataset_dir} holds commands over a {window} s window; `label_window` is "

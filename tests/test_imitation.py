@@ -511,6 +511,20 @@ def test_a_dagger_folder_written_with_retired_scenario_keys_resumes(tmp_path):
     path.write_text(json.dumps(record))
     with pytest.raises(ValueError, match="cannot read.*wheelbase"):
         run_dagger(scenario, tmp_path, config)
+    record["scenario"]["mpc"]["wheelbase"] = 5.0
+    del record["config"]["verify"]  # a run labelled before the check existed resumes as it was labelled
+    path.write_text(json.dumps(record))
+    with pytest.raises(ValueError, match=r"differs in: config: verify"):
+        run_dagger(scenario, tmp_path, config)
+    resumed = run_dagger(scenario, tmp_path, dataclasses.replace(config, verify=False))
+    assert json.dumps(resumed["rounds"]) == json.dumps(first["rounds"])
+
+
+def test_dagger_refuses_demonstrations_of_another_expert_than_its_labels(demos_dir, tmp_path):
+    config = DaggerConfig(iterations=0, lockstep=1, check_episodes=0, verify=False,
+                          train=TrainConfig(epochs=1, batch_size=4, policy=PolicyConfig(hidden=(8,))))
+    with pytest.raises(ValueError, match=r"holds demonstrations of verified:mpc; this run labels with mpc"):
+        run_dagger(short_cruise(), tmp_path / "run", config, dataset_dir=demos_dir)
 
 
 def test_best_round_has_the_fewest_check_collisions_and_the_most_data_among_ties():
@@ -626,9 +640,9 @@ def test_the_dagger_config_record_of_an_earlier_run_is_unchanged():
                   "policy": {"hidden": [128, 128], "activation": "relu", "neighbours": 8, "ego_command": False,
                              "lane_slots": True}},
     }
-    settings = json.loads(json.dumps(dataclasses.asdict(DaggerConfig()), default=list))
+    settings = json.loads(json.dumps(dataclasses.asdict(DaggerConfig(verify=False)), default=list))
     settings.pop("iterations")
-    assert settings == old_record
+    assert settings == {**old_record, "verify": False}  # the one key added since: the run of then labelled without the check
     assert from_dict(DaggerConfig, {**old_record, "iterations": 12}) == DaggerConfig()
     scenario = load_scenario("cruise")
     old_scenario = {**to_dict(scenario), "mpc": {**to_dict(scenario)["mpc"], "wheelbase": 5.0, "compile": "auto"}}
