@@ -70,8 +70,7 @@ class SafeEnvs:
     Args:
         num_envs: E.
         scenario: the driving scenario (its ``sim`` chooses the world; its ``duration`` is the
-            episode length). The batched simulator refuses what it cannot run, naming
-            ``--sim highway-env``.
+            episode length).
         config: environment settings.
         reward: reward settings.
         continuous: Box goal actions instead of the discrete grid.

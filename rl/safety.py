@@ -266,7 +266,7 @@ class SafetyLayer:
 
     def new_env_id(self) -> int:
         """An environment id no other environment of this layer was given (0, 1, 2, ...): the key of
-        its warm starts and stored fail-safe (:class:`mmpc.rl.envs.SafeHighwayEnv`)."""
+        its warm starts and stored fail-safe (:class:`mmpc.rl.engine.SafeEnvs`)."""
         self._env_ids_given += 1
         return self._env_ids_given - 1
 
