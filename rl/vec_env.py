@@ -66,6 +66,10 @@ class SafeVecEnv(TensorVecEnv):
     def layer(self) -> SafetyLayer:
         return self.batch.layer
 
+    def close(self) -> None:
+        """Release the world (highway-env's episodes)."""
+        self.batch.close()
+
     def reset(self) -> VecEnvObs:
         observations, infos = self.batch.reset(list(self._seeds))
         self.reset_infos = infos
@@ -102,6 +106,10 @@ class SafeVectorEnv(gym.vector.VectorEnv):
         self.single_action_space = action_space(config, continuous)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
+
+    def close_extras(self, **kwargs) -> None:
+        """Release the world (highway-env's episodes)."""
+        self.batch.close()
 
     def reset(self, *, seed: int | Sequence[Optional[int]] | None = None, options: Optional[dict] = None):
         if seed is None:

@@ -76,5 +76,6 @@ def test_every_safe_environment_api_steps_through_the_engine(smoke, monkeypatch)
     vector.reset(seed=3)
     vector.step(np.array([0, 0]))
     assert calls == [("SafeEnvs", 1, False), ("SafeEnvs", 2, True), ("SafeEnvs", 2, True)]
-    for env in (single, vec, vector.batch):
+    for env in (single, vec, vector):
         env.close()
+    assert vec.batch.world is None and vector.batch.world is None  # the worlds are released
