@@ -103,7 +103,7 @@ def _assert_same_trace(first, second) -> None:
         assert info_a == info_b
 
 
-def test_sim_vec_env_on_device_cpu_steps_as_without_it(monkeypatch):
+def test_safe_vec_env_on_device_cpu_steps_as_without_it(monkeypatch):
     plain = _steps(monkeypatch, None)
     _assert_same_trace(plain, _steps(monkeypatch, "cpu"))
     observations, rewards, dones, infos = plain[1]

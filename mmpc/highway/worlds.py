@@ -1,5 +1,5 @@
 """The world protocol: E environments of one scenario stepped together, as the episode runner
-(:func:`mmpc.highway.run_lockstep`) and the safe RL agent step (:func:`mmpc.rl.agent_step.run_agent_step`)
+(:func:`mmpc.highway.run_lockstep`) and the safe RL environments (:class:`mmpc.rl.engine.SafeEnvs`)
 drive them; :func:`make_world` makes the runner's world of a scenario.
 
 Two worlds implement it: highway-env episodes one by one (the reference,
@@ -40,8 +40,7 @@ class World(Protocol):
         """E."""
 
     def observe(self, rows: torch.Tensor | Sequence[int]) -> tuple[Observation, Sequence[Observation]]:
-        """The batch of the environments ``rows`` (one row each, ``env_ids`` their ids: ``rows``
-        unless the world was given stable ids of its own; with
+        """The batch of the environments ``rows`` (one row each, ``env_ids`` = ``rows``; with
         highway-env's ``Kinematics`` rows where the world observes them) and each row alone (E = 1)."""
 
     def apply(self, rows: torch.Tensor | Sequence[int], acceleration: torch.Tensor, steering: torch.Tensor) -> None:
