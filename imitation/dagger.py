@@ -58,7 +58,7 @@ import torch
 
 from mmpc.config import from_dict, require_int, to_dict
 from mmpc.drivers import Decision, Driver, Observation
-from mmpc.drivers.verified import VerifiedDriver
+from mmpc.drivers.verified import behind_check
 from mmpc.highway.highway_env_world import stack_observations
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
@@ -72,7 +72,6 @@ from mmpc.imitation.rollout import Rollout, executed_command, rollout_lockstep
 from mmpc.problem import EGO_V
 from mmpc.rl.folders import run_folder
 from mmpc.scenario import ScenarioConfig
-from mmpc.verify import Verifier
 
 logger = logging.getLogger(__name__)
 
@@ -431,9 +430,9 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, datas
     if config.label_window is not None:
         expert_scenario = scenario.replace(mpc=dataclasses.replace(scenario.mpc, command_window=config.label_window))
     # cold solves: it labels recorded states off-line, where a warm start from the last call's states would not apply
-    expert: Driver = MPCDriver(build_mpc(expert_scenario.replace(mpc=dataclasses.replace(expert_scenario.mpc, warm_iterations=0))))
-    if config.verify:
-        expert = VerifiedDriver(expert, Verifier.for_scenario(scenario))
+    expert = behind_check(MPCDriver(build_mpc(expert_scenario.replace(
+        mpc=dataclasses.replace(expert_scenario.mpc, warm_iterations=0)))), scenario, config.verify)
+    expert_name = "verified:mpc" if config.verify else "mpc"
     road = scenario.road
     policy = load_policy(out / f"round_{rounds[-1]['round']}" / "policy.pt") if rounds else None
     with SummaryWriter(str(out / "tb")) as writer, torch.inference_mode(False):
@@ -450,11 +449,10 @@ def _run_rounds(scenario: ScenarioConfig, out: Path, config: DaggerConfig, datas
                 if dataset_road(dataset) != road:
                     raise ValueError(f"dataset {dataset_dir} was driven on {dataset_road(dataset)}; the scenario has {road}")
                 recorded_expert = dataset.storage.metadata.get("mmpc_expert", "mpc")
-                if recorded_expert != ("verified:mpc" if config.verify else "mpc"):
+                if recorded_expert != expert_name:
                     raise ValueError(f"dataset {dataset_dir} holds demonstrations of {recorded_expert}; this run labels with "
-                                     f"{'verified:mpc' if config.verify else 'mpc'} (`verify`): record them with "
-                                     f"`mmpc imitate demos --expert {'verified:mpc' if config.verify else 'mpc'}`, or "
-                                     f"--set verify={'false' if config.verify else 'true'}")
+                                     f"{expert_name} (`verify`): record them with `mmpc imitate demos --expert "
+                                     f"{expert_name}`, or --set verify={str(not config.verify).lower()}")
                 window = dataset.storage.metadata["mmpc_scenario"]["mpc"]["command_window"]
                 if window != expert_scenario.mpc.command_window:
                     raise ValueError(f"dataset {dataset_dir} holds commands over a {window} s window; `label_window` is "

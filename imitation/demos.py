@@ -23,7 +23,7 @@ import torch
 
 from mmpc.config import to_dict
 from mmpc.drivers import MPCDriver
-from mmpc.drivers.verified import VerifiedDriver
+from mmpc.drivers.verified import behind_check
 from mmpc.evaluate import Backend, run_tasks
 from mmpc.evaluate.tasks import lockstep_groups
 from mmpc.files import TEMPORARY_PREFIX, atomic_write, exclusive
@@ -41,7 +41,6 @@ from mmpc.imitation.dataset import (
 )
 from mmpc.imitation.rollout import Rollout, rollout_lockstep
 from mmpc.scenario import ScenarioConfig, build_mpc
-from mmpc.verify import Verifier
 
 logger = logging.getLogger(__name__)
 
@@ -103,9 +102,8 @@ def drive_group(task: DemoTask) -> list[int]:
             written.append(rollout.episode.seed)
 
     with torch.inference_mode():
-        expert = MPCDriver(build_mpc(task.scenario), period=task.scenario.period)
-        if task.expert == "verified:mpc":
-            expert = VerifiedDriver(expert, Verifier.for_scenario(task.scenario))
+        expert = behind_check(MPCDriver(build_mpc(task.scenario), period=task.scenario.period), task.scenario,
+                              task.expert == "verified:mpc")
         rollout_lockstep(task.scenario, task.seeds, expert, on_finished=stage)
     return written
 

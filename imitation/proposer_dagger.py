@@ -41,10 +41,9 @@ from mmpc.imitation.listwise import ProposerTrainConfig, RankingLabels, train_pr
 from mmpc.imitation.proposer import ModeProposer, load_proposer, save_proposer
 from mmpc.imitation.proposer_driver import ProposerDriver
 from mmpc.rl.folders import run_folder
-from mmpc.drivers import Driver, MPCDriver
-from mmpc.drivers.verified import VerifiedDriver
+from mmpc.drivers import MPCDriver
+from mmpc.drivers.verified import behind_check
 from mmpc.scenario import ScenarioConfig, build_mpc
-from mmpc.verify import Verifier
 
 logger = logging.getLogger(__name__)
 
@@ -110,11 +109,6 @@ class ProposerDaggerConfig:
     def seeds_of(self, round_index: int) -> list[int]:
         first = self.seed_start + round_index * self.episodes
         return list(range(first, first + self.episodes))
-
-
-def behind_check(driver: Driver, scenario: ScenarioConfig, verify: bool) -> Driver:
-    """``driver`` behind the scenario's check where ``verify`` asks for it (``verified:``), else itself."""
-    return VerifiedDriver(driver, Verifier.for_scenario(scenario)) if verify else driver
 
 
 def check_drive(scenario: ScenarioConfig, driver, seeds: list[int], lockstep: int) -> dict:

@@ -118,10 +118,13 @@ class SafeEnvs:
         observation = self.world.observe(rows)[0].to(self.device)
         return observation._replace(env_ids=self.ids[rows.to(self.device)])
 
+    def ego_terms(self, rows: torch.Tensor) -> EgoTerms:
+        """What the reward reads of the egos of environments ``rows``, on the layer's device."""
+        return EgoTerms(*(term.to(self.device) for term in self.world.ego_terms(rows)))
+
     def task_rewards(self, rows: torch.Tensor) -> torch.Tensor:
         """(R,) float64 rewards of the current states of environments ``rows`` on the layer's device."""
-        terms = self.world.ego_terms(rows)
-        return task_rewards(EgoTerms(*(term.to(self.device) for term in terms)), self.reward, self.scenario)
+        return task_rewards(self.ego_terms(rows), self.reward, self.scenario)
 
     @property
     def _decides_from_features_solve(self) -> bool:
@@ -197,8 +200,8 @@ class SafeEnvs:
                                solve=self._decision if self._decides_from_features_solve else None)
         tally = StepTally(self.num_envs, self.device, self.config.intervention_penalty)
         self._run(step, tally)  # the decision's solve was timed at the end of the step before
-        terms = self.world.ego_terms(everyone)  # before the resets
-        crashed, speed = terms.crashed.bool().to(self.device), terms.speed.to(self.device)
+        terms = self.ego_terms(everyone)  # before the resets
+        crashed, speed = terms.crashed.bool(), terms.speed
         ended = self.world.done().to(self.device)
         truncated = (ended & ~crashed).cpu().numpy()
         finished = ended.nonzero()[:, 0]
@@ -247,7 +250,8 @@ class SafeEnvs:
             if step.frame_solved:
                 tally.solve_ms.append(control.solve_ms)
             self.world.apply(rows, control.acceleration, control.steering)
-            tally.add(rows, control, self.task_rewards(rows), self.world.speeds(rows).to(self.device))
+            terms = self.ego_terms(rows)  # one read of the egos for the reward and the speed
+            tally.add(rows, control, task_rewards(terms, self.reward, self.scenario), terms.speed)
 
     def close(self) -> None:
         """Release the world."""

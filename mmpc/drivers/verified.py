@@ -134,11 +134,16 @@ def cheapest_goals(plan, mpc, rows: torch.Tensor, count: int) -> tuple[torch.Ten
     return torch.where(missing, nan, acceleration).cpu(), torch.where(missing, nan, steering).cpu()
 
 
+def behind_check(driver: Driver, scenario: ScenarioConfig, verify: bool = True) -> Driver:
+    """``driver`` behind the scenario's check (``verified:``) where ``verify`` asks for it, else itself."""
+    return VerifiedDriver(driver, Verifier.for_scenario(scenario)) if verify else driver
+
+
 def make_verified_driver(scenario: ScenarioConfig, argument: Optional[str]) -> Driver:
     """Driver factory of spec ``verified:DRIVER``: ``DRIVER``'s spec behind the scenario's verifier."""
     if not argument:
         raise ValueError("driver 'verified' needs the driver it checks, e.g. 'verified:mpc'; got none")
-    return VerifiedDriver(make_driver(argument, scenario), Verifier.for_scenario(scenario))
+    return behind_check(make_driver(argument, scenario), scenario)
 
 
 make_verified_driver.files = lambda argument: driver_files(argument) if argument else ()
