@@ -84,12 +84,19 @@ def auto_compile(float32: bool, on_cpu: bool) -> tuple[bool, float]:
     it is the fast one (float32, a kernel compiler found), each layout after
     :data:`AUTO_COMPILE_AFTER_S`, unless the environment variable ``MMPC_COMPILE`` says 0 (eager)
     or 1 (compiled at the first call)."""
+    setting = compile_setting()
+    if setting is not None:
+        return setting, 0.0
+    return float32 and kernel_compiler_found(on_cpu), AUTO_COMPILE_AFTER_S
+
+
+def compile_setting() -> Optional[bool]:
+    """The environment variable ``MMPC_COMPILE``: ``False`` (0, eager), ``True`` (1, compiled at the
+    first call) or ``None`` (unset: each ``compile="auto"`` decides)."""
     setting = os.environ.get(COMPILE_ENV, "").strip()
     if setting not in ("", "0", "1"):
         raise ValueError(f"environment variable {COMPILE_ENV} must be 0, 1 or unset; got {setting!r}")
-    if setting:
-        return setting == "1", 0.0
-    return float32 and kernel_compiler_found(on_cpu), AUTO_COMPILE_AFTER_S
+    return None if not setting else setting == "1"
 
 
 def kernel_compiler_found(on_cpu: bool) -> bool:

@@ -28,7 +28,7 @@ from mmpc.scenario import ScenarioConfig
 from mmpc.sim.config import SimConfig
 from mmpc.sim.traffic import sim_config
 from mmpc.verify.assumptions import TrafficAssumptions
-from mmpc.verify.failsafe import Body, FailSafes, drive, ego_body, failsafe_command, failsafe_table, rollout
+from mmpc.verify.failsafe import Body, FailSafeRollout, FailSafes, drive, ego_body, failsafe_command, failsafe_table
 from mmpc.verify.geometry import rectangle_meets_box
 from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
 
@@ -60,11 +60,13 @@ class Verifier:
             across the road of a car the lane rule keeps in its band (``|vy| <= change_speed``), which
             the band does not widen by, so it must be at least ``change_speed x dt``.
         max_horizon: the longest fail-safe checked [s] (one that has not come to rest by then fails).
+        compile: how the fail-safes are rolled out (:class:`mmpc.verify.failsafe.FailSafeRollout`):
+            ``"auto"``, ``True`` or ``False``.
     """
 
     def __init__(self, road: Road, sim: SimConfig = SimConfig(), assumptions: TrafficAssumptions = TrafficAssumptions(),
                  failsafes: FailSafes = FailSafes(), ego_size: tuple[float, float] = (5.0, 2.0), margin: float = 0.1,
-                 max_horizon: float = 12.0) -> None:
+                 max_horizon: float = 12.0, compile: bool | str = "auto") -> None:
         if not (margin >= 0 and max_horizon > 0):
             raise ValueError(f"Verifier: `margin` must be >= 0 m and `max_horizon` > 0 s; got {margin!r}, {max_horizon!r}")
         if sim.simulation_frequency < sim.kp_heading:
@@ -83,6 +85,7 @@ class Verifier:
         self.margin = margin
         self.period = 1.0 / sim.policy_frequency
         self.max_frames = max(1, math.ceil(max_horizon / self.period))
+        self.rollout = FailSafeRollout(self.length, road, sim, compile)
 
     @classmethod
     def for_scenario(cls, scenario: ScenarioConfig, **settings) -> "Verifier":
@@ -150,7 +153,7 @@ class Verifier:
         lanes, decelerations = failsafe_table(end, self.road, self.failsafes)  # (E, K, F)
         count = lanes.shape[-1]
         start = Body(*(field[..., None].expand(*lanes.shape) for field in end))
-        path = rollout(start, lanes, decelerations, frames, self.length, self.road, self.sim)  # (E, K, F, frames)
+        path = self.rollout(start, lanes, decelerations, frames)  # (E, K, F, frames)
         poses = Body(*(torch.cat([a[:, None, None, None].expand(num_envs, num_candidates, count, 1),
                                   b[..., None, None].expand(num_envs, num_candidates, count, 1), c], dim=-1)
                        for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times[:-1]

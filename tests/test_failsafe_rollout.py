@@ -1,0 +1,68 @@
+"""The compiled fail-safe rollout gives the eager poses, and the check its verdicts."""
+
+import pytest
+import torch
+
+import mmpc
+from mmpc.sim.config import SimConfig
+from mmpc.solver.execution import COMPILE_ENV
+from mmpc.verify import Verifier
+from mmpc.verify.failsafe import ROLLOUT_CHUNK, ROLLOUT_COMPILE_AFTER_S, Body, FailSafeRollout, rollout
+
+ROAD = mmpc.Road(num_lanes=3)
+SIM = SimConfig(simulation_frequency=10.0, policy_frequency=10.0)
+
+
+def _bodies(shape: tuple[int, ...], dtype: torch.dtype, seed: int = 0) -> tuple[Body, torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+
+    def uniform(low: float, high: float) -> torch.Tensor:
+        return low + (high - low) * torch.rand(shape, generator=generator, dtype=dtype)
+
+    body = Body(uniform(0.0, 100.0), uniform(-1.0, 9.0), uniform(-0.3, 0.3), uniform(0.0, 30.0))
+    lane = torch.randint(0, ROAD.num_lanes, shape, generator=generator)
+    return body, lane, uniform(2.0, 5.0)
+
+
+def test_compiled_rollout_matches_eager(dtype=torch.float32):  # one compile (~50 s cold): float32, the batched world's
+    compiled = FailSafeRollout(5.0, ROAD, SIM, compile=True)
+    assert compiled.compiled
+    frames = 2 * ROLLOUT_CHUNK + 1  # the last chunk's extra frames are dropped
+    for shape in [(3, 4, 3), (7,), (2, 5)]:  # one compile serves every batch size (but 1: specialised)
+        body, lane, deceleration = _bodies(shape, dtype)
+        expected = rollout(body, lane, deceleration, frames, 5.0, ROAD, SIM)
+        path = compiled(body, lane, deceleration, frames)
+        for field, want in zip(path, expected):
+            assert field.shape == (*shape, frames) and field.dtype == dtype
+            torch.testing.assert_close(field, want, atol=1e-4 if dtype == torch.float32 else 1e-9, rtol=1e-6)
+
+
+def test_compiled_check_gives_the_eager_verdicts():
+    ego = torch.cat([mmpc.ego_state(0.0, y, 0.0, v) for y, v in [(0.0, 25.0), (4.0, 12.0), (6.0, 20.0)]]).float()
+    cars = torch.tensor([[[30.0, 0.0, 15.0, 0.0], [20.0, 4.5, 10.0, 0.0]]] * 3)
+    mask = torch.ones(3, 2, dtype=torch.bool)
+    acceleration = torch.tensor([[-5.0, 0.0, 3.0]] * 3)
+    steering = torch.tensor([[0.0, 0.05, -0.05]] * 3)
+    eager = Verifier(ROAD, SIM, compile=False).check(ego, cars, mask, acceleration, steering)
+    compiled = Verifier(ROAD, SIM, compile=True).check(ego, cars, mask, acceleration, steering)
+    assert eager.verified.any() and not eager.verified.all()  # a scene with both answers
+    assert torch.equal(compiled.verified, eager.verified) and torch.equal(compiled.lane, eager.lane)
+
+
+def test_auto_compiles_after_eager_time(monkeypatch):
+    monkeypatch.setenv(COMPILE_ENV, "0")
+    assert not FailSafeRollout(5.0, ROAD, SIM).compiled  # --compile off
+    monkeypatch.setenv(COMPILE_ENV, "1")
+    assert FailSafeRollout(5.0, ROAD, SIM).compiled  # --compile on: at the first call
+    monkeypatch.delenv(COMPILE_ENV)
+    deferred = FailSafeRollout(5.0, ROAD, SIM)
+    if not deferred.compile:
+        pytest.skip("no C++ compiler: 'auto' stays eager")
+    assert not deferred.compiled and deferred.compile_after == ROLLOUT_COMPILE_AFTER_S
+    body, lane, deceleration = _bodies((2, 3), torch.float64)
+    deferred(body, lane, deceleration, 3)
+    assert 0 < deferred.eager_seconds < ROLLOUT_COMPILE_AFTER_S and not deferred.compiled
+    deferred.eager_seconds = ROLLOUT_COMPILE_AFTER_S  # as after that much eager rolling out
+    assert deferred.compiled
+    with pytest.raises(ValueError, match="compile"):
+        FailSafeRollout(5.0, ROAD, SIM, compile="sometimes")
