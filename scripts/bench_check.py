@@ -8,8 +8,9 @@ fail-safe rollout compiled before timing:
    time per environment-step (the driver's solve and the check together, as episodes record
    ``solve_ms``), the check's part and its share;
 2. **gym** (``--gym-steps``): ``gym.make("mmpc/SafeHighway-v0")`` (E = 1) in each world, verified
-   and not: agent steps per second after a warm-up of ``--gym-warmup`` steps, and the time per agent
-   step of the world's frames.
+   (the default) and not, and verified solving at the agent's decisions only (``replan: decision``):
+   agent steps per second after a warm-up of ``--gym-warmup`` steps, and the time per agent step of
+   the world's frames.
 
 Every row is written to ``--out`` (JSON) with the machine and settings.
 """
@@ -32,6 +33,8 @@ from mmpc.cli.arguments import compile_at_once, seed_list
 
 ROLLOUTS = ("eager", "compiled")
 WORLDS = ("highway-env", "batched")
+#: (env.verify, env.replan) of the gym rows: the default, without the check, and solving at decisions only.
+GYM_VARIANTS = ((True, "frame"), (False, "frame"), (True, "decision"))
 
 
 class Stopwatch:
@@ -53,7 +56,7 @@ class Stopwatch:
 
 
 def decision_rows(scenario_name: str, driver_spec: str, env_counts: Sequence[int], seeds: Sequence[int],
-                  duration: float) -> list[dict]:
+                  duration: float, rollouts: Sequence[str] = ROLLOUTS) -> list[dict]:
     """Table 1: per E and rollout, the decision's and the check's time per environment-step."""
     from mmpc.drivers import make_driver
     from mmpc.highway.runner import run_lockstep
@@ -64,7 +67,7 @@ def decision_rows(scenario_name: str, driver_spec: str, env_counts: Sequence[int
     for num_envs in env_counts:
         if num_envs > len(seeds):
             raise ValueError(f"E = {num_envs} needs {num_envs} seeds; got {len(seeds)}")
-        for rollout in ROLLOUTS:
+        for rollout in rollouts:
             driver = make_driver(f"verified:{driver_spec}", load_scenario(scenario_name, {"sim": "batched"}))
             verifier = driver.verifier
             verifier.rollout = FailSafeRollout(verifier.length, verifier.road, verifier.sim, compile=rollout == "compiled")
@@ -99,9 +102,9 @@ def gym_rows(steps: int, warmup: int, seed: int) -> list[dict]:
 
     rows = []
     for world in WORLDS:
-        for verify in (True, False):
+        for verify, replan in GYM_VARIANTS:
             env = gym.make("mmpc/SafeHighway-v0", scenario=load_scenario(RL_SCENARIO, {"sim": world}),
-                           config={"verify": verify})
+                           config={"verify": verify, "replan": replan})
             rng = np.random.default_rng(seed)
             next_seed = seed
 
@@ -126,7 +129,7 @@ def gym_rows(steps: int, warmup: int, seed: int) -> list[dict]:
             finally:
                 world_class.apply = original
                 env.close()
-            rows.append({"table": "gym", "world": world, "verify": verify, "steps": steps,
+            rows.append({"table": "gym", "world": world, "verify": verify, "replan": replan, "steps": steps,
                          "agent_steps_per_s": steps / elapsed, "step_ms": elapsed / steps * 1e3,
                          "world_ms_per_step": watch.seconds / steps * 1e3})
             print(format_gym_row(rows[-1]), flush=True)
@@ -139,7 +142,8 @@ def format_decision_row(row: dict) -> str:
 
 
 def format_gym_row(row: dict) -> str:
-    return (f"gym       {row['world']:<11} verify={str(row['verify']):<5} {row['agent_steps_per_s']:6.2f} agent steps/s  "
+    return (f"gym       {row['world']:<11} verify={str(row['verify']):<5} replan={row['replan']:<8} "
+            f"{row['agent_steps_per_s']:6.2f} agent steps/s  "
             f"{row['step_ms']:7.1f} ms/step, the world's frames {row['world_ms_per_step']:5.1f} ms")
 
 
@@ -150,6 +154,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--envs", default="1,16,256", help="comma-separated E of the decision table ('' skips it)")
     parser.add_argument("--seeds", default="71168-71423", help="episode seeds, at least max E (default 71168-71423)")
     parser.add_argument("--duration", type=float, default=10.0, help="timed episode length [s] (default 10)")
+    parser.add_argument("--rollouts", default=",".join(ROLLOUTS), help="the decision table's rollouts (default eager,compiled)")
     parser.add_argument("--gym-steps", type=int, default=60, help="timed agent steps per gym row (0 skips the table)")
     parser.add_argument("--gym-warmup", type=int, default=150, help="agent steps before timing (compiles; default 150)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
@@ -158,6 +163,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         env_counts = [int(value) for value in args.envs.split(",") if value.strip()]
         seeds = seed_list(args.seeds)
+        rollouts = [value for value in args.rollouts.split(",") if value]
+        if not rollouts or set(rollouts) - set(ROLLOUTS):
+            raise ValueError(f"--rollouts takes names of {list(ROLLOUTS)}; got {args.rollouts!r}")
         if any(count < 1 for count in env_counts) or args.gym_steps < 0 or args.gym_warmup < 0 or not args.duration > 0:
             raise ValueError(f"E >= 1, --gym-steps and --gym-warmup >= 0, --duration > 0; got {args.envs!r}, "
                              f"{args.gym_steps}, {args.gym_warmup}, {args.duration}")
@@ -166,7 +174,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     compile_at_once()
     torch.set_num_threads(args.threads)
-    rows = decision_rows(args.scenario, args.driver, env_counts, seeds, args.duration) if env_counts else []
+    rows = decision_rows(args.scenario, args.driver, env_counts, seeds, args.duration, rollouts) if env_counts else []
     if args.gym_steps:
         rows += gym_rows(args.gym_steps, args.gym_warmup, seeds[0])
     report = {"benchmark": "check", "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),

@@ -66,3 +66,26 @@ def test_auto_compiles_after_eager_time(monkeypatch):
     assert deferred.compiled
     with pytest.raises(ValueError, match="compile"):
         FailSafeRollout(5.0, ROAD, SIM, compile="sometimes")
+
+
+def test_the_check_benchmark_writes_both_tables(tmp_path, capsys):
+    import json
+
+    import bench_check
+
+    out = tmp_path / "check.json"
+    argv = ["--envs", "2", "--seeds", "71168-71169", "--duration", "0.6", "--rollouts", "eager", "--gym-steps", "1",
+            "--gym-warmup", "0", "--out", str(out)]
+    assert bench_check.main(argv) == 0
+    rows = json.loads(out.read_text())["rows"]
+    decision = [row for row in rows if row["table"] == "decision"]
+    assert [(row["envs"], row["rollout"], row["driver"]) for row in decision] == [(2, "eager", "verified:mpc")]
+    assert decision[0]["checks_per_step"] >= 1 and 0 < decision[0]["check_share"] < 1
+    assert decision[0]["check_ms"] < decision[0]["decision_ms"]  # the check is part of the decision's time
+    assert [(row["world"], row["verify"], row["replan"]) for row in rows if row["table"] == "gym"] == [
+        (world, verify, replan) for world in ("highway-env", "batched")
+        for verify, replan in ((True, "frame"), (False, "frame"), (True, "decision"))]
+    assert all(0 < row["world_ms_per_step"] < row["step_ms"] for row in rows if row["table"] == "gym")
+    assert "share" in capsys.readouterr().out
+    assert bench_check.main(["--rollouts", "fast", "--out", str(out)]) == 2
+    assert "--rollouts takes names" in capsys.readouterr().err
