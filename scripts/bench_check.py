@@ -1,10 +1,11 @@
 """Benchmark: the check's share of a verified decision, and of the gymnasium entry point's step.
 
-Two tables, one torch thread unless ``--threads``, every solve and (``compiled`` rows) the
-fail-safe rollout compiled before timing:
+Two tables, one torch thread unless ``--threads``, every solve and (``compiled`` rows) the check
+compiled before timing:
 
 1. **decision**: ``verified:DRIVER`` drives E episodes in lockstep in the batched simulator
-   (``--scenario``, ``--duration``); per E and rollout (``eager``, ``compiled``): the decision's
+   (``--scenario``, ``--duration``); per E and check (``eager``, ``compiled``: its fail-safe rollout
+   and occupancy sets, :class:`mmpc.verify.compiling.CheckCompiling`): the decision's
    time per environment-step (the driver's solve and the check together, as episodes record
    ``solve_ms``), the check's part and its share;
 2. **gym** (``--gym-steps``): ``gym.make("mmpc/SafeHighway-v0")`` (E = 1) in each world, verified
@@ -31,7 +32,7 @@ import torch
 
 from mmpc.cli.arguments import compile_at_once, seed_list
 
-ROLLOUTS = ("eager", "compiled")
+CHECKS = ("eager", "compiled")
 WORLDS = ("highway-env", "batched")
 #: (env.verify, env.replan) of the gym rows: the default, without the check, and solving at decisions only.
 GYM_VARIANTS = ((True, "frame"), (False, "frame"), (True, "decision"))
@@ -56,21 +57,22 @@ class Stopwatch:
 
 
 def decision_rows(scenario_name: str, driver_spec: str, env_counts: Sequence[int], seeds: Sequence[int],
-                  duration: float, rollouts: Sequence[str] = ROLLOUTS) -> list[dict]:
-    """Table 1: per E and rollout, the decision's and the check's time per environment-step."""
+                  duration: float, checks: Sequence[str] = CHECKS) -> list[dict]:
+    """Table 1: per E and check (eager, compiled), the decision's and the check's time per environment-step."""
     from mmpc.drivers import make_driver
+    from mmpc.drivers.verified import VerifiedDriver
     from mmpc.highway.runner import run_lockstep
     from mmpc.scenario import load_scenario
-    from mmpc.verify.failsafe import FailSafeRollout
+    from mmpc.verify import Verifier
 
     rows = []
     for num_envs in env_counts:
         if num_envs > len(seeds):
             raise ValueError(f"E = {num_envs} needs {num_envs} seeds; got {len(seeds)}")
-        for rollout in rollouts:
-            driver = make_driver(f"verified:{driver_spec}", load_scenario(scenario_name, {"sim": "batched"}))
-            verifier = driver.verifier
-            verifier.rollout = FailSafeRollout(verifier.length, verifier.road, verifier.sim, compile=rollout == "compiled")
+        for check in checks:
+            scenario = load_scenario(scenario_name, {"sim": "batched"})
+            verifier = Verifier.for_scenario(scenario, compile=check == "compiled")
+            driver = VerifiedDriver(make_driver(driver_spec, scenario), verifier)
             warm_up = load_scenario(scenario_name, {"sim": "batched", "duration": 2.0})
             run_lockstep(warm_up, list(seeds[:num_envs]), driver=driver)  # compiles every layout
             watch = Stopwatch()
@@ -82,7 +84,7 @@ def decision_rows(scenario_name: str, driver_spec: str, env_counts: Sequence[int
             decision_s = sum(record.solve_ms for record in results[0].records) / 1e3
             rows.append({
                 "table": "decision", "scenario": scenario_name, "driver": f"verified:{driver_spec}", "envs": num_envs,
-                "rollout": rollout, "steps": steps, "decision_ms": decision_s / steps * 1e3,
+                "check": check, "steps": steps, "decision_ms": decision_s / steps * 1e3,
                 "check_ms": watch.seconds / steps * 1e3, "checks_per_step": watch.calls / steps,
                 "check_share": watch.seconds / decision_s,
             })
@@ -137,7 +139,7 @@ def gym_rows(steps: int, warmup: int, seed: int) -> list[dict]:
 
 
 def format_decision_row(row: dict) -> str:
-    return (f"decision  E={row['envs']:<4} {row['rollout']:<8} decision {row['decision_ms']:7.2f} ms/step  check "
+    return (f"decision  E={row['envs']:<4} {row['check']:<8} decision {row['decision_ms']:7.2f} ms/step  check "
             f"{row['check_ms']:6.2f} ms ({row['checks_per_step']:.2f} calls)  share {row['check_share']:5.1%}")
 
 
@@ -154,7 +156,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--envs", default="1,16,256", help="comma-separated E of the decision table ('' skips it)")
     parser.add_argument("--seeds", default="71168-71423", help="episode seeds, at least max E (default 71168-71423)")
     parser.add_argument("--duration", type=float, default=10.0, help="timed episode length [s] (default 10)")
-    parser.add_argument("--rollouts", default=",".join(ROLLOUTS), help="the decision table's rollouts (default eager,compiled)")
+    parser.add_argument("--checks", default=",".join(CHECKS), help="the decision table's checks (default eager,compiled)")
     parser.add_argument("--gym-steps", type=int, default=60, help="timed agent steps per gym row (0 skips the table)")
     parser.add_argument("--gym-warmup", type=int, default=150, help="agent steps before timing (compiles; default 150)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
@@ -163,9 +165,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         env_counts = [int(value) for value in args.envs.split(",") if value.strip()]
         seeds = seed_list(args.seeds)
-        rollouts = [value for value in args.rollouts.split(",") if value]
-        if not rollouts or set(rollouts) - set(ROLLOUTS):
-            raise ValueError(f"--rollouts takes names of {list(ROLLOUTS)}; got {args.rollouts!r}")
+        checks = [value for value in args.checks.split(",") if value]
+        if not checks or set(checks) - set(CHECKS):
+            raise ValueError(f"--checks takes names of {list(CHECKS)}; got {args.checks!r}")
         if any(count < 1 for count in env_counts) or args.gym_steps < 0 or args.gym_warmup < 0 or not args.duration > 0:
             raise ValueError(f"E >= 1, --gym-steps and --gym-warmup >= 0, --duration > 0; got {args.envs!r}, "
                              f"{args.gym_steps}, {args.gym_warmup}, {args.duration}")
@@ -174,7 +176,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         return 2
     compile_at_once()
     torch.set_num_threads(args.threads)
-    rows = decision_rows(args.scenario, args.driver, env_counts, seeds, args.duration, rollouts) if env_counts else []
+    rows = decision_rows(args.scenario, args.driver, env_counts, seeds, args.duration, checks) if env_counts else []
     if args.gym_steps:
         rows += gym_rows(args.gym_steps, args.gym_warmup, seeds[0])
     report = {"benchmark": "check", "machine": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),

@@ -12,8 +12,6 @@ path, so a stored fail-safe stays valid while the world moves as the ego's model
 from __future__ import annotations
 
 import functools
-import logging
-import time
 from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
@@ -27,17 +25,13 @@ from mmpc.sim.ego import ego_action
 from mmpc.sim.idm import steering_to_lane
 from mmpc.sim.kinematics import bicycle_frame
 from mmpc.solver import execution
-
-logger = logging.getLogger(__name__)
+from mmpc.verify.compiling import CheckCompiling
 
 #: Frames of the fail-safe law per compiled call: eager, the law is ~50 small tensor operations a
 #: frame, launch-bound at one environment's few rollouts; compiled, a call costs ~0.2 ms whatever
 #: its frames, and compiling grows with them (8: ~60 s on one core the first time, ~8 s from
 #: inductor's on-disk cache; longer chunks were no faster).
 ROLLOUT_CHUNK = 8
-#: ``compile="auto"``: seconds of eager rollouts after which the law is compiled (about what
-#: compiling costs, so a short run never pays much more than it saves).
-ROLLOUT_COMPILE_AFTER_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -129,66 +123,39 @@ class FailSafeRollout:
     """:func:`rollout`, eager or compiled: the fail-safes of a road, command path and ego length.
 
     Compiled, the law runs :data:`ROLLOUT_CHUNK` frames per call of one graph over a flat batch of
-    any size (one compile serves every batch); the last chunk's frames past ``frames`` are
-    dropped, so both paths give the same poses to the rounding of fused arithmetic.
+    any size; the last chunk's frames past ``frames`` are dropped, so both paths give the same
+    poses to the rounding of fused arithmetic.
 
     Args:
         length: the ego's length [m].
         road: the road.
         sim: the worlds' constants (the ego's command path).
-        compile: ``"auto"``: compiled where a C++ compiler is found, once eager rollouts have taken
-            :data:`ROLLOUT_COMPILE_AFTER_S` (``MMPC_COMPILE=0``: never, ``1``: at the first call);
-            ``True``: at the first call; ``False``: eager.
+        compiling: when to run compiled (shared with the check's other parts).
     """
 
-    def __init__(self, length: float, road: Road, sim: SimConfig, compile: bool | str = "auto") -> None:
-        compile_after = 0.0
-        if compile == "auto":
-            setting = execution.compile_setting()
-            compile = execution.kernel_compiler_found(on_cpu=True) if setting is None else setting
-            compile_after = ROLLOUT_COMPILE_AFTER_S if setting is None else 0.0
-        if not isinstance(compile, bool):
-            raise ValueError(f"`compile` must be True, False or 'auto'; got {compile!r}")
-        self.length, self.road, self.sim = float(length), road, sim
-        self.compile, self.compile_after = compile, compile_after
-        self.eager_seconds = 0.0  # spent in eager rollouts so far [s]
-        self._limit_logged = False
-
-    @property
-    def compiled(self) -> bool:
-        """Whether the next rollout runs compiled."""
-        return self.compile and self.eager_seconds >= self.compile_after
+    def __init__(self, length: float, road: Road, sim: SimConfig, compiling: CheckCompiling) -> None:
+        self.length, self.road, self.sim, self.compiling = float(length), road, sim, compiling
 
     def __call__(self, body: Body, lane: torch.Tensor, deceleration: torch.Tensor, frames: int) -> Body:
         """The fail-safe (``lane``, ``deceleration``) from ``body``, every field (...): poses at the
         end of each command, every field (..., frames)."""
+        if self.compiling.compiled and body.x.numel() and body.x.device.type == "cpu":
+            path = self.compiling.attempt(lambda: self._compiled(body, lane, deceleration, frames))
+            if path is not None:
+                return path
+        return self.compiling.eager(rollout, body, lane, deceleration, frames, self.length, self.road, self.sim)
+
+    def _compiled(self, body: Body, lane: torch.Tensor, deceleration: torch.Tensor, frames: int) -> Body:
         shape = body.x.shape
-        if not (self.compiled and body.x.numel() and body.x.device.type == "cpu"):
-            return self._eager(body, lane, deceleration, frames)
         chunk = _compiled_chunk(self.length, self.road, self.sim)
         state = [field.reshape(-1) for field in body]
         lane, deceleration = lane.expand(shape).reshape(-1), deceleration.expand(shape).reshape(-1)
         poses = []
-        try:
-            with torch._dynamo.config.patch(recompile_limit=execution.RECOMPILE_LIMIT):
-                for _ in range(execution.ceil_div(frames, ROLLOUT_CHUNK)):
-                    poses.append(chunk(*state, lane, deceleration))  # (4, ROLLOUT_CHUNK, N)
-                    state = list(poses[-1][:, -1].unbind(0))  # contiguous, as the first call's: no recompile
-        except torch._dynamo.exc.FailOnRecompileLimitHit:
-            if not self._limit_logged:
-                logger.warning("FailSafeRollout: %d compiled layouts in this process (the limit); rolling out eagerly",
-                               execution.RECOMPILE_LIMIT)
-                self._limit_logged = True
-            self.compile = False
-            return self._eager(body, lane.view(shape), deceleration.view(shape), frames)
+        for _ in range(execution.ceil_div(frames, ROLLOUT_CHUNK)):
+            poses.append(chunk(*state, lane, deceleration))  # (4, ROLLOUT_CHUNK, N)
+            state = list(poses[-1][:, -1].unbind(0))  # contiguous, as the first call's: no recompile
         path = torch.cat(poses, dim=1)[:, :frames].movedim(1, -1)  # (4, N, frames)
         return Body(*(field.reshape(*shape, frames) for field in path.unbind(0)))
-
-    def _eager(self, body: Body, lane: torch.Tensor, deceleration: torch.Tensor, frames: int) -> Body:
-        started = time.perf_counter()
-        path = rollout(body, lane, deceleration, frames, self.length, self.road, self.sim)
-        self.eager_seconds += time.perf_counter() - started
-        return path
 
 
 @functools.lru_cache(maxsize=None)

@@ -17,8 +17,9 @@ matters most at low frequencies (a 0.5 s frame at 2 Hz sweeps 5 m at 10 m/s).
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import torch
 
@@ -28,6 +29,7 @@ from mmpc.scenario import ScenarioConfig
 from mmpc.sim.config import SimConfig
 from mmpc.sim.traffic import sim_config
 from mmpc.verify.assumptions import TrafficAssumptions
+from mmpc.verify.compiling import CheckCompiling
 from mmpc.verify.failsafe import Body, FailSafeRollout, FailSafes, drive, ego_body, failsafe_command, failsafe_table
 from mmpc.verify.geometry import rectangle_meets_box
 from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
@@ -60,8 +62,8 @@ class Verifier:
             across the road of a car the lane rule keeps in its band (``|vy| <= change_speed``), which
             the band does not widen by, so it must be at least ``change_speed x dt``.
         max_horizon: the longest fail-safe checked [s] (one that has not come to rest by then fails).
-        compile: how the fail-safes are rolled out (:class:`mmpc.verify.failsafe.FailSafeRollout`):
-            ``"auto"``, ``True`` or ``False``.
+        compile: whether the fail-safe rollout and the occupancy sets run compiled
+            (:class:`mmpc.verify.compiling.CheckCompiling`): ``"auto"``, ``True`` or ``False``.
     """
 
     def __init__(self, road: Road, sim: SimConfig = SimConfig(), assumptions: TrafficAssumptions = TrafficAssumptions(),
@@ -85,7 +87,8 @@ class Verifier:
         self.margin = margin
         self.period = 1.0 / sim.policy_frequency
         self.max_frames = max(1, math.ceil(max_horizon / self.period))
-        self.rollout = FailSafeRollout(self.length, road, sim, compile)
+        self.compiling = CheckCompiling(compile)
+        self.rollout = FailSafeRollout(self.length, road, sim, self.compiling)
 
     @classmethod
     def for_scenario(cls, scenario: ScenarioConfig, **settings) -> "Verifier":
@@ -145,8 +148,7 @@ class Verifier:
         num_envs, num_candidates = acceleration.shape
         frames = self.frames(ego, vehicles, mask)
         times = torch.arange(frames + 3, dtype=ego.dtype, device=ego.device) * self.period  # an interval from each pose
-        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions,
-                         ego_braking=max(self.failsafes.decelerations))
+        sets = self._occupancy(ego, vehicles, mask, times)
         now = self.body(ego)
         end = drive(Body(*(field[:, None].expand(num_envs, num_candidates) for field in now)), acceleration, steering,
                     self.length, self.sim)
@@ -167,6 +169,16 @@ class Verifier:
         deceleration = torch.where(verified, decelerations.gather(-1, first)[..., 0],
                                    torch.full_like(decelerations[..., 0], float("nan")))
         return Verdict(verified, lane, deceleration)
+
+    def _occupancy(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
+        """:func:`mmpc.verify.occupancy.occupancy` of the cars the ego may meet, compiled where :attr:`compiling` says."""
+        braking = max(self.failsafes.decelerations)
+        if self.compiling.compiled and ego.shape[0]:
+            sets = _compiled_occupancy(self.road, self.assumptions, braking)
+            found = self.compiling.attempt(lambda: sets(ego, vehicles, mask, times))
+            if found is not None:
+                return found
+        return self.compiling.eager(occupancy, ego, vehicles, mask, self.road, times, self.assumptions, ego_braking=braking)
 
     def _meets(self, poses: Body, sets: Occupancy) -> torch.Tensor:
         """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a relevant set of ``sets`` (P
@@ -197,6 +209,16 @@ class Verifier:
                                       sets.x_high[env, car, pose, None, None], y_low, y_high)
             meets.index_add_(0, env, hit.int())
         return meets > 0
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled_occupancy(road: Road, assumptions: TrafficAssumptions, ego_braking: float) -> Callable[..., Occupancy]:
+    """The occupancy sets of a road and assumptions, compiled for any numbers of environments, cars and times."""
+
+    def sets(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
+        return occupancy(ego, vehicles, mask, road, times, assumptions, ego_braking=ego_braking)
+
+    return torch.compile(sets, dynamic=True, fullgraph=True)
 
 
 def _check_inputs(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
