@@ -173,7 +173,7 @@ class Verifier:
     def _occupancy(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
         """:func:`mmpc.verify.occupancy.occupancy` of the cars the ego may meet, compiled where :attr:`compiling` says."""
         braking = max(self.failsafes.decelerations)
-        if self.compiling.compiled and ego.shape[0]:
+        if self.compiling.compiled and ego.shape[0] and ego.device.type == "cpu":  # compiled for the CPU, as the rollout
             sets = _compiled_occupancy(self.road, self.assumptions, braking)
             found = self.compiling.attempt(lambda: sets(ego, vehicles, mask, times))
             if found is not None:
