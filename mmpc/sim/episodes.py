@@ -11,6 +11,7 @@ reached the scenario's duration.
 
 from __future__ import annotations
 
+import copy
 import operator
 from collections.abc import Iterable
 from typing import Optional, Sequence, Union
@@ -167,6 +168,28 @@ class SimEpisodes:
         self.steps = self.steps.index_fill(0, envs, 0)
         self.applied = self.applied.index_fill(0, envs, 0.0)
         self.pushes = self.pushes.index_fill(0, envs, 0.0)
+
+    def take(self, rows: torch.Tensor) -> "SimEpisodes":
+        """Clones of the episodes in ``rows`` that go on from where these are, as new episodes.
+
+        The traffic is a function of the state, the seed and the step (its draws are keyed on
+        both), so a clone stepped with the same commands as its original stays equal to it: a
+        search can branch an episode into several futures.
+
+        Args:
+            rows: (R,) int64 environment indices on the episodes' device, repeats allowed.
+        """
+        if not isinstance(rows, torch.Tensor) or rows.dim() != 1 or rows.dtype != torch.int64:
+            got = f"a {rows.dtype} tensor of shape {tuple(rows.shape)}" if isinstance(rows, torch.Tensor) else type(rows).__name__
+            raise ValueError(f"`rows` must be a 1-D int64 tensor of environment indices; got {got}")
+        require_on_device(self.seeds.device, "the episodes' state", rows=rows)
+        if rows.numel() == 0 or int(rows.min()) < 0 or int(rows.max()) >= self.num_envs:
+            raise ValueError(f"`rows` must hold at least one index in [0, {self.num_envs - 1}]; got {rows.tolist()[:8]}")
+        clone = copy.copy(self)
+        clone.state = VehicleState(*(field.index_select(0, rows) for field in self.state))
+        clone.seeds, clone.steps = self.seeds.index_select(0, rows), self.steps.index_select(0, rows)
+        clone.applied, clone.pushes = self.applied.index_select(0, rows), self.pushes.index_select(0, rows)
+        return clone
 
     def road_state(self, *, at_impact: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The egos and the other vehicles in the road frame, as the MPC takes them.
