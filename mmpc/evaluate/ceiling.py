@@ -157,6 +157,28 @@ class _Children(NamedTuple):
     target: torch.Tensor  # long, the lane the child heads for (its goal's, its fail-safe's)
 
 
+class _Checks(NamedTuple):
+    """What is known of C flat children: valid (C,) bool (verified, or valid without a check), and
+    where the check verified one, its first verified fail-safe's lane (C,) long (-1: not checked
+    or not verified) and deceleration (C,) float64 [m/s^2]."""
+
+    valid: torch.Tensor
+    lane: torch.Tensor
+    deceleration: torch.Tensor
+
+    @classmethod
+    def unchecked(cls, known: torch.Tensor) -> "_Checks":
+        return cls(known.clone(), torch.full(known.shape, -1, dtype=torch.long),
+                   torch.full(known.shape, float("nan"), dtype=torch.float64))
+
+    def record(self, index: torch.Tensor, verdict) -> None:
+        """Write a :class:`mmpc.verify.Verdict` of K = 1 for the flat children ``index`` (R,)."""
+        now = verdict.verified[:, 0]
+        self.valid[index] |= now
+        self.lane[index[now]] = verdict.lane[now, 0]
+        self.deceleration[index[now]] = verdict.deceleration[now, 0].double()
+
+
 def search_ceiling(scenario: ScenarioConfig, seeds: Sequence[int], config: CeilingConfig = CeilingConfig(), *,
                    progress: Optional[Callable[[int, int, float], None]] = None) -> list[SeedCeiling]:
     """The ceiling of ``scenario`` on each seed (module docstring), all seeds searched together.
@@ -220,11 +242,11 @@ class _Search:
         asked = self._driver_commands(ego, vehicles, mask, beam)
         if self.steps % self.branch_every == 0:
             children = self._branches(ego, vehicles, mask, beam, asked)
-            picked, kept, verdict = self._keep(ego, vehicles, mask, beam, children)
+            picked, kept, checks = self._keep(ego, vehicles, mask, beam, children)
         else:
             children = self._holds(ego, vehicles, mask, beam, asked)
-            picked, kept, verdict = self._hold(ego, vehicles, mask, beam, children)
-        self._advance(beam, children, picked, kept, verdict)
+            picked, kept, checks = self._hold(ego, vehicles, mask, beam, children)
+        self._advance(beam, children, picked, kept, checks)
 
     def _driver_commands(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, beam: _Beam) -> torch.Tensor:
         """(N, 2) the bounded driver's command on its nodes, NaN elsewhere."""
@@ -248,8 +270,8 @@ class _Search:
         chosen = plan.selection.index.cpu()
         goals = torch.arange(feasible.shape[1]).expand_as(feasible)
         own = plan.acceleration.cpu().to(ego.dtype), plan.steering.cpu().to(ego.dtype)
-        self._goal_lanes = self.road.lane_index(plan.problem.goals[..., 1]).cpu()
-        return self._assemble(ego, beam, asked, [(own, chosen[:, None], None), ((goal_acceleration, goal_steering), goals, feasible)])
+        return self._assemble(ego, beam, asked, [(own, chosen[:, None], None), ((goal_acceleration, goal_steering), goals, feasible)],
+                              self.road.lane_index(plan.problem.goals[..., 1]).cpu())
 
     def _holds(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, beam: _Beam,
                asked: torch.Tensor) -> _Children:
@@ -263,13 +285,13 @@ class _Search:
         in_failsafe = beam.mode == FAILSAFE
         own = (torch.where(in_failsafe, held[0], plan.acceleration.cpu().to(ego.dtype)),
                torch.where(in_failsafe, held[1], plan.steering.cpu().to(ego.dtype)))
-        self._goal_lanes = self.road.lane_index(problem.goals[..., 1]).cpu()
-        return self._assemble(ego, beam, asked, [(own, beam.mode[:, None], None)])
+        return self._assemble(ego, beam, asked, [(own, beam.mode[:, None], None)], self.road.lane_index(problem.goals[..., 1]).cpu())
 
-    def _assemble(self, ego: torch.Tensor, beam: _Beam, asked: torch.Tensor, planned: list) -> _Children:
+    def _assemble(self, ego: torch.Tensor, beam: _Beam, asked: torch.Tensor, planned: list,
+                  goal_lanes: torch.Tensor) -> _Children:
         """The children: the driver's, ``planned`` ((acceleration, steering) (N, k), modes (N, k),
         usable (N, k) or None) in order, the first planned command braking harder, the fail-safes'
-        first commands, the stored fail-safe's."""
+        first commands, the stored fail-safe's; ``goal_lanes`` (N, G) the lane of each goal."""
         nodes, dtype = ego.shape[0], ego.dtype
         braking = torch.tensor(BRAKING, dtype=dtype)
         (own_acceleration, own_steering), own_mode, _ = planned[0]
@@ -305,7 +327,7 @@ class _Search:
         known[:, -1] = has_stored
         if not self.config.verify:
             known = usable.clone()
-        goal_lane = self._goal_lanes.gather(1, mode.clamp(0, self._goal_lanes.shape[1] - 1))
+        goal_lane = goal_lanes.gather(1, mode.clamp(0, goal_lanes.shape[1] - 1))
         target = torch.where(mode == FAILSAFE, hold_lane, goal_lane)
         target[:, 0] = self.road.lane_index(ego[:, EGO_Y])
         return _Children(acceleration.nan_to_num(0.0), steering.nan_to_num(0.0), usable, known & usable, mode, hold_lane,
@@ -324,7 +346,7 @@ class _Search:
         forced = known & beam.driver[parent] & (torch.arange(parent.numel()) % kinds == 0)
         target = children.target.reshape(-1)
         kept = _distinct(self._cells(beam.seed[parent], end), score, forced) & usable
-        verdict = (known.clone(), torch.full_like(parent, -1), torch.full(parent.shape, float("nan"), dtype=torch.float64))
+        checks = _Checks.unchecked(known)
         if config.verify:
             screened = _select(beam.seed[parent], target, parent, score, forced, kept, config.screened * config.beam,
                                self.road.num_lanes, config.siblings)
@@ -332,52 +354,40 @@ class _Search:
             rows = parent[asked]
             check = self.verifier.check(ego[rows], vehicles[rows], mask[rows], acceleration[asked, None],
                                         steering[asked, None])
-            self._record(verdict, asked, check)
-            kept = screened & verdict[0]
+            checks.record(asked, check)
+            kept = screened & checks.valid
         chosen = _select(beam.seed[parent], target, parent, score, forced, kept, config.beam, self.road.num_lanes,
                          config.siblings)
         picked = self._fill(chosen, beam.seed[parent], score)
-        return picked, chosen[picked], verdict
+        return picked, chosen[picked], checks
 
     def _hold(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, beam: _Beam, children: _Children):
         """Between branchings: each node's first valid child in the guard's order (unprotected: its
         mode's command), as :meth:`_keep` returns them."""
         nodes, kinds = children.acceleration.shape
-        flat = nodes * kinds
-        verdict = (children.known.reshape(-1).clone(), torch.full((flat,), -1, dtype=torch.long),
-                   torch.full((flat,), float("nan"), dtype=torch.float64))
+        checks = _Checks.unchecked(children.known.reshape(-1))
         rows = torch.arange(nodes)
         valid = children.known.clone()
         if self.config.verify:
             own = rows[children.usable[:, 1] & ~beam.driver]
             first = self.verifier.check(ego[own], vehicles[own], mask[own], children.acceleration[own, 1:2],
                                         children.steering[own, 1:2])
-            self._record(verdict, own * kinds + 1, first)
-            valid = verdict[0].view(nodes, kinds).clone()
-            rest = rows[~valid.any(dim=1) & beam.alive]
+            checks.record(own * kinds + 1, first)
+            rest = rows[~checks.valid.view(nodes, kinds)[:, 1] & ~beam.driver & beam.alive]  # braking before the stored fail-safe
             if rest.numel():
                 later = self.verifier.check(ego[rest], vehicles[rest], mask[rest], children.acceleration[rest, 2:],
                                             children.steering[rest, 2:])
                 index = (rest[:, None] * kinds + torch.arange(2, kinds)).reshape(-1)
-                flat_verdict = type(later)(*(field.reshape(-1, 1) for field in later))
-                self._record(verdict, index, flat_verdict)
-                valid = verdict[0].view(nodes, kinds).clone() | children.known
+                checks.record(index, type(later)(*(field.reshape(-1, 1) for field in later)))
+            valid = checks.valid.view(nodes, kinds).clone()
         else:
             valid = valid & (torch.arange(kinds) <= 1)  # the driver's command or the node's mode
         valid &= children.usable
         found = valid.any(dim=1)
         kind = valid.int().argmax(dim=1)
-        return rows * kinds + kind, found & beam.alive, verdict
+        return rows * kinds + kind, found & beam.alive, checks
 
-    @staticmethod
-    def _record(verdict, index: torch.Tensor, check) -> None:
-        """Write the check of flat children ``index`` into ``verdict`` (valid, lane, deceleration)."""
-        now = check.verified[:, 0]
-        verdict[0][index] |= now
-        verdict[1][index[now]] = check.lane[now, 0]
-        verdict[2][index[now]] = check.deceleration[now, 0].double()
-
-    def _advance(self, beam: _Beam, children: _Children, picked: torch.Tensor, kept: torch.Tensor, verdict) -> None:
+    def _advance(self, beam: _Beam, children: _Children, picked: torch.Tensor, kept: torch.Tensor, checks: _Checks) -> None:
         """Clone the picked children's parents, step each with its command, update the beam."""
         kinds = children.acceleration.shape[1]
         rows = picked // kinds
@@ -397,9 +407,9 @@ class _Search:
         for node in (is_driver & crashed).nonzero().squeeze(1).tolist():
             self.driver_final[int(beam.seed[rows[node]])] = (float(distance[node]), float(beam.speed_sum[rows[node]]) / steps,
                                                              float(beam.cost_sum[rows[node]]) / steps)
-        checked = verdict[1][picked] >= 0
-        lane = torch.where(checked, verdict[1][picked], beam.lane[rows])
-        deceleration = torch.where(checked, verdict[2][picked], beam.deceleration[rows])
+        checked = checks.lane[picked] >= 0
+        lane = torch.where(checked, checks.lane[picked], beam.lane[rows])
+        deceleration = torch.where(checked, checks.deceleration[picked], beam.deceleration[rows])
         commands = beam.commands[rows]
         commands[:, self.steps] = command.double().cpu()
         self.beam = _Beam(beam.seed[rows], alive, is_driver & ~crashed, distance, beam.speed_sum[rows], beam.cost_sum[rows],
