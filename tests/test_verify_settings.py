@@ -2,6 +2,8 @@
 speeds the loader takes are either covered by the check (no collision with a car that kept its
 set, in adversarial traffic) or refused with the reason."""
 
+import math
+
 import pytest
 import torch
 
@@ -12,6 +14,7 @@ from mmpc.drivers.verified import VerifiedDriver
 from mmpc.highway.runner import run_lockstep
 from mmpc.scenario import load_scenario
 from mmpc.sim import HighwaySimulator, SimConfig, SimEpisodes, vehicle_state
+from mmpc.sim.traffic import sim_config
 from mmpc.traffic_config import THREATS_MIN_FREQUENCY
 from mmpc.verify import TrafficAssumptions, Verifier
 
@@ -137,3 +140,35 @@ def test_the_random_commands_are_a_threat_without_the_check():
     scenario = load_scenario("high_speed_threats", {"sim": "batched", "duration": 8.0})
     results = run_lockstep(scenario, list(range(16)), driver=RandomCommands())
     assert sum(r.metrics["collisions"] for r in results) >= 4
+
+
+@pytest.mark.xfail(strict=True, reason="open hole (docs/experiments/2026-11-29-ceilings.md): yields() lets the ego cut in "
+                                       "front of a car it out-brakes along the road by turning; the check must bound the "
+                                       "ego's along-road deceleration on the paths it verifies")
+def test_a_verified_ego_turning_across_its_new_lane_is_not_struck_by_the_car_it_cut_in_front_of():
+    """Found by the verified ceiling's beam search (high_speed, seed 78435, step 184): the ego, half a
+    lane into lane 3 at 9.1 m/s, 0.5 m ahead of a car there at 8.1 m/s (which yields: the ego is
+    faster), brakes at 5 m/s^2 while steering hard further across; its speed along the road falls
+    faster than 5 m/s^2, the car behind cannot stop at 6 and strikes its side. Every command verified."""
+    scenario = load_scenario("high_speed", {"sim": "batched"})
+    sim = sim_config(scenario)
+    tensor = lambda values: torch.tensor([values], dtype=torch.float64)  # noqa: E731
+    state = vehicle_state(tensor([427.922, 422.375, 425.627]), tensor([10.096, 12.0, 4.0]), heading=tensor([0.420, 0.0, 0.0]),
+                          speed=tensor([9.095, 8.087, 10.337]), config=sim, target_speed=tensor([14.0, 9.47, 10.61]),
+                          idm_delta=tensor([4.0, 3.54, 3.97]), lane_change_enabled=torch.tensor([[False, True, True]]),
+                          lane_change_timer=tensor([19.01, 0.1, 0.0]))
+    verifier, simulator = Verifier.for_scenario(scenario, compile=False), HighwaySimulator(sim)
+    applied = (-5.0, -0.0731)
+    for acceleration, steering in [(-5.0, -0.1749), (-5.0, 0.7854), (-5.0, 0.6813), (-5.0, 0.3880), (-5.0, 0.2123)]:
+        slip = math.atan(0.5 * math.tan(applied[1]))
+        speed = float(state.speed[0, 0])
+        ego = tensor([float(state.x[0, 0]), float(state.y[0, 0]), float(state.heading[0, 0]) + slip, speed, applied[0],
+                      speed * math.sin(slip) / 2.5])
+        heading, others = state.heading[0, 1:], state.speed[0, 1:]
+        cars = torch.stack([state.x[0, 1:], state.y[0, 1:], others * torch.cos(heading), others * torch.sin(heading)], dim=1)[None]
+        verdict = verifier.check(ego, cars, torch.ones(1, 2, dtype=torch.bool), tensor([acceleration]), tensor([steering]))
+        if not bool(verdict.verified[0, 0]):
+            return  # the check refuses the manoeuvre: no hole
+        state = simulator.step(state, tensor([acceleration, steering]))
+        applied = (acceleration, steering)
+        assert not bool(state.crashed[0, 0])
