@@ -99,32 +99,3 @@ def test_the_check_benchmark_writes_both_tables(tmp_path, capsys):
     assert "share" in capsys.readouterr().out
     assert bench_check.main(["--checks", "fast", "--out", str(out)]) == 2
     assert "--checks takes names" in capsys.readouterr().err
-
-
-def test_dense_set_test_gives_the_sparse_answers(monkeypatch):
-    """Every pair tested (small checks) or the near triples only (large ones): the same verdicts."""
-    from mmpc.verify import verifier as module
-
-    generator = torch.Generator().manual_seed(3)
-    ego = torch.cat([mmpc.ego_state(float(x), float(y), 0.0, float(v)) for x, y, v in
-                     zip(torch.rand(6, generator=generator) * 10, torch.rand(6, generator=generator) * 8,
-                         torch.rand(6, generator=generator) * 25)])
-    cars = torch.stack([torch.rand(6, 5, generator=generator) * 80 - 20, torch.rand(6, 5, generator=generator) * 8,
-                        torch.rand(6, 5, generator=generator) * 25, torch.zeros(6, 5)], dim=-1)
-    mask = torch.rand(6, 5, generator=generator) > 0.2
-    acceleration = torch.rand(6, 4, generator=generator) * 8 - 5
-    steering = (torch.rand(6, 4, generator=generator) - 0.5) * 0.1
-    check = Verifier(ROAD, SIM, compile=False)
-    original, calls = module.dense_meets, []
-
-    def counted(*args):
-        calls.append(1)
-        return original(*args)
-
-    monkeypatch.setattr(module, "dense_meets", counted)
-    monkeypatch.setattr(module, "DENSE_TESTS", 1 << 30)
-    dense = check.check(ego, cars, mask, acceleration, steering)
-    monkeypatch.setattr(module, "DENSE_TESTS", 0)
-    sparse = check.check(ego, cars, mask, acceleration, steering)
-    assert len(calls) == 1 and sparse.verified.any() and not sparse.verified.all()  # a scene with both answers
-    assert torch.equal(dense.verified, sparse.verified) and torch.equal(dense.lane, sparse.lane)

@@ -35,11 +35,6 @@ from mmpc.verify.geometry import rectangle_meets_box
 from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
 
 
-#: The set test runs dense, every (environment, candidate, fail-safe, car, pose) tested and compiled,
-#: where there are at most this many; a larger check first picks the triples near enough to meet.
-DENSE_TESTS = 1 << 16
-
-
 class Verdict(NamedTuple):
     """The check of K candidate commands in E environments.
 
@@ -188,23 +183,14 @@ class Verifier:
     def _meets(self, poses: Body, sets: Occupancy) -> torch.Tensor:
         """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a relevant set of ``sets`` (P
         intervals): pose i, stretched forward by its frame's sweep (module docstring), against the
-        box of interval i. A small check (:data:`DENSE_TESTS`) tests every pair, compiled where
-        :attr:`compiling` says; a larger one only the (environment, car, pose) triples whose bounding
-        boxes overlap."""
+        box of interval i. Only the (environment, car, pose) triples whose bounding boxes overlap
+        get the exact test."""
         variant = held_variant(sets.ego_lanes, poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F)
         sweep = poses.speed.clamp_min(0.0) * self.sim.dt  # (E, K, F, P) [m]
         cos, sin = torch.cos(poses.heading), torch.sin(poses.heading)
         x, y = poses.x + 0.5 * sweep * cos, poses.y + 0.5 * sweep * sin  # the swept rectangle's centre
         half_length = 0.5 * self.length + self.margin + 0.5 * sweep
         half_width = 0.5 * self.width + self.margin
-        if x.numel() * sets.x_low.shape[1] <= DENSE_TESTS:
-            boxes = (sets.x_low, sets.x_high, sets.y_low, sets.y_high, sets.relevant)
-            if self.compiling.compiled and x.device.type == "cpu" and x.shape[0]:
-                dense = _compiled_dense_meets(half_width)
-                found = self.compiling.attempt(lambda: dense(x, y, poses.heading, half_length, variant, *boxes))
-                if found is not None:
-                    return found
-            return dense_meets(x, y, poses.heading, half_length, variant, *boxes, half_width)
         reach = torch.hypot(half_length.amax() if half_length.numel() else half_length.new_zeros(()),
                             half_length.new_tensor(half_width))
         flat_x, flat_y = x.flatten(1, 2), y.flatten(1, 2)  # (E, K F, P)
@@ -223,29 +209,6 @@ class Verifier:
                                       sets.x_high[env, car, pose, None, None], y_low, y_high)
             meets.index_add_(0, env, hit.int())
         return meets > 0
-
-
-def dense_meets(x: torch.Tensor, y: torch.Tensor, heading: torch.Tensor, half_length: torch.Tensor, variant: torch.Tensor,
-                x_low: torch.Tensor, x_high: torch.Tensor, y_low: torch.Tensor, y_high: torch.Tensor, relevant: torch.Tensor,
-                half_width: float) -> torch.Tensor:
-    """(E, K, F) bool: some pose of each path meets the box of a relevant car at its interval, every
-    pair tested. Paths: x, y, heading, half_length (E, K, F, P) of the swept rectangles, ``variant``
-    (E, K, F) the lateral bounds' variant; boxes: x_low, x_high (E, M, P), y_low, y_high (E, H, M, P);
-    ``relevant`` (E, M)."""
-    rows = torch.arange(x.shape[0], device=x.device)[:, None, None]
-    hit = rectangle_meets_box(x[..., None, :], y[..., None, :], heading[..., None, :], half_length[..., None, :], half_width,
-                              x_low[:, None, None], x_high[:, None, None], y_low[rows, variant], y_high[rows, variant])
-    return (hit & relevant[:, None, None, :, None]).flatten(-2).any(dim=-1)
-
-
-@functools.lru_cache(maxsize=None)
-def _compiled_dense_meets(half_width: float) -> Callable[..., torch.Tensor]:
-    """:func:`dense_meets` for rectangles of one half width, compiled for any sizes."""
-
-    def meets(*tensors: torch.Tensor) -> torch.Tensor:
-        return dense_meets(*tensors, half_width)
-
-    return torch.compile(meets, dynamic=True, fullgraph=True)
 
 
 @functools.lru_cache(maxsize=None)
