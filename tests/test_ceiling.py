@@ -111,7 +111,7 @@ def test_the_unprotected_ceiling_in_cruise_ranks_by_the_meta_cost():
 
 @pytest.mark.parametrize("settings, message", [({"beam": 0}, "beam"), ({"screened": 0}, "screened"),
                                                ({"siblings": 0}, "siblings"), ({"branch_period": 0.0}, "branch_period"),
-                                               ({"cell": (0.1, 0.0, 0.1)}, "cell")])
+                                               ({"cell": (0.1, 0.0, 0.1)}, "cell_y"), ({"beam": "8"}, "beam"), ({"driver": "nope"}, "nope")])
 def test_bad_settings_are_refused(settings, message):
     with pytest.raises(ValueError, match=message):
         CeilingConfig(**settings)

@@ -13,7 +13,7 @@ from mmpc import MPCConfig, OptimizerConfig
 from mmpc.config import ConfigError, from_dict, load_config, require_int, to_dict, with_overrides
 from mmpc.drivers.frenet import FrenetConfig
 from mmpc.drivers.nlp import NLPConfig
-from mmpc.evaluate import EvaluationConfig
+from mmpc.evaluate import CeilingConfig, EvaluationConfig
 from mmpc.imitation.bc import TrainConfig as BCTrainConfig
 from mmpc.imitation.dagger import DAGGER_POLICY, DaggerConfig
 from mmpc.imitation.features import FeatureConfig, SceneGeometry
@@ -43,6 +43,7 @@ CONFIGS = [
     SimConfig(), TrackingConfig(speed_gain=2.0, max_lateral_error=0.3), SafeEnvConfig(replan="decision"),
     RewardConfig(source="meta_cost", meta_cost_scale=50.0),
     ProposerConfig(hidden=(64,)), ProposerTrainConfig(), ProposerDaggerConfig(),
+    CeilingConfig(beam=16, verify=False, cell=(0.5, 0.5, 0.2), driver="mpc"),
 ]
 
 

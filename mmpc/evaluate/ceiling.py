@@ -32,7 +32,9 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 
+from mmpc.config import require_field_types, require_int, require_positive
 from mmpc.drivers import Driver, Observation, make_driver
+from mmpc.drivers.registry import check_spec
 from mmpc.problem import EGO_V, EGO_X, EGO_Y
 from mmpc.scenario import CruiseObjective, ScenarioConfig, build_mpc
 from mmpc.sim import SimEpisodes
@@ -72,16 +74,12 @@ class CeilingConfig:
     siblings: int = 8
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.beam, int) and self.beam >= 1):
-            raise ValueError(f"CeilingConfig: `beam` must be an int >= 1; got {self.beam!r}")
-        if not (isinstance(self.siblings, int) and self.siblings >= 1):
-            raise ValueError(f"CeilingConfig: `siblings` must be an int >= 1; got {self.siblings!r}")
-        if not (isinstance(self.screened, int) and self.screened >= 1):
-            raise ValueError(f"CeilingConfig: `screened` must be an int >= 1; got {self.screened!r}")
-        if not self.branch_period > 0:
-            raise ValueError(f"CeilingConfig: `branch_period` must be > 0 s; got {self.branch_period!r}")
-        if len(self.cell) != 3 or not all(size > 0 for size in self.cell):
-            raise ValueError(f"CeilingConfig: `cell` must be three positive sizes (x [m], y [m], speed [m/s]); got {self.cell!r}")
+        require_field_types(self)
+        require_int("CeilingConfig", low=1, beam=self.beam, screened=self.screened, siblings=self.siblings)
+        require_positive("CeilingConfig", branch_period=self.branch_period, cell_x=self.cell[0], cell_y=self.cell[1],
+                         cell_speed=self.cell[2])
+        if self.driver is not None:
+            check_spec(self.driver)
 
     @property
     def driver_spec(self) -> str:
