@@ -221,11 +221,12 @@ class _Search:
         double = dict(dtype=torch.float64)
         first = torch.zeros(nodes, dtype=torch.bool)
         first[::width] = True  # at the start the nodes of a seed are one state: the others are copies
-        self.beam = _Beam(torch.arange(count).repeat_interleave(width), first.clone(), first.clone(),
-                          torch.zeros(nodes, **double), torch.zeros(nodes, **double), torch.zeros(nodes, **double),
-                          torch.full((nodes,), -1, dtype=torch.long), torch.full((nodes,), float("nan"), **double),
-                          torch.zeros(nodes, dtype=torch.long), torch.zeros(nodes, dtype=torch.long),
-                          torch.zeros(nodes, **double), torch.zeros(nodes, steps, 2, **double))
+        self.beam = _Beam(
+            seed=torch.arange(count).repeat_interleave(width), alive=first.clone(), driver=first.clone(),
+            distance=torch.zeros(nodes, **double), speed_sum=torch.zeros(nodes, **double), cost_sum=torch.zeros(nodes, **double),
+            lane=torch.full((nodes,), -1, dtype=torch.long), deceleration=torch.full((nodes,), float("nan"), **double),
+            mode=torch.zeros(nodes, dtype=torch.long), hold_lane=torch.zeros(nodes, dtype=torch.long),
+            hold_deceleration=torch.zeros(nodes, **double), commands=torch.zeros(nodes, steps, 2, **double))
         self.driver_final: dict[int, tuple[float, float, float]] = {}  # seed index -> a crashed driver's figures
         self.nodes_crashed = torch.zeros(count, dtype=torch.long)
         self.steps = 0
