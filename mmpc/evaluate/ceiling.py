@@ -366,7 +366,6 @@ class _Search:
         nodes, kinds = children.acceleration.shape
         checks = _Checks.unchecked(children.known.reshape(-1))
         rows = torch.arange(nodes)
-        valid = children.known.clone()
         if self.config.verify:
             own = rows[children.usable[:, 1] & ~beam.driver]
             first = self.verifier.check(ego[own], vehicles[own], mask[own], children.acceleration[own, 1:2],
@@ -380,7 +379,7 @@ class _Search:
                 checks.record(index, type(later)(*(field.reshape(-1, 1) for field in later)))
             valid = checks.valid.view(nodes, kinds).clone()
         else:
-            valid = valid & (torch.arange(kinds) <= 1)  # the driver's command or the node's mode
+            valid = children.known & (torch.arange(kinds) <= 1)  # the driver's command or the node's mode
         valid &= children.usable
         found = valid.any(dim=1)
         kind = valid.int().argmax(dim=1)
@@ -416,10 +415,8 @@ class _Search:
         self.steps = steps
 
     def _stage_cost(self, speed: torch.Tensor, lateral: torch.Tensor) -> torch.Tensor:
-        objective = self.scenario.objective
-        if self.cruise:
-            return (speed - objective.v_cruise) ** 2
-        return objective.w_speed * (speed - objective.v_max) ** 2 + objective.w_lane * (lateral - self.road.right_lane_y) ** 2
+        """The scenario's meta-cost term at driven states, as the evaluation scores them."""
+        return self.scenario.objective.stage_cost(speed, lateral, self.road)
 
     def _score(self, beam: _Beam, parent: torch.Tensor, ego: torch.Tensor, end: Body) -> torch.Tensor:
         """(C,) the children's scores, higher better: distance at high speed, minus the meta cost
