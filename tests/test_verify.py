@@ -112,10 +112,18 @@ def test_a_car_beside_may_not_cut_in_ahead_of_the_moving_ego_unless_it_is_changi
     assert check(ego, [[5.0, 9.0, 20.0, 2.0]])  # changing away
 
 
-def test_a_car_behind_answers_for_its_own_distance():
+def test_a_car_behind_answers_for_its_own_distance_where_its_braking_keeps_it_behind():
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
-    assert check(ego, [[-8.0, 4.0, 30.0, 0.0]])  # in the ego's lane
-    assert check(ego, [[-8.0, 8.0, 30.0, -2.0]])  # entering the ego's lane behind it
+    assert check(ego, [[-8.0, 8.0, 30.0, -2.0]])  # entering the ego's lane behind it: kept out of it
+    # A follower in the ego's lane: one that stops behind the braking ego answers for its distance,
+    # one that cannot stays in the check (its strike would find the ego's side wherever the ego turns).
+    assert check(ego, [[-20.0, 4.0, 24.0, 0.0]])
+    assert not check(ego, [[-8.0, 4.0, 30.0, 0.0]])
+    # An ego that brakes harder along the road than straight braking (turning while braking) is refused
+    # where straight braking passes: the follower's set follows the path, not a bound on the ego.
+    close = [[-8.0, 4.0, 20.0, 0.0]]
+    assert check(ego, close, acceleration=-5.0)
+    assert not check(mmpc.ego_state(0.0, 4.0, 0.4, 20.0), close, acceleration=-5.0, steering=0.7)
 
 
 def test_the_ego_may_not_cut_in_close_in_front_of_a_car_behind():
@@ -124,9 +132,11 @@ def test_the_ego_may_not_cut_in_close_in_front_of_a_car_behind():
     alongside the ego's rear. That car does not answer for a gap the ego closes from the side."""
     entering = mmpc.ego_state(0.0, 10.5, -0.2, 15.0)
     assert not check(entering, [[-3.0, 8.0, 10.0, 0.0]])  # alongside: the ego's to avoid
-    assert not check(entering, [[-12.0, 8.0, 25.0, 0.0]])  # behind, but too fast to stop behind the ego
+    assert not check(entering, [[-9.0, 8.0, 28.0, 0.0]])  # behind, but too fast to stop behind the ego
+    assert not check(mmpc.ego_state(0.0, 9.5, -0.2, 15.0), [[-12.0, 8.0, 25.0, 0.0]])  # past halfway: no abort left
     assert check(entering, [[-40.0, 8.0, 15.0, 0.0]])  # room to stop: it answers for its distance
-    assert check(mmpc.ego_state(0.0, 8.0, 0.0, 15.0), [[-12.0, 8.0, 25.0, 0.0]])  # a follower in the ego's lane answers
+    assert check(mmpc.ego_state(0.0, 8.0, 0.0, 15.0), [[-50.0, 8.0, 25.0, 0.0]])  # a follower in the ego's lane
+    assert not check(mmpc.ego_state(0.0, 8.0, 0.0, 15.0), [[-12.0, 8.0, 25.0, 0.0]])  # that cannot stop behind it
 
 
 def test_the_check_is_refused_nothing_on_an_empty_road():

@@ -51,8 +51,8 @@ class TrafficAssumptions:
             towards that side: it decided before now, so the lane-change rule no longer holds it.
         follower_reaction: a car behind the ego brakes, as hard as it needs up to ``max_deceleration``,
             at most this long after the ego does [s] (IDM reacts at the next frame; its braking
-            grows with the square of the closing gap). Only a car with room to stop so answers for
-            its own distance (:func:`mmpc.verify.occupancy.yields`).
+            grows with the square of the closing gap). Such a car's set ends where that braking
+            takes it (:func:`mmpc.verify.occupancy.follower_reach`).
         mobil_safety: MOBIL's safety criterion holds: a car does not decide to enter a lane in
             which the moving ego would be its new follower (the ego has no target speed, so MOBIL
             predicts it braking far beyond ``lane_change_max_braking_imposed``); such a car stays

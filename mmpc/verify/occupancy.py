@@ -13,13 +13,14 @@ ego holds a lane:
   (``TrafficAssumptions.mobil_safety``). The rule binds while the ego is behind the car: one the
   ego overtakes may enter behind it, where the fault rule below takes over;
 - a car behind the ego answers for its own distance (the evaluation's fault rule). One wholly
-  behind on the ego's nearest lane is left out; one wholly behind on the other lane the ego
-  counts on (the lane it is entering or leaving) only where it has room to stop behind the ego
-  (:func:`yields`: braking at ``max_deceleration`` after ``follower_reaction``, the ego at the
-  fail-safes' hardest), so the ego does not cut in close in front of it; a car alongside on a
-  lane the ego counts on is never left out. A car behind (its centre behind the ego's) elsewhere
-  is not counted entering the ego's lanes (it would enter behind or into the side of the ego),
-  even where it is changing towards them already.
+  behind on a lane the ego counts on is a follower: it brakes at ``max_deceleration`` at most
+  ``follower_reaction`` after the ego does, so its set along the road ends where that braking takes
+  its front (:func:`follower_reach`). A path that stays ahead of it is never struck, whatever the
+  ego's turn or braking along the road; a path that brakes or swerves into it is refused (the ego
+  does not cut in close in front of it, nor brake harder than it can). A car alongside on a lane
+  the ego counts on keeps its whole set. A car behind (its centre behind the ego's) elsewhere is
+  not counted entering the ego's lanes (it would enter behind or into the side of the ego), even
+  where it is changing towards them already.
 
 The ego's lanes are those it counts on now (at most two, halfway between); each set comes in the
 four variants of which of them the manoeuvre holds (:data:`HELD_VARIANTS`).
@@ -47,7 +48,6 @@ class Occupancy(NamedTuple):
     Fields:
         x_low, x_high: (E, M, T) along the road.
         y_low, y_high: (E, H, M, T) across, per variant of :data:`HELD_VARIANTS`.
-        relevant: (E, M) bool, present cars the ego answers for (not left out by the fault rule).
         ego_lanes: (E, 2) long, the ego's nearest lane and the other lane it counts on (-1: none).
     """
 
@@ -55,7 +55,6 @@ class Occupancy(NamedTuple):
     x_high: torch.Tensor
     y_low: torch.Tensor
     y_high: torch.Tensor
-    relevant: torch.Tensor
     ego_lanes: torch.Tensor
 
 
@@ -90,29 +89,32 @@ def body_reach(vx: torch.Tensor, vy: torch.Tensor, assumptions: TrafficAssumptio
     return half_length * cos + half_width * sin, half_length * sin + half_width * cos
 
 
-def yields(ego: torch.Tensor, vehicles: torch.Tensor, assumptions: TrafficAssumptions, ego_braking: float) -> torch.Tensor:
-    """(E, M) bool: each car is behind the ego with room to stop behind it: braking at
-    ``max_deceleration`` from ``follower_reaction`` on, it stops behind the ego braking at
-    ``ego_braking`` [m/s^2] now (bodies of the assumed length, bumper to bumper).
+def follower_reach(vehicles: torch.Tensor, times: torch.Tensor, assumptions: TrafficAssumptions) -> torch.Tensor:
+    """(E, M, T): how far along the road each car's front reaches by the end of each interval of
+    ``times`` (T + 1,) [s] as a follower: at its speed until ``follower_reaction``, then braking at
+    ``max_deceleration`` to rest [m] (bodies of :attr:`TrafficAssumptions.half_length`). Left sums
+    (each interval at its starting speed): the speed never rises, so they bound the continuous and
+    the frame-stepped car alike.
 
-    Example: a car 20 m behind (15 m bumper to bumper) at 22 m/s stops behind an ego at 20 m/s, one at 30 m/s does not:
+    Example: a car at 10 m/s, frames of 0.5 s: 5.0 m in the first, then 4.4 (braking from 0.3 s),
+    2.9 and 1.4 to rest:
 
-        >>> import torch, mmpc
-        >>> ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
-        >>> cars = torch.tensor([[[-20.0, 8.0, 22.0, 0.0], [-20.0, 8.0, 30.0, 0.0]]])
-        >>> yields(ego, cars, TrafficAssumptions(), 5.0).tolist()
-        [[True, False]]
+        >>> import torch
+        >>> cars = torch.tensor([[[0.0, 0.0, 10.0, 0.0]]])
+        >>> reach = follower_reach(cars, torch.arange(6) * 0.5, TrafficAssumptions())
+        >>> [round(v - TrafficAssumptions().half_length, 1) for v in reach[0, 0].tolist()]
+        [5.0, 9.4, 12.3, 13.7, 13.7]
     """
     a = assumptions
-    x, speed = vehicles[..., 0], torch.hypot(vehicles[..., 2], vehicles[..., 3])
-    ego_speed = ego[:, EGO_V, None].clamp_min(0.0)
-    gap = ego[:, EGO_X, None] - x - a.length
-    needed = (speed * a.follower_reaction + speed ** 2 / (2 * a.max_deceleration) - ego_speed ** 2 / (2 * ego_braking))
-    return (gap > 0) & (gap >= needed)
+    speed = torch.hypot(vehicles[..., 2], vehicles[..., 3])  # (E, M)
+    starts, steps = times[:-1].to(vehicles.dtype), (times[1:] - times[:-1]).to(vehicles.dtype)
+    braked = a.max_deceleration * (starts - a.follower_reaction).clamp_min(0.0)  # (T,)
+    slow = (speed[..., None] - braked).clamp_min(0.0)  # (E, M, T) at each interval's start
+    return vehicles[..., 0, None] + a.half_length + torch.cumsum(slow * steps, dim=-1)
 
 
 def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, road: Road, times: torch.Tensor,
-              assumptions: TrafficAssumptions, *, fault_rule: bool = True, ego_braking: float = 5.0) -> Occupancy:
+              assumptions: TrafficAssumptions, *, fault_rule: bool = True) -> Occupancy:
     """The occupancy sets of E environments' cars over the intervals of ``times``.
 
     Args:
@@ -122,10 +124,9 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
         road: the road.
         times: (T + 1,) increasing times from now, ``times[0] = 0`` [s].
         assumptions: what the cars may do.
-        fault_rule: leave out, and keep out of the ego's lanes, the cars behind the ego (what the
-            verification may do); ``False``: the sets of the traffic's rules alone (what the
-            monitor checks).
-        ego_braking: the hardest braking of the ego's fail-safes [m/s^2] (:func:`yields`).
+        fault_rule: bound the followers by their braking, and keep the cars behind the ego out of
+            its lanes (what the verification may do); ``False``: the sets of the traffic's rules
+            alone (what the monitor checks).
 
     Returns:
         The :class:`Occupancy` (T intervals).
@@ -169,8 +170,8 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
     ego_x = ego[:, EGO_X, None]
     behind = (x < ego_x) & fault_rule
     wholly_behind = (ego_x - x > a.length) & fault_rule  # bodies of the assumed length
-    answers = wholly_behind & (on_ego_lane[..., 0] | (on_ego_lane[..., 1] & yields(ego, vehicles, a, ego_braking)))
-    relevant = mask & ~answers
+    follower = wholly_behind & on_ego_lane.any(dim=-1)  # (E, M): its set ends where its braking takes it
+    x_high = torch.where(follower[..., None], torch.minimum(x_high, follower_reach(vehicles, times, a)), x_high)
 
     # Per lane j of the ego: the cars the rule keeps out of it where the manoeuvre holds it (ahead
     # of the ego with nobody between, not bound there already) and those the fault rule always does.
@@ -197,7 +198,7 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
         band_high = torch.maximum(high_cut.to(dtype) * width + a.lane_overreach, edge_high)
         y_low.append(torch.maximum(band_low[..., None], edge_low[..., None] - spread))
         y_high.append(torch.minimum(band_high[..., None], edge_high[..., None] + spread))
-    return Occupancy(x_low, x_high, torch.stack(y_low, dim=1), torch.stack(y_high, dim=1), relevant, ego_lanes)
+    return Occupancy(x_low, x_high, torch.stack(y_low, dim=1), torch.stack(y_high, dim=1), ego_lanes)
 
 
 def _cars_between(x: torch.Tensor, car_lanes: torch.Tensor, mask: torch.Tensor, ego_x: torch.Tensor,

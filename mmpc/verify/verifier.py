@@ -159,7 +159,7 @@ class Verifier:
         poses = Body(*(torch.cat([a[:, None, None, None].expand(num_envs, num_candidates, count, 1),
                                   b[..., None, None].expand(num_envs, num_candidates, count, 1), c], dim=-1)
                        for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times[:-1]
-        meets = self._meets(poses, sets)  # (E, K, F)
+        meets = self._meets(poses, sets, mask)  # (E, K, F)
         left, right = self.road.bounds  # the lane rules hold for an ego on its lanes: it keeps its centre there
         on_road = ((poses.y[..., 1:] >= left) & (poses.y[..., 1:] <= right)).all(dim=-1)
         verified_f = ~meets & on_road
@@ -172,16 +172,15 @@ class Verifier:
 
     def _occupancy(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
         """:func:`mmpc.verify.occupancy.occupancy` of the cars the ego may meet, compiled where :attr:`compiling` says."""
-        braking = max(self.failsafes.decelerations)
         if self.compiling.compiled and ego.shape[0] and ego.device.type == "cpu":  # compiled for the CPU, as the rollout
-            sets = _compiled_occupancy(self.road, self.assumptions, braking)
+            sets = _compiled_occupancy(self.road, self.assumptions)
             found = self.compiling.attempt(lambda: sets(ego, vehicles, mask, times))
             if found is not None:
                 return found
-        return self.compiling.eager(occupancy, ego, vehicles, mask, self.road, times, self.assumptions, ego_braking=braking)
+        return self.compiling.eager(occupancy, ego, vehicles, mask, self.road, times, self.assumptions)
 
-    def _meets(self, poses: Body, sets: Occupancy) -> torch.Tensor:
-        """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a relevant set of ``sets`` (P
+    def _meets(self, poses: Body, sets: Occupancy, mask: torch.Tensor) -> torch.Tensor:
+        """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a set of ``sets`` (P
         intervals): pose i, stretched forward by its frame's sweep (module docstring), against the
         box of interval i. Only the (environment, car, pose) triples whose bounding boxes overlap
         get the exact test."""
@@ -196,7 +195,7 @@ class Verifier:
         flat_x, flat_y = x.flatten(1, 2), y.flatten(1, 2)  # (E, K F, P)
         near = ((flat_x.amin(dim=1)[:, None] - reach <= sets.x_high) & (flat_x.amax(dim=1)[:, None] + reach >= sets.x_low)
                 & (flat_y.amin(dim=1)[:, None] - reach <= sets.y_high.amax(dim=1))
-                & (flat_y.amax(dim=1)[:, None] + reach >= sets.y_low.amin(dim=1)) & sets.relevant[..., None])
+                & (flat_y.amax(dim=1)[:, None] + reach >= sets.y_low.amin(dim=1)) & mask[..., None])
         env, car, pose = near.nonzero(as_tuple=True)  # (Q,)
         meets = torch.zeros(variant.shape, dtype=torch.int32, device=variant.device)
         if env.numel():
@@ -212,11 +211,11 @@ class Verifier:
 
 
 @functools.lru_cache(maxsize=None)
-def _compiled_occupancy(road: Road, assumptions: TrafficAssumptions, ego_braking: float) -> Callable[..., Occupancy]:
+def _compiled_occupancy(road: Road, assumptions: TrafficAssumptions) -> Callable[..., Occupancy]:
     """The occupancy sets of a road and assumptions, compiled for any numbers of environments, cars and times."""
 
     def sets(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
-        return occupancy(ego, vehicles, mask, road, times, assumptions, ego_braking=ego_braking)
+        return occupancy(ego, vehicles, mask, road, times, assumptions)
 
     return torch.compile(sets, dynamic=True, fullgraph=True)
 
