@@ -33,8 +33,10 @@ def test_both_worlds_and_the_check_read_the_scenario_option():
     from mmpc.sim.traffic import sim_config
 
     assert sim_config(scenario).ego_as_follower and not sim_config(load_scenario("high_speed")).ego_as_follower
-    assert Verifier.for_scenario(scenario).assumptions == TrafficAssumptions(mobil_safety=False)
-    assert Verifier.for_scenario(load_scenario("high_speed")).assumptions.mobil_safety
+    # the check's default rule covers both readings (cars cut in where the ego as a follower allows)
+    assert Verifier.for_scenario(scenario).assumptions == Verifier.for_scenario(load_scenario("high_speed")).assumptions
+    assert Verifier.for_scenario(scenario).assumptions.cut_in == "follower"
+    assert TrafficAssumptions.for_scenario(scenario, cut_in="highway-env").cut_in == "highway-env"
     episode = HighwayEpisode(scenario, seed=0)
     try:
         speed = float(episode.ego.speed)

@@ -46,36 +46,55 @@ def test_the_assumptions_are_the_worlds_rules():
         TrafficAssumptions(max_deceleration=0.0)
 
 
+def _cars_stay_in_their_sets(name, overrides=None, random_ego=False):
+    """16 episodes x 12 s of scenario ``name``: no car that stays near the ego leaves the set predicted
+    for it one step (the monitor), five steps or one second ahead (decisions to cut in anywhere in
+    that second counted as possible). The ego holds its speed, or (``random_ego``) draws a command in
+    its whole range every step, and may run into cars: a crashed car (braking at -v per second,
+    pushed) has left the assumptions and is not checked. Returns the car-steps checked."""
+    scenario = load_scenario(name, {"sim": "batched", "duration": 12.0, **(overrides or {})})
+    episodes = SimEpisodes(scenario, seeds=list(range(900, 916)))
+    monitor = AssumptionMonitor(scenario.road, scenario.period)
+    times = torch.arange(11) * scenario.period
+    assumptions = TrafficAssumptions()
+    generator = torch.Generator().manual_seed(5)
+    history, checked = [], 0
+    for step in range(int(12.0 * scenario.frequency)):
+        ego, vehicles, mask = episodes.road_state()
+        mask = mask & ~episodes.state.crashed[:, 1:]
+        assert not bool(monitor.observe(torch.arange(16), ego, vehicles, mask).any()), (name, step)
+        near = mask & ((vehicles[..., 0] - ego[:, None, 0]).abs() < 80.0)
+        sets = occupancy(ego, vehicles, near, scenario.road, times, assumptions, fault_rule=False,
+                         decided_within=float(times[-1]))
+        for ago, (old_sets, old_near, old_x) in enumerate(reversed(history), start=1):
+            if ago not in (5, 10):
+                continue
+            held = held_variant(old_sets.ego_lanes, ego[:, 1, None], scenario.road, assumptions.lane_margin)
+            same = (vehicles[..., 0] - old_x).abs() < 45.0 * ago * scenario.period  # not moved by the window
+            kept = old_near & same & mask  # crashed is for good: a car crashed since is not checked
+            gone = outside(old_sets, ago - 1, vehicles, held, assumptions) & kept
+            assert not bool(gone.any()), (name, step, ago)
+            checked += int(kept.sum())
+        history = (history + [(sets, near, vehicles[..., 0].clone())])[-10:]
+        command = torch.zeros(16, 2)
+        if random_ego:
+            command[:, 0] = torch.rand(16, generator=generator) * 10.0 - 5.0
+        episodes.step(command)
+    return checked
+
+
 def test_the_batched_simulators_cars_stay_in_their_sets():
-    """Naturalistic traffic of both scenarios, 16 episodes x 12 s: no car that stays near the ego
-    leaves the set predicted for it one step, five steps or one second ahead. The ego holds its
-    speed and may run into cars: a crashed car (braking at -v per second, pushed) has left the
-    assumptions and is not checked."""
+    """Naturalistic traffic of both scenarios, the ego holding its speed."""
     for name in ("high_speed", "cruise"):
-        scenario = load_scenario(name, {"sim": "batched", "duration": 12.0})
-        episodes = SimEpisodes(scenario, seeds=list(range(900, 916)))
-        monitor = AssumptionMonitor(scenario.road, scenario.period)
-        times = torch.arange(11) * scenario.period
-        assumptions = TrafficAssumptions()
-        history, checked = [], 0
-        for step in range(int(12.0 * scenario.frequency)):
-            ego, vehicles, mask = episodes.road_state()
-            mask = mask & ~episodes.state.crashed[:, 1:]
-            assert not bool(monitor.observe(torch.arange(16), ego, vehicles, mask).any()), (name, step)
-            near = mask & ((vehicles[..., 0] - ego[:, None, 0]).abs() < 80.0)
-            sets = occupancy(ego, vehicles, near, scenario.road, times, assumptions, fault_rule=False)
-            for ago, (old_sets, old_near, old_x) in enumerate(reversed(history), start=1):
-                if ago not in (5, 10):
-                    continue
-                held = held_variant(old_sets.ego_lanes, ego[:, 1, None], scenario.road, assumptions.lane_margin)
-                same = (vehicles[..., 0] - old_x).abs() < 45.0 * ago * scenario.period  # not moved by the window
-                kept = old_near & same & mask  # crashed is for good: a car crashed since is not checked
-                gone = outside(old_sets, ago - 1, vehicles, held, assumptions) & kept
-                assert not bool(gone.any()), (name, step, ago)
-                checked += int(kept.sum())
-            history = (history + [(sets, near, vehicles[..., 0].clone())])[-10:]
-            episodes.step(torch.zeros(16, 2))
-        assert checked > 5000
+        assert _cars_stay_in_their_sets(name) > 5000
+
+
+def test_cars_that_cut_in_ahead_of_an_ego_read_as_a_follower_stay_in_their_sets():
+    """Threatening traffic whose MOBIL reads the ego as an IDM follower (cars cut in ahead of it where
+    the follower rule lets them), the ego braking and speeding at random: the sets of the default rule
+    (``cut_in="follower"``) hold every car."""
+    overrides = {"traffic.ego_as_follower": True}
+    assert _cars_stay_in_their_sets("high_speed_threats", overrides, random_ego=True) > 5000
 
 
 def test_a_monitor_flags_a_car_that_brakes_harder_than_assumed():
@@ -106,8 +125,8 @@ def test_the_check_keeps_the_stopping_distance_to_a_car_ahead():
 def test_a_car_beside_may_not_cut_in_ahead_of_the_moving_ego_unless_it_is_changing_lane_already():
     ego = mmpc.ego_state(0.0, 4.0, 0.0, 20.0)
     beside = [5.0, 8.0, 20.0, 0.0]
-    assert check(ego, [beside])  # MOBIL's safety criterion keeps it in its lane
-    assert not check(ego, [beside], mobil_safety=False)
+    assert check(ego, [beside])  # MOBIL's criterion: it may enter only far enough ahead of the ego following it
+    assert not check(ego, [beside], cut_in="any")
     assert not check(ego, [[5.0, 7.0, 20.0, -2.0]])  # decided before now: it comes
     assert check(ego, [[5.0, 9.0, 20.0, 2.0]])  # changing away
 

@@ -13,10 +13,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from mmpc.config import require_field_types, require_non_negative, require_positive
+from mmpc.config import require, require_field_types, require_non_negative, require_positive
+from mmpc.sim.traffic import sim_config
 
 if TYPE_CHECKING:
     from mmpc.scenario import ScenarioConfig
+
+
+#: The lane-change rules :attr:`TrafficAssumptions.cut_in` names.
+CUT_IN_RULES = ("follower", "highway-env", "any")
 
 
 @dataclass(frozen=True)
@@ -53,10 +58,23 @@ class TrafficAssumptions:
             at most this long after the ego does [s] (IDM reacts at the next frame; its braking
             grows with the square of the closing gap). Such a car's set ends where that braking
             takes it (:func:`mmpc.verify.occupancy.follower_reach`).
-        mobil_safety: MOBIL's safety criterion holds: a car does not decide to enter a lane in
-            which the moving ego would be its new follower (the ego has no target speed, so MOBIL
-            predicts it braking far beyond ``lane_change_max_braking_imposed``); such a car stays
-            out of the ego's lane while the ego counts on it. ``False``: any car may enter any lane.
+        cut_in: where a car ahead of the ego, with nobody between, may decide to enter a lane the
+            ego holds (MOBIL's safety criterion, :mod:`mmpc.verify.cut_ins`). ``"follower"``: MOBIL
+            reads the ego as an IDM follower holding its present speed, so a car enters only where
+            the ego behind it would brake at most ``max_braking_imposed`` (far enough ahead for its
+            speeds); it covers both worlds' readings. ``"highway-env"``: no car decides to enter
+            directly ahead of the moving ego, as highway-env reads a continuous-action ego (no target
+            speed, so MOBIL predicts it braking beyond any bound): an artefact, for claims about that
+            simulator's traffic only. ``"any"``: no rule, any car may enter any lane.
+        distance_wanted, time_wanted: IDM's jam distance between centres [m] and time headway [s]
+            (``SimConfig``), read by the follower rule; IDM's acceleration a is ``max_acceleration``.
+        comfort_deceleration: IDM's comfortable deceleration b [m/s^2] (``-SimConfig.comfort_acc_min``).
+        max_braking_imposed: MOBIL's bound on the new follower's braking [m/s^2]
+            (``SimConfig.lane_change_max_braking_imposed``).
+        decision_lag: a lane-change decision shows (``change_speed``, ``change_offset``) at most this
+            long after MOBIL took it [s]; the follower rule counts decisions that recent as possible.
+        ego_acceleration: the ego's acceleration commands lie within +- this [m/s^2]
+            (``SimConfig.acceleration_range``): it bounds where the ego was when a car decided.
     """
 
     max_deceleration: float = 6.0
@@ -72,28 +90,42 @@ class TrafficAssumptions:
     change_speed: float = 0.5
     change_offset: float = 0.5
     follower_reaction: float = 0.3
-    mobil_safety: bool = True
+    cut_in: str = "follower"
+    distance_wanted: float = 10.0
+    time_wanted: float = 1.5
+    comfort_deceleration: float = 5.0
+    max_braking_imposed: float = 2.0
+    decision_lag: float = 0.5
+    ego_acceleration: float = 5.0
 
     def __post_init__(self) -> None:
         require_field_types(self)
         require_positive("TrafficAssumptions", max_deceleration=self.max_deceleration, lateral_speed=self.lateral_speed,
                          length=self.length, width=self.width, max_heading=self.max_heading,
                          lateral_travel=self.lateral_travel, change_speed=self.change_speed,
-                         change_offset=self.change_offset)
+                         change_offset=self.change_offset, comfort_deceleration=self.comfort_deceleration,
+                         ego_acceleration=self.ego_acceleration)
         require_non_negative("TrafficAssumptions", max_acceleration=self.max_acceleration, speed_limit=self.speed_limit,
                              lane_overreach=self.lane_overreach, lane_margin=self.lane_margin,
-                             follower_reaction=self.follower_reaction)
+                             follower_reaction=self.follower_reaction, distance_wanted=self.distance_wanted,
+                             time_wanted=self.time_wanted, max_braking_imposed=self.max_braking_imposed,
+                             decision_lag=self.decision_lag)
+        require(self.cut_in in CUT_IN_RULES, f"TrafficAssumptions: `cut_in` must be one of {list(CUT_IN_RULES)}; "
+                                             f"got {self.cut_in!r}")
 
     @classmethod
-    def for_scenario(cls, scenario: "ScenarioConfig") -> "TrafficAssumptions":
+    def for_scenario(cls, scenario: "ScenarioConfig", cut_in: str = "follower") -> "TrafficAssumptions":
         """The assumptions for a scenario's cars: their size (a footprint wider than 2 m reaches
-        beyond a lane centre by half the extra width more), and ``mobil_safety`` off where the traffic
-        reads the ego as an IDM follower (``traffic.ego_as_follower``: cars may then cut in ahead of it;
-        the sets let any car enter any lane until a rule for that reading is written)."""
+        beyond a lane centre by half the extra width more), its worlds' IDM and MOBIL constants and
+        the ego's command range, under the lane-change rule ``cut_in``."""
+        sim = sim_config(scenario)
         length, width = scenario.vehicle
         default = cls()
         return cls(length=length, width=width, lane_overreach=default.lane_overreach + 0.5 * (width - default.width),
-                   mobil_safety=not getattr(scenario.traffic, "ego_as_follower", False))
+                   cut_in=cut_in, distance_wanted=sim.distance_wanted, time_wanted=sim.time_wanted,
+                   comfort_deceleration=-sim.comfort_acc_min, max_acceleration=sim.comfort_acc_max,
+                   max_braking_imposed=sim.lane_change_max_braking_imposed,
+                   ego_acceleration=max(abs(bound) for bound in sim.acceleration_range))
 
     @property
     def half_length(self) -> float:

@@ -83,7 +83,8 @@ class AssumptionMonitor:
         mask = torch.ones(vehicles.shape[:2], dtype=torch.bool) if mask is None else mask
         mask = mask & ((vehicles[..., 0] - ego[:, None, EGO_X]).abs() <= self.reach)
         times = torch.tensor([0.0, self.period], dtype=vehicles.dtype)
-        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False)
+        sets = occupancy(ego, vehicles, mask, self.road, times, self.assumptions, fault_rule=False,
+                         decided_within=self.period)
         speed = torch.hypot(vehicles[..., 2], vehicles[..., 3])
         broke = torch.zeros_like(mask)
         last, self._last = self._last, (ids.clone(), sets, mask, speed)

@@ -9,9 +9,12 @@ of the outermost lane centres the car may reach; the lane-change rule cuts that 
 ego holds a lane:
 
 - a car ahead of the moving ego, with no car between them on a lane the ego counts on for the
-  whole manoeuvre checked, stays out of that lane unless it is changing into it already
-  (``TrafficAssumptions.mobil_safety``). The rule binds while the ego is behind the car: one the
-  ego overtakes may enter behind it, where the fault rule below takes over;
+  whole manoeuvre checked, stays out of that lane unless it is changing into it already, under
+  MOBIL's safety criterion (``TrafficAssumptions.cut_in``). The rule binds while the ego is behind
+  the car: one the ego overtakes may enter behind it, where the fault rule below takes over. With
+  the ego read as an IDM follower (``"follower"``) a car that may have decided already is not held;
+  one that may decide later is held in this band and :attr:`Occupancy.enters`: the verifier adds,
+  per path, where it could enter (:func:`mmpc.verify.cut_ins.entry_floor`);
 - a car behind the ego answers for its own distance (the evaluation's fault rule). One wholly
   behind on a lane the ego counts on is a follower: it brakes at ``max_deceleration`` at most
   ``follower_reaction`` after the ego does, so its set along the road ends where that braking takes
@@ -36,6 +39,7 @@ import torch
 from mmpc.problem import EGO_V, EGO_X, EGO_Y
 from mmpc.road import Road
 from mmpc.verify.assumptions import TrafficAssumptions
+from mmpc.verify.cut_ins import may_have_decided
 
 #: Variants of the lateral bounds: bit 0 set where the manoeuvre holds the ego's nearest lane,
 #: bit 1 where it holds the other lane it counts on (none: the variants repeat).
@@ -49,6 +53,9 @@ class Occupancy(NamedTuple):
         x_low, x_high: (E, M, T) along the road.
         y_low, y_high: (E, H, M, T) across, per variant of :data:`HELD_VARIANTS`.
         ego_lanes: (E, 2) long, the ego's nearest lane and the other lane it counts on (-1: none).
+        enters: (E, M) bool, cars the lane-change rule holds out of a lane the ego holds that may
+            still decide to enter it ahead of the ego (``cut_in="follower"``); the band of variant 0
+            (no lane held) is theirs past :func:`mmpc.verify.cut_ins.entry_floor`.
     """
 
     x_low: torch.Tensor
@@ -56,6 +63,7 @@ class Occupancy(NamedTuple):
     y_low: torch.Tensor
     y_high: torch.Tensor
     ego_lanes: torch.Tensor
+    enters: torch.Tensor
 
 
 def counted_lanes(y: torch.Tensor, road: Road, margin: float) -> torch.Tensor:
@@ -114,7 +122,7 @@ def follower_reach(vehicles: torch.Tensor, times: torch.Tensor, assumptions: Tra
 
 
 def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, road: Road, times: torch.Tensor,
-              assumptions: TrafficAssumptions, *, fault_rule: bool = True) -> Occupancy:
+              assumptions: TrafficAssumptions, *, fault_rule: bool = True, decided_within: float = 0.0) -> Occupancy:
     """The occupancy sets of E environments' cars over the intervals of ``times``.
 
     Args:
@@ -127,6 +135,9 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
         fault_rule: bound the followers by their braking, and keep the cars behind the ego out of
             its lanes (what the verification may do); ``False``: the sets of the traffic's rules
             alone (what the monitor checks).
+        decided_within: under ``cut_in="follower"``, a car that may decide to enter a lane the ego
+            holds up to this long from now [s] is not held out of it (0 for the verifier, which
+            bounds later decisions per path; the monitor's period for the monitor).
 
     Returns:
         The :class:`Occupancy` (T intervals).
@@ -174,14 +185,19 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
     x_high = torch.where(follower[..., None], torch.minimum(x_high, follower_reach(vehicles, times, a)), x_high)
 
     # Per lane j of the ego: the cars the rule keeps out of it where the manoeuvre holds it (ahead
-    # of the ego with nobody between, not bound there already) and those the fault rule always does.
+    # of the ego with nobody between, not bound there already, and not free to decide by MOBIL's
+    # criterion) and those the fault rule always does.
+    if a.cut_in == "follower":
+        held_by_rule = ~may_have_decided(ego, vehicles, a, after=decided_within)
+    else:
+        held_by_rule = torch.full_like(mask, a.cut_in == "highway-env")
     cuts = []
     for j in range(2):
         blocked_lane = ego_lanes[:, j, None].expand_as(lane)  # (E, M)
         eligible = (blocked_lane >= 0) & mask & ~on_ego_lane[..., j]
         bound_there = (toward != 0) & (target == blocked_lane)  # decided before now: the rule no longer holds it
         by_rule = (eligible & (x >= ego_x) & ~_cars_between(x, car_lanes, mask, ego_x, blocked_lane) & ~bound_there
-                   & a.mobil_safety)
+                   & held_by_rule)
         cuts.append((blocked_lane, blocked_lane > lane, by_rule, eligible & behind))  # above: on the car's +y side
 
     # Lane bands: the whole road, cut on the car's side of each lane it may not enter.
@@ -198,7 +214,8 @@ def occupancy(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, roa
         band_high = torch.maximum(high_cut.to(dtype) * width + a.lane_overreach, edge_high)
         y_low.append(torch.maximum(band_low[..., None], edge_low[..., None] - spread))
         y_high.append(torch.minimum(band_high[..., None], edge_high[..., None] + spread))
-    return Occupancy(x_low, x_high, torch.stack(y_low, dim=1), torch.stack(y_high, dim=1), ego_lanes)
+    enters = (cuts[0][2] | cuts[1][2]) & (a.cut_in == "follower")
+    return Occupancy(x_low, x_high, torch.stack(y_low, dim=1), torch.stack(y_high, dim=1), ego_lanes, enters)
 
 
 def _cars_between(x: torch.Tensor, car_lanes: torch.Tensor, mask: torch.Tensor, ego_x: torch.Tensor,

@@ -30,6 +30,7 @@ from mmpc.sim.config import SimConfig
 from mmpc.sim.traffic import sim_config
 from mmpc.verify.assumptions import TrafficAssumptions
 from mmpc.verify.compiling import CheckCompiling
+from mmpc.verify.cut_ins import entry_floor
 from mmpc.verify.failsafe import Body, FailSafeRollout, FailSafes, drive, ego_body, failsafe_command, failsafe_table
 from mmpc.verify.geometry import rectangle_meets_box
 from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
@@ -159,7 +160,7 @@ class Verifier:
         poses = Body(*(torch.cat([a[:, None, None, None].expand(num_envs, num_candidates, count, 1),
                                   b[..., None, None].expand(num_envs, num_candidates, count, 1), c], dim=-1)
                        for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times[:-1]
-        meets = self._meets(poses, sets, mask)  # (E, K, F)
+        meets = self._meets(poses, sets, mask, vehicles, times)  # (E, K, F)
         left, right = self.road.bounds  # the lane rules hold for an ego on its lanes: it keeps its centre there
         on_road = ((poses.y[..., 1:] >= left) & (poses.y[..., 1:] <= right)).all(dim=-1)
         verified_f = ~meets & on_road
@@ -179,11 +180,13 @@ class Verifier:
                 return found
         return self.compiling.eager(occupancy, ego, vehicles, mask, self.road, times, self.assumptions)
 
-    def _meets(self, poses: Body, sets: Occupancy, mask: torch.Tensor) -> torch.Tensor:
-        """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a set of ``sets`` (P
-        intervals): pose i, stretched forward by its frame's sweep (module docstring), against the
-        box of interval i. Only the (environment, car, pose) triples whose bounding boxes overlap
-        get the exact test."""
+    def _meets(self, poses: Body, sets: Occupancy, mask: torch.Tensor, vehicles: torch.Tensor, times: torch.Tensor
+               ) -> torch.Tensor:
+        """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a set of ``sets`` (P intervals of
+        ``times``): pose i, stretched forward by its frame's sweep (module docstring), against the
+        box of interval i, and for a car that may still cut in (:attr:`Occupancy.enters`) against
+        its uncut band past where it could enter on this path. Only the (environment, car, pose)
+        triples whose bounding boxes overlap get the exact test."""
         variant = held_variant(sets.ego_lanes, poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F)
         sweep = poses.speed.clamp_min(0.0) * self.sim.dt  # (E, K, F, P) [m]
         cos, sin = torch.cos(poses.heading), torch.sin(poses.heading)
@@ -203,11 +206,28 @@ class Verifier:
             rows = torch.arange(env.numel(), device=env.device)[:, None, None]
             y_low = sets.y_low[env, :, car, pose][rows, chosen]
             y_high = sets.y_high[env, :, car, pose][rows, chosen]
-            hit = rectangle_meets_box(x[env, ..., pose], y[env, ..., pose], poses.heading[env, ..., pose],
-                                      half_length[env, ..., pose], half_width, sets.x_low[env, car, pose, None, None],
-                                      sets.x_high[env, car, pose, None, None], y_low, y_high)
+            x_low, x_high = sets.x_low[env, car, pose, None, None], sets.x_high[env, car, pose, None, None]
+            rectangle = (x[env, ..., pose], y[env, ..., pose], poses.heading[env, ..., pose], half_length[env, ..., pose],
+                         half_width)
+            hit = rectangle_meets_box(*rectangle, x_low, x_high, y_low, y_high)
+            entering = sets.enters[env, car]  # (Q,)
+            if bool(entering.any()):
+                floor = self._entry_floor(poses, vehicles, times, env[entering], car[entering], pose[entering])
+                picked = tuple(part[entering] for part in rectangle[:4])
+                hit[entering] |= rectangle_meets_box(*picked, half_width, torch.maximum(x_low[entering], floor),
+                                                     x_high[entering], sets.y_low[env, 0, car, pose][entering, None, None],
+                                                     sets.y_high[env, 0, car, pose][entering, None, None])
             meets.index_add_(0, env, hit.int())
         return meets > 0
+
+    def _entry_floor(self, poses: Body, vehicles: torch.Tensor, times: torch.Tensor, env: torch.Tensor, car: torch.Tensor,
+                     pose: torch.Tensor) -> torch.Tensor:
+        """(Q, K, F): where the cars ``car`` of environments ``env`` (Q,) could be at ``pose`` (Q,)
+        had they decided to cut in on each path (:func:`mmpc.verify.cut_ins.entry_floor`, once per pair)."""
+        pairs, which = torch.unique(env * vehicles.shape[1] + car, return_inverse=True)
+        pair_env, pair_car = pairs // vehicles.shape[1], pairs % vehicles.shape[1]
+        floor = entry_floor(poses.x[pair_env], poses.speed[pair_env], vehicles[pair_env, pair_car], times, self.assumptions)
+        return floor[which, ..., pose]
 
 
 @functools.lru_cache(maxsize=None)
