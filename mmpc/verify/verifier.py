@@ -210,23 +210,30 @@ class Verifier:
             rectangle = (x[env, ..., pose], y[env, ..., pose], poses.heading[env, ..., pose], half_length[env, ..., pose],
                          half_width)
             hit = rectangle_meets_box(*rectangle, x_low, x_high, y_low, y_high)
-            entering = sets.enters[env, car]  # (Q,)
-            if bool(entering.any()):
-                floor = self._entry_floor(poses, vehicles, times, env[entering], car[entering], pose[entering])
-                picked = tuple(part[entering] for part in rectangle[:4])
-                hit[entering] |= rectangle_meets_box(*picked, half_width, torch.maximum(x_low[entering], floor),
-                                                     x_high[entering], sets.y_low[env, 0, car, pose][entering, None, None],
-                                                     sets.y_high[env, 0, car, pose][entering, None, None])
+            entering = sets.enters[env, car].nonzero().squeeze(1)  # (Q',) triples of cars that may still cut in
+            for moving in (False, True):  # the cheap floor first; the full one where the cheap one meets the path
+                if not entering.numel():
+                    break
+                floor = self._entry_floor(poses, vehicles, times, env[entering], car[entering], pose[entering], moving)
+                entered = rectangle_meets_box(*(part[entering] for part in rectangle[:4]), half_width,
+                                              torch.maximum(x_low[entering], floor), x_high[entering],
+                                              sets.y_low[env[entering], 0, car[entering], pose[entering], None, None],
+                                              sets.y_high[env[entering], 0, car[entering], pose[entering], None, None])
+                if moving:
+                    hit[entering] |= entered
+                else:
+                    entering = entering[entered.flatten(1).any(dim=1)]
             meets.index_add_(0, env, hit.int())
         return meets > 0
 
     def _entry_floor(self, poses: Body, vehicles: torch.Tensor, times: torch.Tensor, env: torch.Tensor, car: torch.Tensor,
-                     pose: torch.Tensor) -> torch.Tensor:
+                     pose: torch.Tensor, moving: bool) -> torch.Tensor:
         """(Q, K, F): where the cars ``car`` of environments ``env`` (Q,) could be at ``pose`` (Q,)
         had they decided to cut in on each path (:func:`mmpc.verify.cut_ins.entry_floor`, once per pair)."""
         pairs, which = torch.unique(env * vehicles.shape[1] + car, return_inverse=True)
         pair_env, pair_car = pairs // vehicles.shape[1], pairs % vehicles.shape[1]
-        floor = entry_floor(poses.x[pair_env], poses.speed[pair_env], vehicles[pair_env, pair_car], times, self.assumptions)
+        floor = entry_floor(poses.x[pair_env], poses.speed[pair_env], vehicles[pair_env, pair_car], times, self.assumptions,
+                            moving)
         return floor[which, ..., pose]
 
 
