@@ -139,21 +139,51 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     # such profiles, each grid profile's progress is a difference of one table (right sums), so the
     # least over the deciding poses is a running minimum.
     profile = w[..., :-1] + a.max_deceleration * starts[:, None]  # (R, P, S - 1)
-    low = profile.flatten(1).amin(dim=1)[:, None, None]  # (R, 1, 1): each car's own grid
-    span = (profile.flatten(1).amax(dim=1)[:, None, None] - low).clamp_min(1e-6)
+    # Each car's own grid, spanning the profiles of the poses up to the ego's rest on every path (a
+    # decision after that needs no progress: the ego stands), so that a check's verdict does not depend
+    # on how many frames past that it runs (the frames are the batch's).
+    moving = path_speed.reshape(path_speed.shape[0], -1, path_speed.shape[-1]).gt(0).any(dim=1)  # (R, P)
+    moving[:, 0] = True
+    spanned = profile.masked_fill(~moving[..., None], torch.nan).flatten(1)
+    low = spanned.nan_to_num(torch.inf).amin(dim=1)[:, None, None]  # (R, 1, 1)
+    span = (spanned.nan_to_num(-torch.inf).amax(dim=1)[:, None, None] - low).clamp_min(1e-6)
     grid = low + span * torch.linspace(0.0, 1.0, PROFILES, dtype=dtype)[:, None]  # (R, G, 1)
-    table = (grid - a.max_deceleration * ends).clamp_min(0.0) * steps
-    table = torch.cumsum(table, dim=-1) - table  # (R, G, P): each profile's progress to each pose
+    profile_speed = (grid - a.max_deceleration * ends).clamp_min(0.0)
+    table = torch.cumsum(profile_speed * steps, dim=-1) - profile_speed * steps  # (R, G, P): each profile's progress
+    # Turning takes from the progress at most tan(max_heading / 2) x lateral_speed (slope) and
+    # (1 - cos(max_heading)) of the speed per second: what is left at least
+    kept = torch.maximum(profile_speed - slope, math.cos(a.max_heading) * profile_speed) * steps
+    kept = torch.cumsum(kept, dim=-1) - kept  # (R, G, P)
     rounded = ((profile - low) / span * (PROFILES - 1)).floor().clamp(0, PROFILES - 1).long()  # grid value <= profile
     best = centre.new_full((*centre.shape[:-1], PROFILES), torch.inf)  # (R, ..., P, G): per profile, the least centre
     best.scatter_reduce_(-1, per_car(rounded).expand(centre.shape), centre, reduce="amin")
     # Turning across the road takes up to tan(max_heading / 2) of its lateral travel since it decided
     # (at lateral_speed, at most lateral_travel) from that progress; it never moves back.
-    crossing = (slope * ends).clamp_max(cap)[:, None]  # (P, 1)
-    progress, clock = per_car(table.transpose(1, 2)), slope * starts[:, None]  # (R, 1.., P, G), (P, 1)
-    turning = _running_min(best - progress + clock, dim=-2).add_(progress - clock)
-    capped = _running_min(best.sub_(progress), dim=-2).add_(progress - crossing)
-    return torch.maximum(torch.maximum(turning, capped).amin(dim=-1), never_back) - a.half_length
+    # Within a turn's time (lateral_travel / lateral_speed) of deciding the rate above bounds the loss;
+    # later the whole turn's loss (cap) does, which is less. Per decision the tighter, so the floor
+    # settles a turn's time after the cars and the ego stand (Verifier.frames checks that far).
+    progress, turned = per_car(table.transpose(1, 2)), per_car(kept.transpose(1, 2))  # (R, 1.., P, G)
+    window = turn_frames(a, float(steps[0]))
+    turning = _window_min(best - turned, window, dim=-2).add_(turned)
+    kept_older = _running_min(best - turned, dim=-2).roll(window + 1, dims=-2).add_(turned)
+    older = _running_min(best.sub_(progress), dim=-2).roll(window + 1, dims=-2)
+    capped = torch.maximum(older.add_(progress - cap), kept_older)  # both hold for every older decision
+    capped[..., :window + 1, :] = torch.inf
+    return torch.maximum(torch.minimum(turning, capped).amin(dim=-1), never_back) - a.half_length
+
+
+def turn_frames(assumptions: TrafficAssumptions, frame: float) -> int:
+    """Frames of ``frame`` [s] a lane change's turn may take (``lateral_travel / lateral_speed``)."""
+    return math.ceil(assumptions.lateral_travel / assumptions.lateral_speed / frame - 1e-9)
+
+
+def _window_min(values: torch.Tensor, window: int, dim: int) -> torch.Tensor:
+    """The minimum of ``values`` over each index and the ``window`` before it along ``dim``."""
+    steps = values.movedim(dim, 0)
+    least = steps.clone()
+    for shift in range(1, min(window, steps.shape[0] - 1) + 1):
+        torch.minimum(least[shift:], steps[:-shift], out=least[shift:])
+    return least.movedim(0, dim)
 
 
 def _running_min(values: torch.Tensor, dim: int) -> torch.Tensor:

@@ -30,7 +30,7 @@ from mmpc.sim.config import SimConfig
 from mmpc.sim.traffic import sim_config
 from mmpc.verify.assumptions import TrafficAssumptions
 from mmpc.verify.compiling import CheckCompiling
-from mmpc.verify.cut_ins import entry_floor
+from mmpc.verify.cut_ins import entry_floor, turn_frames
 from mmpc.verify.failsafe import Body, FailSafeRollout, FailSafes, drive, ego_body, failsafe_command, failsafe_table
 from mmpc.verify.geometry import rectangle_meets_box
 from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
@@ -119,14 +119,16 @@ class Verifier:
         return failsafe_command(wide, lanes, decelerations, self.length, self.road, self.sim)
 
     def frames(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor) -> int:
-        """Fail-safe frames that bring every ego and every car's slowest motion to rest (at most the horizon)."""
+        """Fail-safe frames that bring every ego and every car's slowest motion to rest, and under the
+        follower rule a turn's time more, until where a car may cut in has settled (at most the horizon)."""
         fastest = ego[:, EGO_V].amax() if ego.shape[0] else ego.new_zeros(())
         if mask.any():
             fastest_car = torch.hypot(vehicles[..., 2], vehicles[..., 3])[mask].amax()
             rest = torch.maximum(fastest / min(self.failsafes.decelerations), fastest_car / self.assumptions.max_deceleration)
         else:
             rest = fastest / min(self.failsafes.decelerations)
-        return min(self.max_frames, int(math.ceil(float(rest) / self.period)) + 2)
+        settle = turn_frames(self.assumptions, self.period) + 1 if self.assumptions.cut_in == "follower" else 0
+        return min(self.max_frames, int(math.ceil(float(rest) / self.period)) + 2 + settle)
 
     @torch.no_grad()
     def check(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
