@@ -142,9 +142,9 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     # Each car's own grid, spanning the profiles of the poses up to the ego's rest on every path (a
     # decision after that needs no progress: the ego stands), so that a check's verdict does not depend
     # on how many frames past that it runs (the frames are the batch's).
-    moving = path_speed.reshape(path_speed.shape[0], -1, path_speed.shape[-1]).gt(0).any(dim=1)  # (R, P)
-    moving[:, 0] = True
-    spanned = profile.masked_fill(~moving[..., None], torch.nan).flatten(1)
+    ego_moves = path_speed.reshape(path_speed.shape[0], -1, path_speed.shape[-1]).gt(0).any(dim=1)  # (R, P)
+    ego_moves[:, 0] = True
+    spanned = profile.masked_fill(~ego_moves[..., None], torch.nan).flatten(1)
     low = spanned.nan_to_num(torch.inf).amin(dim=1)[:, None, None]  # (R, 1, 1)
     span = (spanned.nan_to_num(-torch.inf).amax(dim=1)[:, None, None] - low).clamp_min(1e-6)
     grid = low + span * torch.linspace(0.0, 1.0, PROFILES, dtype=dtype)[:, None]  # (R, G, 1)
@@ -157,11 +157,10 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     rounded = ((profile - low) / span * (PROFILES - 1)).floor().clamp(0, PROFILES - 1).long()  # grid value <= profile
     best = centre.new_full((*centre.shape[:-1], PROFILES), torch.inf)  # (R, ..., P, G): per profile, the least centre
     best.scatter_reduce_(-1, per_car(rounded).expand(centre.shape), centre, reduce="amin")
-    # Turning across the road takes up to tan(max_heading / 2) of its lateral travel since it decided
-    # (at lateral_speed, at most lateral_travel) from that progress; it never moves back.
-    # Within a turn's time (lateral_travel / lateral_speed) of deciding the rate above bounds the loss;
-    # later the whole turn's loss (cap) does, which is less. Per decision the tighter, so the floor
-    # settles a turn's time after the cars and the ego stand (Verifier.frames checks that far).
+    # Within a turn's time (lateral_travel / lateral_speed) of deciding, the rate above bounds what
+    # turning took; later the whole turn's loss (cap) or that rate, whichever leaves more. Per decision
+    # the tighter, so the floor settles a turn's time after the cars and the ego stand (Verifier.frames
+    # checks that far).
     progress, turned = per_car(table.transpose(1, 2)), per_car(kept.transpose(1, 2))  # (R, 1.., P, G)
     window = turn_frames(a, float(steps[0]))
     turning = _window_min(best - turned, window, dim=-2).add_(turned)
