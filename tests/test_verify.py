@@ -42,6 +42,13 @@ def test_the_assumptions_are_the_worlds_rules():
     assert assumptions.speed_limit == sim.speed_limit
     assert assumptions.lane_margin == sim.lane_margin
     assert assumptions.max_heading > math.pi / 4  # the controller's heading reference clip, with its overshoot
+    # the cut-in rule's IDM and MOBIL constants, and the ego's command range
+    assert assumptions.distance_wanted == sim.distance_wanted == IDMVehicle.DISTANCE_WANTED
+    assert assumptions.time_wanted == sim.time_wanted == IDMVehicle.TIME_WANTED
+    assert -assumptions.comfort_deceleration == sim.comfort_acc_min == IDMVehicle.COMFORT_ACC_MIN
+    assert assumptions.max_braking_imposed == sim.lane_change_max_braking_imposed == IDMVehicle.LANE_CHANGE_MAX_BRAKING_IMPOSED
+    assert assumptions.ego_acceleration == max(abs(bound) for bound in sim.acceleration_range)
+    assert TrafficAssumptions.for_scenario(load_scenario("high_speed")) == assumptions
     with pytest.raises(ValueError, match="max_deceleration"):
         TrafficAssumptions(max_deceleration=0.0)
 
