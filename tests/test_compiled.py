@@ -96,6 +96,32 @@ def test_each_compiled_layout_gets_shape_specialised_kernels():
     assert added == [1, 1, 1, 0, 0]  # dynamic dims would serve the third layout with the second's graph
 
 
+def test_a_cold_and_a_warm_solve_of_one_shape_share_every_compiled_function():
+    """The cold start is resumed from its iterates, so a warm solve (the schedule's last chunk, from
+    earlier iterates) compiles nothing a cold solve of its shape did not: a warm-started run pays the
+    cold schedule's compiles, not a second set."""
+    from torch._dynamo.eval_frame import _debug_get_cache_entry_list
+
+    from mmpc.solver import execution
+
+    def graphs() -> int:
+        return sum(len(_debug_get_cache_entry_list(function.__code__)) for function in execution.EAGER)
+
+    config = small_config(iterations=20, heading_target_deg=7.25)  # two chunks of 10 cold, the last one warm
+    compiled, eager = mmpc.BatchOptimizer(config, compile=True), mmpc.BatchOptimizer(config)
+    problem = _goals_widened(synthetic_scenes(2, seed=1, num_steps=config.num_steps)[1].problem, 48)
+    start = graphs()
+    cold = compiled(problem)
+    assert graphs() > start and compiled.last_compile_ms > 0.0  # the shape's first solve compiled
+    before = graphs()
+    result = compiled(problem, warm=cold.warm, warm_iterations=10)
+    assert graphs() == before
+    assert compiled.last_compile_ms == 0.0  # the same layout: not run untimed first
+    expected = eager(problem, warm=cold.warm, warm_iterations=10)
+    assert torch.equal(result.feasible, expected.feasible)
+    torch.testing.assert_close(result.trajectories.x, expected.trajectories.x, atol=1e-3, rtol=1e-5)
+
+
 def test_compiled_layouts_past_the_recompile_limit_solve_eagerly(monkeypatch, caplog):
     """A fullgraph compile fails hard at torch's recompile limit: a layout past it solves eagerly
     (the same answers to float32 rounding), with one warning."""

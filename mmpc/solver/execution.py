@@ -51,14 +51,13 @@ class Functions(NamedTuple):
     """The pure functions of one solve (:mod:`mmpc.solver.iterations`), eager or compiled."""
 
     layout: Callable
-    cold_start: Callable
     resume: Callable
     summarise: Callable
     iterate: Callable
 
 
 #: The eager functions: the reference, differentiable everywhere.
-EAGER = Functions(iterations.layout, iterations.cold_start, iterations.resume, iterations.summarise, iterations.iterate)
+EAGER = Functions(iterations.layout, iterations.resume, iterations.summarise, iterations.iterate)
 
 
 def compiled_functions(on_cpu: bool) -> Functions:
@@ -67,7 +66,7 @@ def compiled_functions(on_cpu: bool) -> Functions:
     On CUDA: fused triton kernels (dynamic shapes, compiled at a small batch, ran 4-5x slower at
     large ones); each layout's whole solve is then captured as one CUDA graph (:class:`GraphSolve`):
     one launch per solve. On the CPU a C++ wrapper calls the kernels, without Python between them;
-    the layout, the cold start and the outputs are compiled too (at small batch their eager
+    the layout, the start and the outputs are compiled too (at small batch their eager
     op-by-op dispatch would cost as much as the iterations). Multiply-adds contract to fused
     multiply-adds (one rounding instead of two).
     """

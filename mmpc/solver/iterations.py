@@ -169,10 +169,12 @@ def layout(
 
 
 def solver_layout(warm: WarmStart) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A batch-first warm start -> the iterations' (K, 2B), (K, 2B), (K, B), columns ordered (axis, e, g)."""
+    """A batch-first warm start -> the iterations' (K, 2B), (K, 2B), (K, B), columns ordered (axis, e, g),
+    contiguous as the cold start's iterates (the compiled functions are specialised to strides)."""
     order = warm.position.shape[-1]
-    return (warm.position.permute(3, 2, 0, 1).reshape(order, -1), warm.multipliers.permute(3, 2, 0, 1).reshape(order, -1),
-            warm.heading_multipliers.permute(2, 0, 1).reshape(order, -1))
+    return (warm.position.permute(3, 2, 0, 1).reshape(order, -1).contiguous(),
+            warm.multipliers.permute(3, 2, 0, 1).reshape(order, -1).contiguous(),
+            warm.heading_multipliers.permute(2, 0, 1).reshape(order, -1).contiguous())
 
 
 def iterate(
@@ -335,35 +337,23 @@ def _residual_norms(
     return _safe_sqrt(norms)
 
 
-def cold_start(
-    b_position: torch.Tensor,
-    obstacles: torch.Tensor,
-    axes: Optional[torch.Tensor],
-    position_init: torch.Tensor,
-    samples_operator: torch.Tensor,
-    gather: torch.Tensor,
-    limits: Limits,
-) -> _State:
-    """Cold start: the smoothest trajectories meeting the boundary conditions, zero multipliers.
-
-    Its residual (heading taken along the velocity) is mapped with ``gather`` = ``gather[0]``,
-    ready for the first position QP. Shapes as in :func:`iterate`.
-    """
-    c = _position_qp(position_init, b_position, obstacles.shape[3])  # (K, 2B)
-    return _State(
-        c=c,
-        scaled_residual=_scaled_residual(c, obstacles, axes, samples_operator, gather, limits),
-        multipliers=torch.zeros_like(c),
-        multipliers_psi=c.new_zeros(c.shape[0], c.shape[1] // 2),
-    )
+def cold_iterates(
+    b_position: torch.Tensor, position_init: torch.Tensor, num_problems: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cold start's iterates: the smoothest trajectories meeting the boundary conditions (K, 2B)
+    and zero multipliers (K, 2B), (K, B). :func:`resume` from them starts the schedule, so that a
+    cold and a warm solve of one layout share every compiled function. Shapes as in :func:`iterate`."""
+    c = _position_qp(position_init, b_position, num_problems)
+    return c, torch.zeros_like(c), c.new_zeros(c.shape[0], c.shape[1] // 2)
 
 
 def resume(
     c: torch.Tensor, multipliers: torch.Tensor, multipliers_psi: torch.Tensor, obstacles: torch.Tensor,
     axes: Optional[torch.Tensor], samples_operator: torch.Tensor, gather: torch.Tensor, limits: Limits,
 ) -> _State:
-    """The iterations' state from a warm start's iterates (K, 2B), (K, 2B), (K, B): the residual
-    scaled as the first iteration run expects (``gather``: the rho of the iteration before it)."""
+    """The iterations' state from iterates (K, 2B), (K, 2B), (K, B) (a warm start's, or
+    :func:`cold_iterates`): the residual scaled as the first iteration run expects (``gather``: the
+    rho of the iteration before it; ``gather[0]`` from the cold start)."""
     return _State(c, _scaled_residual(c, obstacles, axes, samples_operator, gather, limits), multipliers, multipliers_psi)
 
 

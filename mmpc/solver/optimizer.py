@@ -51,7 +51,7 @@ class BatchOptimizer(nn.Module):
         compile: True to run the iterations through ``torch.compile`` (fused elementwise kernels, one
             call per chunk of iterations). The first solve of every new batch shape compiles
             (seconds on a CPU); later solves are several times faster than eager. On
-            the CPU the cold start and the outputs are compiled too, C++ wrappers call the
+            the CPU the start (cold or warm: one function) and the outputs are compiled too, C++ wrappers call the
             kernels, and a small batch is padded with copies of its last goal to whole SIMD
             vectors (the copies are dropped from the result). On CUDA every call layout's whole
             solve is captured once as a CUDA graph and replayed (E rounded up to a few sizes per
@@ -145,7 +145,7 @@ class BatchOptimizer(nn.Module):
         self._fallback_logged = False
         self._limit_logged = False
         self.last_compile_ms = 0.0
-        self._compiled_layouts: set[tuple[int, int, int, bool, bool]] = set()
+        self._compiled_layouts: set[tuple] = set()
         if tile_size is None and compile and on_cpu:
             tile_size = execution.CPU_TILE_SIZE
         self.tile_size = tile_size
@@ -374,7 +374,10 @@ class BatchOptimizer(nn.Module):
         if compiled:
             counts = mask.sum(dim=1).unique()  # a host synchronisation: the operators differ per obstacle count
             uniform = int(counts[0]) if counts.numel() == 1 else None
-            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, span)
+            # A cold and a warm solve of one shape share every compiled function (the cold start is
+            # resumed from its iterates), so a layout is the shape and the chunk lengths the span runs.
+            chunks = tuple(sorted({min(self.chunk, span[1] - first) for first in range(*span, self.chunk)}))
+            layout = (*goals.shape[:2], mask.shape[1], uniform is None, axes is None, chunks)
             share = (span[1] - span[0]) / self.config.iterations
             compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1] * share)
         if compiled and self.device.type == "cuda":
@@ -440,11 +443,11 @@ class BatchOptimizer(nn.Module):
         if not prepared.compiled:
             functions, limits = execution.EAGER, self._eager_limits
         if prepared.warm is None:
-            state = functions.cold_start(prepared.b_position, prepared.obstacles, prepared.axes, self.position_init,
-                                         self.samples, self.gather[0], limits)
+            start = iterations.cold_iterates(prepared.b_position, self.position_init, prepared.obstacles.shape[3])
         else:
-            gather = self.gather[max(prepared.first_iteration - 1, 0)]
-            state = functions.resume(*prepared.warm, prepared.obstacles, prepared.axes, self.samples, gather, limits)
+            start = prepared.warm
+        gather = self.gather[max(prepared.first_iteration - 1, 0)]
+        state = functions.resume(*start, prepared.obstacles, prepared.axes, self.samples, gather, limits)
         records: list[torch.Tensor] = []
         for first in range(prepared.first_iteration, prepared.last_iteration, self.chunk):
             last = min(first + self.chunk, prepared.last_iteration)
