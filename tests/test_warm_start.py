@@ -84,6 +84,28 @@ def test_a_warm_start_follows_the_padding_and_tiles_of_the_compiled_path(solved)
     assert result.warm.position.shape == eager.warm.position.shape  # padding goals and tiles joined back
 
 
+def test_the_warm_and_the_cold_rows_of_a_step_are_solved_in_the_batchs_compiled_layout(solved):
+    """Compiled on the CPU, the warm and the cold rows of a warm-started step are each padded to whole
+    units of the whole batch's layout: a step with a few cold rows compiles no smaller layout."""
+    _, problem, cold = solved
+    rows = torch.tensor([0, 1, 0, 1, 0])  # five problems, the last one restarting
+    batch = mmpc.ProblemBatch(*(None if field is None else field[rows] for field in problem))
+    warm = cold.warm.take(rows)
+    warm = warm._replace(position=torch.where(torch.arange(5)[:, None, None, None] == 4, float("nan"), warm.position))
+    num_goals = batch.goals.shape[1]
+    tiled = mmpc.BatchOptimizer(tile_size=2 * num_goals)  # two problems a tile
+    tiled.compiled = True  # the padding and tiling read the flag; eager functions keep the test fast
+    shapes = []
+    solve = tiled._solve
+    tiled._solve = lambda ego, goals, *args: shapes.append(tuple(goals.shape[:2])) or solve(ego, goals, *args)
+    result = tiled(batch, warm=warm, warm_iterations=30)
+    assert set(shapes) == {(2, num_goals)}  # the lone cold row too (one problem, unpadded)
+    expected = mmpc.BatchOptimizer()(batch, warm=warm, warm_iterations=30)
+    assert torch.equal(result.feasible, expected.feasible)
+    assert result.iterations[:, 0].tolist() == expected.iterations[:, 0].tolist() == [30, 30, 30, 30, 100]
+    torch.testing.assert_close(result.trajectories.x, expected.trajectories.x, atol=2e-2, rtol=1e-5)
+
+
 def _recording_mpc(cruise_mpc: mmpc.MPC, **changes) -> tuple[mmpc.MPC, list[tuple[bool, ...]]]:
     """``cruise_mpc`` with ``changes`` to its config, and the list its optimizer appends to at
     every call: per problem, whether it was warm-started."""

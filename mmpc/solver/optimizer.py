@@ -272,22 +272,35 @@ class BatchOptimizer(nn.Module):
         cold = ~torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
         again = torch.zeros_like(cold)  # warm-started, no feasible goal: solved again cold
         parts, solved = [], []
+        unit = self._layout_unit(*goals.shape[:2]) if compiled else 1
         warm_rows = (~cold).nonzero().squeeze(1)
         if warm_rows.numel():
-            part = self._solve_compiled(*_take_rows(inputs, warm_rows), warm.take(warm_rows), first_iteration,
-                                        self.config.iterations, history, compiled)
+            rows = _padded_rows(warm_rows, unit)
+            part = self._solve_compiled(*_take_rows(inputs, rows), warm.take(rows), first_iteration,
+                                        self.config.iterations, history, compiled).head(warm_rows.numel(), goals.shape[1])
             parts.append(part)
             solved.append(warm_rows)
             again[warm_rows] = ~part.feasible.any(dim=1)
         cold_rows = (cold | again).nonzero().squeeze(1)
         if cold_rows.numel():
-            part = self._solve_cold(*_take_rows(inputs, cold_rows), history, compiled)
+            rows = _padded_rows(cold_rows, unit)
+            part = self._solve_cold(*_take_rows(inputs, rows), history, compiled).head(cold_rows.numel(), goals.shape[1])
             warm_run = again[cold_rows, None].int() * (self.config.iterations - first_iteration)
             parts.append(part._replace(iterations=part.iterations + warm_run))  # replaces the warm answer of those
             solved.append(cold_rows)
         if len(parts) == 1 and solved[0].numel() == ego.shape[0]:
             return parts[0]
         return SolveResult.interleave(parts, solved, ego.shape[0])
+
+    def _layout_unit(self, num_problems: int, num_goals: int) -> int:
+        """Problems per compiled call of an E x G batch on the CPU (a tile's, or the bucket of a batch
+        that fits one): the warm and the cold rows of a warm-started step are each padded to whole
+        units of it, so that the step compiles the layouts a cold step does and no smaller ones
+        (a few rows solving cold between the scheduled cold steps compiled a layout per count)."""
+        if self.device.type != "cpu":
+            return 1
+        tiling = execution.tiling(num_problems, num_goals, self.tile_size)
+        return tiling[0] if tiling is not None else execution.problem_bucket(num_problems, num_goals, self.tile_size)
 
     def _solve_compiled(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                         axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int,
@@ -536,6 +549,12 @@ class BatchOptimizer(nn.Module):
             first_iteration=span[0],
             last_iteration=span[1],
         )
+
+
+def _padded_rows(rows: torch.Tensor, unit: int) -> torch.Tensor:
+    """``rows`` (R,) followed by copies of the last up to a whole number of ``unit``."""
+    missing = -rows.numel() % unit
+    return torch.cat([rows, rows[-1:].expand(missing)]) if missing else rows
 
 
 def _take_rows(tensors: tuple[Optional[torch.Tensor], ...], rows: torch.Tensor) -> tuple[Optional[torch.Tensor], ...]:
