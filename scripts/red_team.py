@@ -4,6 +4,7 @@ driver collide; then count its collisions over named seeds (:mod:`mmpc.rl.red_te
     python scripts/red_team.py --driver verified:mpc --steps 100000 --episodes 1000 --seeds 73024 --out runs/red_team/verified
     python scripts/red_team.py --driver mpc --steps 100000 --episodes 256 --seeds 74024 --out runs/red_team/mpc
     python scripts/red_team.py --driver verified:mpc --model runs/red_team/mpc/model.zip --episodes 256 --seeds 74280 --out runs/red_team/cross
+    python scripts/red_team.py --driver verified:mpc --set traffic.ego_as_follower=true --seeds 84856 --out runs/red_team/cut_ins
 
 Any driver spec of ``mmpc evaluate --driver`` can be the target. Prints a table and writes
 ``OUT/red_team.json`` (with ``OUT/model.zip`` and TensorBoard files under ``OUT/tb`` when it trains: the
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from mmpc.cli.arguments import add_set
 from mmpc.drivers import make_driver
 from mmpc.evaluate.intervals import wilson_ci
 from mmpc.files import OutputFolderError
@@ -33,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--driver", required=True, help="the driver under test, a spec of `mmpc evaluate --driver`")
     parser.add_argument("--scenario", default="high_speed", help="an IDM-traffic scenario (default high_speed)")
+    add_set(parser, "scenario", " (e.g. traffic.ego_as_follower=true: its traffic may cut in ahead of the ego)")
     parser.add_argument("--duration", type=float, default=10.0, help="episode length [s] (default 10)")
     parser.add_argument("--steps", type=int, default=100_000, help="training steps, all environments together")
     parser.add_argument("--model", type=Path, help="evaluate this trained agent instead of training one")
@@ -51,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model {args.model} is not a file (a model.zip a red-team run wrote)")
     torch.set_num_threads(1)
     try:
-        scenario = dataclasses.replace(load_scenario(args.scenario, {"sim": "batched"}), duration=args.duration)
+        scenario = dataclasses.replace(load_scenario(args.scenario, {**dict(args.set), "sim": "batched"}), duration=args.duration)
         driver = make_driver(args.driver, scenario)
     except ValueError as error:  # an unknown scenario or driver, or one the check cannot cover
         parser.error(str(error))
@@ -83,7 +86,7 @@ def _run(args: argparse.Namespace, scenario, driver) -> int:
     seeds = list(range(args.seeds, args.seeds + args.episodes))
     score = score_red_team(model, driver, scenario, seeds, args.envs)
     row = {
-        "driver": args.driver, "scenario": scenario.name, "duration_s": args.duration, "model": str(args.model or args.out / "model.zip"),
+        "driver": args.driver, "scenario": scenario.name, "overrides": dict(args.set), "duration_s": args.duration, "model": str(args.model or args.out / "model.zip"),
         "trained_steps": trained, "train_wall_s": round(train_s, 1), "eval_wall_s": round(time.perf_counter() - start - train_s, 1),
         "seeds": f"{seeds[0]}-{seeds[-1]}", **score._asdict(),
         "collision_rate": score.collisions / score.episodes, "collision_rate_ci": wilson_ci(score.collisions, score.episodes),

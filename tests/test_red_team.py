@@ -97,7 +97,9 @@ def test_the_red_team_script_trains_and_writes_its_score(tmp_path):
 
     out = tmp_path / "red"
     subprocess.run([sys.executable, "scripts/red_team.py", "--driver", "mpc", "--steps", "256", "--envs", "2",
-                    "--episodes", "2", "--seeds", "71820", "--duration", "2", "--out", str(out)], check=True)
+                    "--episodes", "2", "--seeds", "71820", "--duration", "2", "--set", "traffic.ego_as_follower=true",
+                    "--out", str(out)], check=True)
     row = json.loads((out / "red_team.json").read_text())
+    assert row["overrides"] == {"traffic.ego_as_follower": True}
     assert row["episodes"] == 2 and row["trained_steps"] >= 256 and (out / "model.zip").is_file()
     assert list((out / "tb").rglob("events.out.tfevents.*"))

@@ -19,6 +19,13 @@ def test_the_red_team_refuses_negative_seeds_before_training(tmp_path, capsys, a
     assert not (tmp_path / "out").exists()
 
 
+def test_the_red_team_reads_set_into_its_scenario_and_refuses_an_unknown_key(tmp_path, capsys):
+    with pytest.raises(SystemExit) as refused:
+        red_team(["--driver", "mpc", "--seeds", "0", "--set", "traffic.no_such_key=1", "--out", str(tmp_path / "out")])
+    assert refused.value.code == 2 and "no_such_key" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_red_team_refuses_a_folder_a_run_finished(tmp_path, capsys):
     out = tmp_path / "red"
     out.mkdir()
