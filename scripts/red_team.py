@@ -54,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model {args.model} is not a file (a model.zip a red-team run wrote)")
     torch.set_num_threads(1)
     try:
-        scenario = dataclasses.replace(load_scenario(args.scenario, {**dict(args.set), "sim": "batched"}), duration=args.duration)
+        overrides = {**dict(args.set), "sim": "batched"}
+        scenario = dataclasses.replace(load_scenario(args.scenario, overrides), duration=args.duration)
         driver = make_driver(args.driver, scenario)
     except ValueError as error:  # an unknown scenario or driver, or one the check cannot cover
         parser.error(str(error))
@@ -86,7 +87,8 @@ def _run(args: argparse.Namespace, scenario, driver) -> int:
     seeds = list(range(args.seeds, args.seeds + args.episodes))
     score = score_red_team(model, driver, scenario, seeds, args.envs)
     row = {
-        "driver": args.driver, "scenario": scenario.name, "overrides": dict(args.set), "duration_s": args.duration, "model": str(args.model or args.out / "model.zip"),
+        "driver": args.driver, "scenario": scenario.name, "overrides": dict(args.set), "duration_s": args.duration,
+        "model": str(args.model or args.out / "model.zip"),
         "trained_steps": trained, "train_wall_s": round(train_s, 1), "eval_wall_s": round(time.perf_counter() - start - train_s, 1),
         "seeds": f"{seeds[0]}-{seeds[-1]}", **score._asdict(),
         "collision_rate": score.collisions / score.episodes, "collision_rate_ci": wilson_ci(score.collisions, score.episodes),
