@@ -149,7 +149,8 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     span = (spanned.nan_to_num(-torch.inf).amax(dim=1)[:, None, None] - low).clamp_min(1e-6)
     grid = low + span * torch.linspace(0.0, 1.0, PROFILES, dtype=dtype)[:, None]  # (R, G, 1)
     profile_speed = (grid - a.max_deceleration * ends).clamp_min(0.0)
-    table = torch.cumsum(profile_speed * steps, dim=-1) - profile_speed * steps  # (R, G, P): each profile's progress
+    travel = profile_speed * steps
+    table = torch.cumsum(travel, dim=-1) - travel  # (R, G, P): each profile's progress to each pose
     # Turning takes from the progress at most tan(max_heading / 2) x lateral_speed (slope) and
     # (1 - cos(max_heading)) of the speed per second: what is left at least
     kept = torch.maximum(profile_speed - slope, math.cos(a.max_heading) * profile_speed) * steps
