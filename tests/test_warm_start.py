@@ -95,9 +95,13 @@ def test_the_warm_and_the_cold_rows_of_a_step_are_solved_in_the_batchs_compiled_
     num_goals = batch.goals.shape[1]
     tiled = mmpc.BatchOptimizer(tile_size=2 * num_goals)  # two problems a tile
     tiled.compiled = True  # the padding and tiling read the flag; eager functions keep the test fast
-    shapes = []
-    solve = tiled._solve
-    tiled._solve = lambda ego, goals, *args: shapes.append(tuple(goals.shape[:2])) or solve(ego, goals, *args)
+    shapes, solve = [], tiled._solve
+
+    def recording(ego, goals, *args):
+        shapes.append(tuple(goals.shape[:2]))
+        return solve(ego, goals, *args)
+
+    tiled._solve = recording
     result = tiled(batch, warm=warm, warm_iterations=30)
     assert set(shapes) == {(2, num_goals)}  # the lone cold row too (one problem, unpadded)
     expected = mmpc.BatchOptimizer()(batch, warm=warm, warm_iterations=30)
