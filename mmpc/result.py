@@ -173,6 +173,16 @@ class SolveResult(NamedTuple):
 
         return SolveResult._combine([self, part], join)
 
+    def take_goals(self, index: torch.Tensor) -> "SolveResult":
+        """The goals ``index`` (E, K) long of each problem, in that order (a goal may repeat)."""
+        def gather(tensors: list[torch.Tensor], offset: int) -> torch.Tensor:
+            tensor = tensors[0]
+            shape = (*tensor.shape[:offset], *index.shape, *tensor.shape[offset + 2:])
+            spread = index.view(*(1,) * offset, *index.shape, *(1,) * (tensor.dim() - offset - 2)).expand(shape)
+            return tensor.gather(offset + 1, spread)
+
+        return SolveResult._combine([self], gather)
+
     def head(self, num_problems: int, num_goals: int) -> "SolveResult":
         """The first ``num_problems`` problems and, of each, the first ``num_goals`` goals."""
         return SolveResult._combine(

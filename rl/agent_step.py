@@ -30,8 +30,10 @@ class AgentStep:
 
     Attributes:
         commands: (E, 2) goal commands ``(y [m], v [m/s])`` on the layer's device.
-        decided: the decision's plan (discrete goals with ``replan: decision``: taken from the
-            solve behind the observation), or ``None`` (the layer plans at the first frame).
+        decided: the decision's plan (discrete goals: taken from the solve behind the
+            observation, where there is one), or ``None`` (the layer plans at the first frame).
+        agent_slots: (E,) long, the slots naming the agents' goals in the frame solves' warm
+            starts (:meth:`mmpc.rl.safety.SafetyLayer.frame_slots`); ``None`` without warm starts.
         frames_done: frames executed so far.
         frame_solved: the last frame called the optimizer (not only executed the decision's plan).
     """
@@ -40,6 +42,9 @@ class AgentStep:
         self.layer = layer
         self.commands = commands
         self.decided = decided
+        self.agent_slots = None
+        if layer.frame_warm_starts is not None:
+            self.agent_slots = decided.agent_index if decided is not None else layer.new_agent_slots(commands.shape[0])
         self.period = period
         self.frames_done = 0
         self.frame_solved = False
@@ -58,10 +63,10 @@ class AgentStep:
                 (E, 2) float continuous goals in [-1, 1] (clipped).
             continuous: ``actions`` are continuous goals.
             period: seconds per frame (1 / the scenario's frequency).
-            solve: the :meth:`SafetyLayer.decision_solve` of the same states; discrete goals with
-                ``replan: decision`` are then executed from its candidates (no new solve).
+            solve: the :meth:`SafetyLayer.decision_solve` of the same states, or ``None``; discrete
+                goals are then executed from its candidates at the first frame (no new solve).
         """
-        if not continuous and layer.config.replan == "decision" and solve is not None:
+        if not continuous and solve is not None:
             decided = layer.decide(solve, actions)
             return cls(layer, decided.commands, decided, period)
         if continuous:
@@ -93,8 +98,9 @@ class AgentStep:
                 raise ValueError(f"rows {rows.tolist()} must be among the last frame's {self._held_rows.tolist()}")
             held = held.take(match.int().argmax(dim=1))
         first = self.frames_done == 0
+        slots = None if self.agent_slots is None else self.agent_slots[rows]
         control = self.layer.frame(observation, self.commands[rows], self.frames_done * self.period, held,
-                                   self.decided if first else None)
+                                   self.decided if first else None, slots)
         self._held, self._held_rows = control.held, rows
         self.frame_solved = bool(control.solved.any()) and not (first and self.decided is not None)
         self.frames_done += 1

@@ -134,8 +134,7 @@ class SafeAgentDriver(Driver):
         from mmpc.rl.safety import observation_rows
 
         sub = observation_rows(observation, torch.as_tensor(due, dtype=torch.long))
-        decides_from_solve = self.config.replan == "decision" and not self.continuous
-        solve = self.layer.decision_solve(sub) if self.config.solver_features or decides_from_solve else None
+        solve = self.layer.decision_solve(sub) if self.layer.needs_decision_solve(self.continuous) else None
         parts = [_flat_kinematics(observation, due, self.config.kinematics_vehicles)]
         if self.config.solver_features:
             parts.append(self.layer.features(solve).reshape(len(due), -1))

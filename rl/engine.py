@@ -126,17 +126,12 @@ class SafeEnvs:
         """(R,) float64 rewards of the current states of environments ``rows`` on the layer's device."""
         return task_rewards(self.ego_terms(rows), self.reward, self.scenario)
 
-    @property
-    def _decides_from_features_solve(self) -> bool:
-        """Discrete decisions at the decision rate are taken from the solve behind the observation."""
-        return self.config.replan == "decision" and not self.continuous
-
     def _observations(self, rows: torch.Tensor, *, last: bool = False) -> tuple[np.ndarray, Optional[DecisionSolve]]:
         """(R, size) observations of environments ``rows`` and the decision solve behind their
         solver features (``None`` when neither the features nor the decision need one); ``last``:
         the last states of episodes that ended (their solve is not a decision's, :meth:`SafetyLayer.decision_solve`)."""
         solve = None
-        if self.config.solver_features or self._decides_from_features_solve:
+        if self.layer.needs_decision_solve(self.continuous):
             solve = self.layer.decision_solve(self.observe(rows), warm=not last)
         features = self.layer.features(solve) if self.config.solver_features else None
         kinematics = self.world.kinematics_rows(rows, self.config.kinematics_vehicles)
@@ -197,7 +192,7 @@ class SafeEnvs:
         everyone = torch.arange(self.num_envs, device=self.device)
         step = AgentStep.begin(self.layer, self.observe(everyone), action_tensor(checked, self.continuous),
                                continuous=self.continuous, period=1.0 / self.scenario.frequency,
-                               solve=self._decision if self._decides_from_features_solve else None)
+                               solve=self._decision)
         tally = StepTally(self.num_envs, self.device, self.config.intervention_penalty)
         self._run(step, tally)  # the decision's solve was timed at the end of the step before
         terms = self.ego_terms(everyone)  # before the resets

@@ -47,7 +47,7 @@ from mmpc.rl.config import SafeEnvConfig
 from mmpc.scenario import ScenarioConfig, build_mpc
 from mmpc.tracking import needs_replan, plan_clearance, track
 from mmpc.verify import Guard, Verifier
-from mmpc.warm import WarmStarts
+from mmpc.warm import WarmRound, WarmStarts
 
 #: Solver features per goal of the grid: feasible flag, squashed meta cost, clearance.
 FEATURES_PER_GOAL = 3
@@ -95,6 +95,8 @@ class SafePlan(NamedTuple):
         fallback: (E,) bool, no candidate was feasible (the MPC's fallback drove).
         feasible_goals: (E,) long, feasible candidates, the agent's included.
         commands: (E, 2) the agents' goal commands ``(y [m], v [m/s])``, held over the agent step.
+        agent_index: (E,) long, the agent's candidate among the plan's (0 where the layer solved
+            the agent's goal first; a :class:`DecisionSolve`'s column where taken from one).
     """
 
     plan: Plan
@@ -103,6 +105,7 @@ class SafePlan(NamedTuple):
     fallback: torch.Tensor
     feasible_goals: torch.Tensor
     commands: torch.Tensor
+    agent_index: torch.Tensor
 
     def residuals(self) -> torch.Tensor:
         """(E, 3) the executed candidate's obstacle, acceleration and non-holonomic residuals."""
@@ -120,11 +123,13 @@ class DecisionSolve(NamedTuple):
     Fields:
         problem: E problems, goals (E, A + G0, 2): the grid's A first, then the standard goals.
         scored: the candidates solved and scored.
+        ids: (E,) long, the environments' ids (:attr:`mmpc.drivers.Observation.env_ids`).
         expert: (E,) long, the candidate the MPC expert would drive (``expert_action``; else None).
     """
 
     problem: ProblemBatch
     scored: Scored
+    ids: torch.Tensor
     expert: Optional[torch.Tensor] = None
 
 
@@ -213,9 +218,10 @@ class SafetyLayer:
         config: the environment settings (goal grid, action ranges, intervention distance).
         warm_starts: warm-start the decision solves from each environment's last one (when the
             MPC's config asks for warm starts; one decision period apart: ``decision_frames`` x
-            the MPC's control period). The caller then names its environments consistently
-            (:attr:`mmpc.drivers.Observation.env_ids`), solves every one at each decision and
-            calls :meth:`forget` for those that start a new episode.
+            the MPC's control period), and a frame's solve from the solve one frame before (the
+            decision's candidates at the first frame after it). The caller then names its
+            environments consistently (:attr:`mmpc.drivers.Observation.env_ids`), solves every
+            one at each decision and calls :meth:`forget` for those that start a new episode.
         verifier: the check of ``config.verify`` (:meth:`mmpc.verify.Verifier.for_scenario`);
             the caller names its environments consistently (the stored fail-safes are kept per id)
             and calls :meth:`forget` as for warm starts. :meth:`for_scenario` makes both.
@@ -248,8 +254,12 @@ class SafetyLayer:
         #: the check of every frame's command (``config.verify``); ``None`` without
         self.guard = Guard(verifier) if config.verify else None
         period = None if mpc.control_period is None else mpc.control_period * config.decision_frames
+        warm = warm_starts and mpc.config.warm_iterations > 0 and period is not None
         #: the decision solves' warm starts; ``None`` where the caller asked for none
-        self.warm_starts = WarmStarts(mpc, period) if warm_starts and mpc.config.warm_iterations else None
+        self.warm_starts = WarmStarts(mpc, period) if warm else None
+        #: the frame solves' warm starts, one frame apart (goals named by slot: :meth:`frame_slots`)
+        self.frame_warm_starts = WarmStarts(mpc, mpc.control_period) if warm else None
+        self._fresh_slots = 0
         self.road = mpc.road
         self.horizon = mpc.optimizer.config.horizon
         offsets, speeds = np.meshgrid(np.asarray(config.lane_offsets), np.asarray(config.speeds), indexing="ij")
@@ -273,8 +283,9 @@ class SafetyLayer:
     def forget(self, ids: Optional[torch.Tensor] = None) -> None:
         """Environments ``ids`` (long tensor; ``None``: all) start new episodes: their warm starts
         and stored fail-safes are dropped."""
-        if self.warm_starts is not None:
-            self.warm_starts.reset() if ids is None else self.warm_starts.forget(ids)
+        for warm_starts in (self.warm_starts, self.frame_warm_starts):
+            if warm_starts is not None:
+                warm_starts.reset() if ids is None else warm_starts.forget(ids)
         if self.guard is not None:
             self.guard.reset() if ids is None else self.guard.forget(ids.tolist())
 
@@ -348,12 +359,16 @@ class SafetyLayer:
 
     # ------------------------------------------------------------------ planning
 
-    def plan(self, observation: Observation, commands: torch.Tensor) -> SafePlan:
+    def plan(self, observation: Observation, commands: torch.Tensor, agent_slots: Optional[torch.Tensor] = None
+             ) -> SafePlan:
         """One frame for E environments: the agents' goals plus the standard goals, one solve.
 
         Args:
             observation: the E environments' road-frame state (any device).
             commands: (E, 2) goal commands ``(y [m], v [m/s])``.
+            agent_slots: (E,) long, the slot naming each agent's goal (:meth:`frame_slots`): the
+                solve then starts warm from each environment's solve one frame before, where that
+                solved the same slots. ``None``: a cold solve, not kept.
 
         Returns:
             A :class:`SafePlan`; ``plan.acceleration`` / ``plan.steering`` are the commands to apply.
@@ -366,7 +381,32 @@ class SafetyLayer:
         goals = torch.cat([self.goals(problem.ego, commands[:, None]), problem.goals], dim=1)
         problem = problem._replace(goals=goals)
         agent = torch.zeros(observation.num_envs, dtype=torch.long, device=self.device)
-        return self._safe_plan(self.mpc.plan_problem(problem, self._selector(agent, problem)), agent, commands)
+        if agent_slots is None or self.frame_warm_starts is None:
+            scored = self.mpc.score(problem)
+        else:
+            ids, slots = observation.ids(), self.frame_slots(agent_slots.to(self.device), problem.num_goals - 1)
+            warm = self.frame_warm_starts.start(ids, problem.ego, slots)
+            scored = self.mpc.score(problem, warm.warm)
+            self.frame_warm_starts.keep(ids, problem.ego, scored.result, warm, slots)
+        return self._safe_plan(self.mpc.choose(problem, scored, self._selector(agent, problem)), agent, commands)
+
+    def frame_slots(self, agent_slots: torch.Tensor, num_standard_goals: int) -> torch.Tensor:
+        """(E, 1 + G0) long slots naming a frame solve's goals for its warm start: the agent's goal
+        ``agent_slots`` (E,) (its column in a :class:`DecisionSolve`, or one of
+        :meth:`new_agent_slots`), then the G0 standard goals as the decision solve's columns."""
+        standard = self.num_discrete_goals + torch.arange(num_standard_goals, device=agent_slots.device)
+        return torch.cat([agent_slots[:, None], standard.expand(agent_slots.shape[0], -1)], dim=1)
+
+    def new_agent_slots(self, count: int) -> torch.Tensor:
+        """(count,) long slots no goal of this layer was named by before (negative): agents' goals
+        that no earlier solve had, e.g. continuous goals at their decision."""
+        self._fresh_slots += count
+        return -torch.arange(self._fresh_slots - count + 1, self._fresh_slots + 1, device=self.device)
+
+    def needs_decision_solve(self, continuous: bool) -> bool:
+        """Whether an agent's observation comes with a :meth:`decision_solve`: for its solver
+        features, and for discrete agents with ``replan: decision`` (their plans are taken from it)."""
+        return self.config.solver_features or (self.config.replan == "decision" and not continuous)
 
     def decision_solve(self, observation: Observation, *, warm: bool = True) -> DecisionSolve:
         """ONE solve of the discrete goal grid (at the egos' current lanes) and the standard goals
@@ -385,7 +425,7 @@ class SafetyLayer:
             scored = self.mpc.score(problem, warm.warm)
             self.warm_starts.keep(ids, problem.ego, scored.result, warm)
         expert = self.mpc.select(problem, scored).index if self.config.expert_action else None
-        return DecisionSolve(problem, scored, expert)
+        return DecisionSolve(problem, scored, observation.ids(), expert)
 
     def agent_candidates(self, solve: DecisionSolve, actions: torch.Tensor) -> torch.Tensor:
         """(E,) long, the candidate of a :meth:`decision_solve` each discrete action names: grid
@@ -447,6 +487,11 @@ class SafetyLayer:
         """
         index = self.agent_candidates(solve, actions)
         plan = self.mpc.choose(solve.problem, solve.scored, self._selector(index, solve.problem))
+        if self.frame_warm_starts is not None:  # the next frame's solve starts from these candidates
+            columns = self.frame_slots(index, solve.problem.num_goals - self.num_discrete_goals)
+            cold = torch.zeros_like(index)
+            self.frame_warm_starts.keep(solve.ids, solve.problem.ego, solve.scored.result.take_goals(columns),
+                                        WarmRound(None, cold, cold), columns)
         return self._safe_plan(plan, index, self._decision_commands(solve, index))
 
     def frame(
@@ -456,6 +501,7 @@ class SafetyLayer:
         now: float,
         held: Optional[HeldPlan] = None,
         decided: Optional[SafePlan] = None,
+        agent_slots: Optional[torch.Tensor] = None,
     ) -> FrameControl:
         """The commands of one frame of an agent step for E environments.
 
@@ -471,13 +517,15 @@ class SafetyLayer:
             now: time since the decision [s].
             held: the previous frame's :attr:`FrameControl.held`; ``None`` at the decision.
             decided: the decision's plan from :meth:`decide`, or ``None`` to solve it now.
+            agent_slots: (E,) long slots of the agents' goals for the solves' warm starts
+                (:meth:`plan`); ``None``: cold solves.
         """
         observation, commands = observation.to(self.device), torch.as_tensor(commands, device=self.device)
         if held is None or self.config.replan == "frame":
-            safe = decided if held is None and decided is not None else self.plan(observation, commands)
+            safe = decided if held is None and decided is not None else self.plan(observation, commands, agent_slots)
             control = self._control(safe, now)
         else:
-            control = self._follow(observation, commands, now, held)
+            control = self._follow(observation, commands, now, held, agent_slots)
         return control if self.guard is None else self._guarded(observation, control)
 
     # ------------------------------------------------------------------ frame pieces
@@ -498,7 +546,7 @@ class SafetyLayer:
         agent_feasible = plan.selection.feasible & (plan.selection.index == agent_index)
         return SafePlan(plan=plan, agent_feasible=agent_feasible, intervention=~agent_feasible,
                         fallback=~plan.selection.feasible, feasible_goals=plan.result.feasible.sum(dim=1),
-                        commands=commands)
+                        commands=commands, agent_index=agent_index)
 
     def _control(self, safe: SafePlan, now: float) -> FrameControl:
         """Execute a fresh plan in every row and hold it."""
@@ -512,7 +560,8 @@ class SafetyLayer:
                             safe.feasible_goals, residuals, torch.ones(count, dtype=torch.bool, device=device), plan.solve_ms, held,
                             safe)
 
-    def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan) -> FrameControl:
+    def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan,
+                agent_slots: Optional[torch.Tensor]) -> FrameControl:
         """Track the held plans; solve again (one call) where they are no longer safe to follow."""
         mpc = self.mpc
         ego = observation.ego.to(mpc.optimizer.dtype)
@@ -531,8 +580,11 @@ class SafetyLayer:
                                replan, 0.0, held)
         rows = replan.nonzero()[:, 0]
         if rows.numel() == 0:
+            if self.frame_warm_starts is not None:  # no solve at this frame: none one frame before the next
+                self.frame_warm_starts.reset()
             return control
-        fresh = self._control(self.plan(observation_rows(observation, rows), commands[rows]), now)
+        slots = None if agent_slots is None else agent_slots.to(rows.device)[rows]
+        fresh = self._control(self.plan(observation_rows(observation, rows), commands[rows], slots), now)
         executed = [_scatter_rows(mine, rows, theirs) for mine, theirs in zip(control[:7], fresh[:7])]
         trajectory = Trajectories(held.trajectory.times, *(_scatter_rows(mine, rows, theirs)
                                                            for mine, theirs in zip(held.trajectory[1:], fresh.held.trajectory[1:])))

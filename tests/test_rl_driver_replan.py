@@ -18,7 +18,7 @@ from mmpc.highway.runner import run_episode
 from mmpc.highway.batched_world import BatchedWorld
 from mmpc.rl.config import RLConfig, SafeEnvConfig
 from mmpc.rl.driver import SafeAgentDriver
-from mmpc.rl.safety import observation_rows
+from mmpc.rl.safety import SafetyLayer, observation_rows
 from mmpc.rl.engine import SafeEnvs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -63,18 +63,31 @@ def count_solves(driver: SafeAgentDriver) -> list[int]:
 
 
 def test_frame_mode_plans_the_held_goal_afresh_at_every_frame(smoke):
+    """At a decision the plan comes from the solve behind the features (as in decision mode); at
+    every later frame the held goal is solved afresh, warm from the frame before: the driver's
+    frames are a twin layer's fed the same states."""
+    warm_iterations = 10
+    smoke = dataclasses.replace(smoke, scenario=smoke.scenario.replace(
+        mpc=dataclasses.replace(smoke.scenario.mpc, warm_iterations=warm_iterations)))
     driver = make_driver(smoke, "frame")
-    layer = driver.layer
+    twin = SafetyLayer.for_scenario(smoke.scenario, driver.config)
+    calls = count_solves(driver)
     world = BatchedWorld.start(smoke.scenario, SEEDS)
     driver.reset(len(SEEDS))
     active = list(range(len(SEEDS)))
     frames = smoke.env.decision_frames
     for frame in range(frames + 2):  # across a new decision
         observation, _ = world.observe(active)
-        if frame % frames == 0:
-            commands = layer.discrete_commands(observation.ego, torch.tensor(ACTIONS))
+        before = calls[0]
         decision = driver.decide(observation)
-        expected = layer.plan(observation, commands)
+        if frame % frames == 0:
+            expected = twin.decide(twin.decision_solve(observation), torch.tensor(ACTIONS))
+            slots = expected.agent_index
+        else:
+            expected = twin.plan(observation, expected.commands, slots)
+            warm = (expected.plan.result.iterations <= warm_iterations).all(dim=1)
+            assert warm.any()  # warm from the frame before (rows that had no feasible goal then: cold)
+        assert calls[0] - before == 1
         assert torch.equal(decision.acceleration, expected.plan.acceleration)
         assert torch.equal(decision.steering, expected.plan.steering)
         assert torch.equal(decision.goal_index, expected.plan.selection.index)

@@ -271,3 +271,49 @@ def test_the_safety_layer_warm_starts_its_decision_solves_and_a_new_episode_solv
     batch.advance([config.env.num_discrete_goals] * 2)
     step = batch.advance([config.env.num_discrete_goals] * 2)  # the episodes end and start again
     assert sorted(step.reset_infos) == [0, 1] and min(iterations()) > 10
+
+
+def test_take_goals_picks_each_problems_goals_in_the_order_asked(solved):
+    optimizer, problem, cold = solved
+    history = optimizer(problem, history=True)
+    index = torch.tensor([[2, 0, 0], [1, 3, 2]])
+    taken = history.take_goals(index)
+    rows = torch.arange(2)[:, None]
+    assert torch.equal(taken.feasible, history.feasible[rows, index])
+    assert torch.equal(taken.trajectories.x, history.trajectories.x[rows, index])
+    assert torch.equal(taken.warm.position, history.warm.position[rows, index])
+    assert torch.equal(taken.history, history.history[:, rows, index])
+    assert torch.equal(taken.trajectories.times, history.trajectories.times)
+
+
+def test_the_safety_layers_frame_solves_start_from_the_solve_one_frame_before():
+    """A frame solve (SafetyLayer.plan with the agents' goal slots) starts warm from the same
+    environment's solve one frame before: the decision's candidates at the first frame after it, then
+    the frame before's; a frame without any solve leaves nothing to start from."""
+    from mmpc.config import load_config
+    from mmpc.rl.config import RLConfig
+    from mmpc.rl.safety import SafetyLayer
+    from mmpc.highway.batched_world import BatchedWorld
+
+    config = load_config(RLConfig, "high_speed")
+    scenario = config.scenario.replace(sim="batched")
+    layer = SafetyLayer.for_scenario(scenario, dataclasses.replace(config.env, verify=False))
+    warm_iterations = scenario.mpc.warm_iterations
+    world = BatchedWorld.start(scenario, [11, 12])
+    rows = [0, 1]
+    observation, _ = world.observe(rows)
+    decided = layer.decide(layer.decision_solve(observation), torch.tensor([4, 1]))
+    assert decided.agent_index.tolist() == [4, 1]
+    world.apply(rows, decided.plan.acceleration, decided.plan.steering)
+    observation, _ = world.observe(rows)
+    first = layer.plan(observation, decided.commands, decided.agent_index)
+    assert first.plan.result.iterations.max() <= warm_iterations  # from the decision's candidates
+    kept = layer.frame_warm_starts.start(observation.ids(), observation.ego,
+                                         layer.frame_slots(decided.agent_index, first.plan.problem.num_goals - 1))
+    assert kept.steps.tolist() == [2, 2]  # the frame's solve is kept: the next is the second warm one since the decision
+    longest = lambda safe: safe.plan.result.iterations.max(dim=1).values  # noqa: E731 (early exits stop some sooner)
+    cold = layer.plan(observation, decided.commands, layer.new_agent_slots(2))  # goals no solve had
+    assert (longest(cold) > warm_iterations).all()
+    layer.frame_warm_starts.reset()
+    again = layer.plan(observation, decided.commands, decided.agent_index)
+    assert (longest(again) > warm_iterations).all()
