@@ -16,15 +16,16 @@ ONE optimizer call (:meth:`mmpc.MPC.plan_problem`). The executed candidate follo
 The layer also measures, for observations, how every goal of the discrete grid fares at the
 current state (:meth:`SafetyLayer.decision_solve`, :meth:`SafetyLayer.features`). With the
 scenario's warm starts (:attr:`mmpc.MPCConfig.warm_iterations`) each environment's decision solve
-starts from its last one, one decision period earlier (:class:`mmpc.warm.WarmStarts`); the other
-solves (a frame's plan, the rows replanned between decisions) start cold.
+starts from its last one, one decision period earlier (:class:`mmpc.warm.WarmStarts`), and a
+frame's solve (a frame's plan, the rows replanned between decisions) from the same environment's
+solve one frame earlier: the decision's candidates at the first frame after a decision.
 
 Replanning (:attr:`SafeEnvConfig.replan`): ``"frame"`` solves at every frame of an agent step;
 ``"decision"`` solves at the agent's decision only and tracks the chosen plan between decisions
 (:mod:`mmpc.tracking`), replanning a row at once where the plan held runs into an obstacle as
 predicted now, the ego has left it, or no candidate was feasible (:meth:`SafetyLayer.frame`).
-With discrete goals the decision is taken from the solve that made the observation's solver
-features (the goal grid plus the standard goals at the same state): one solve per agent step.
+With discrete goals the decision's frame is taken from the solve that made the observation's
+solver features (the goal grid plus the standard goals at the same state), in either mode.
 With :attr:`SafeEnvConfig.expert_action` one more discrete action drives the candidate the MPC
 expert would choose from that solve.
 """
