@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Observation
-from mmpc.rl.safety import DecisionSolve, FrameControl, HeldPlan, SafePlan, SafetyLayer
+from mmpc.rl.safety import DecisionSolve, FrameControl, FrameStarts, HeldPlan, SafePlan, SafetyLayer
 
 
 class AgentStep:
@@ -32,19 +32,18 @@ class AgentStep:
         commands: (E, 2) goal commands ``(y [m], v [m/s])`` on the layer's device.
         decided: the decision's plan (discrete goals: taken from the solve behind the
             observation, where there is one), or ``None`` (the layer plans at the first frame).
-        agent_slots: (E,) long, the slots naming the agents' goals in the frame solves' warm
-            starts (:meth:`mmpc.rl.safety.SafetyLayer.frame_slots`); ``None`` without warm starts.
+        starts: the frame solves' warm starts (:meth:`mmpc.rl.safety.SafetyLayer.frame_starts`),
+            this step's own; ``None`` where the layer solves cold.
         frames_done: frames executed so far.
         frame_solved: the last frame called the optimizer (not only executed the decision's plan).
     """
 
-    def __init__(self, layer: SafetyLayer, commands: torch.Tensor, decided: Optional[SafePlan], period: float) -> None:
+    def __init__(self, layer: SafetyLayer, commands: torch.Tensor, decided: Optional[SafePlan], period: float,
+                 starts: Optional[FrameStarts] = None) -> None:
         self.layer = layer
         self.commands = commands
         self.decided = decided
-        self.agent_slots = None
-        if layer.frame_warm_starts is not None:
-            self.agent_slots = decided.agent_index if decided is not None else layer.new_agent_slots(commands.shape[0])
+        self.starts = starts
         self.period = period
         self.frames_done = 0
         self.frame_solved = False
@@ -68,12 +67,13 @@ class AgentStep:
         """
         if not continuous and solve is not None:
             decided = layer.decide(solve, actions)
-            return cls(layer, decided.commands, decided, period)
+            starts = layer.frame_starts(decided.commands.shape[0], solve, decided.agent_index)
+            return cls(layer, decided.commands, decided, period, starts)
         if continuous:
             commands = layer.continuous_commands(observation.ego, actions)
         else:
             commands = layer.discrete_commands(observation.ego, actions)
-        return cls(layer, commands, None, period)
+        return cls(layer, commands, None, period, layer.frame_starts(commands.shape[0]))
 
     @property
     def over(self) -> bool:
@@ -98,9 +98,9 @@ class AgentStep:
                 raise ValueError(f"rows {rows.tolist()} must be among the last frame's {self._held_rows.tolist()}")
             held = held.take(match.int().argmax(dim=1))
         first = self.frames_done == 0
-        slots = None if self.agent_slots is None else self.agent_slots[rows]
+        starts = None if self.starts is None else self.starts.take(rows)
         control = self.layer.frame(observation, self.commands[rows], self.frames_done * self.period, held,
-                                   self.decided if first else None, slots)
+                                   self.decided if first else None, starts)
         self._held, self._held_rows = control.held, rows
         self.frame_solved = bool(control.solved.any()) and not (first and self.decided is not None)
         self.frames_done += 1

@@ -116,6 +116,24 @@ class SafePlan(NamedTuple):
                             result.residual_nonholonomic[rows, executed]], dim=1)
 
 
+class FrameStarts(NamedTuple):
+    """Warm starts of one agent step's frame solves (:meth:`SafetyLayer.frame_starts`): each
+    environment's solve one frame before, its goals named by slot.
+
+    Fields:
+        store: the solves kept (:class:`mmpc.warm.WarmStarts`, one frame period apart).
+        agent_slots: (E,) long, the slot of each agent's goal: its column in the decision solve,
+            or -1 (a goal no decision solve had, e.g. a continuous one).
+    """
+
+    store: WarmStarts
+    agent_slots: torch.Tensor
+
+    def take(self, rows: torch.Tensor) -> "FrameStarts":
+        """The same store, for the rows ``rows`` (long, into E)."""
+        return FrameStarts(self.store, self.agent_slots[rows.to(self.agent_slots.device)])
+
+
 class DecisionSolve(NamedTuple):
     """One solve of the discrete goal grid and the standard goals at E states
     (:meth:`SafetyLayer.decision_solve`): the observation's solver features, and with discrete
@@ -258,9 +276,8 @@ class SafetyLayer:
         warm = warm_starts and mpc.config.warm_iterations > 0 and period is not None
         #: the decision solves' warm starts; ``None`` where the caller asked for none
         self.warm_starts = WarmStarts(mpc, period) if warm else None
-        #: the frame solves' warm starts, one frame apart (goals named by slot: :meth:`frame_slots`)
-        self.frame_warm_starts = WarmStarts(mpc, mpc.control_period) if warm else None
-        self._fresh_slots = 0
+        #: the frame solves warm-start (:meth:`frame_starts`)
+        self.warm_frames = warm
         self.road = mpc.road
         self.horizon = mpc.optimizer.config.horizon
         offsets, speeds = np.meshgrid(np.asarray(config.lane_offsets), np.asarray(config.speeds), indexing="ij")
@@ -284,9 +301,8 @@ class SafetyLayer:
     def forget(self, ids: Optional[torch.Tensor] = None) -> None:
         """Environments ``ids`` (long tensor; ``None``: all) start new episodes: their warm starts
         and stored fail-safes are dropped."""
-        for warm_starts in (self.warm_starts, self.frame_warm_starts):
-            if warm_starts is not None:
-                warm_starts.reset() if ids is None else warm_starts.forget(ids)
+        if self.warm_starts is not None:
+            self.warm_starts.reset() if ids is None else self.warm_starts.forget(ids)
         if self.guard is not None:
             self.guard.reset() if ids is None else self.guard.forget(ids.tolist())
 
@@ -360,16 +376,15 @@ class SafetyLayer:
 
     # ------------------------------------------------------------------ planning
 
-    def plan(self, observation: Observation, commands: torch.Tensor, agent_slots: Optional[torch.Tensor] = None
-             ) -> SafePlan:
+    def plan(self, observation: Observation, commands: torch.Tensor, starts: Optional["FrameStarts"] = None) -> SafePlan:
         """One frame for E environments: the agents' goals plus the standard goals, one solve.
 
         Args:
             observation: the E environments' road-frame state (any device).
             commands: (E, 2) goal commands ``(y [m], v [m/s])``.
-            agent_slots: (E,) long, the slot naming each agent's goal (:meth:`frame_slots`): the
-                solve then starts warm from each environment's solve one frame before, where that
-                solved the same slots. ``None``: a cold solve, not kept.
+            starts: the agent step's frame warm starts (:meth:`frame_starts`), its E rows': the
+                solve starts from each environment's solve one frame before, where that solved the
+                same goals, and is kept for the next frame. ``None``: a cold solve, not kept.
 
         Returns:
             A :class:`SafePlan`; ``plan.acceleration`` / ``plan.steering`` are the commands to apply.
@@ -382,27 +397,38 @@ class SafetyLayer:
         goals = torch.cat([self.goals(problem.ego, commands[:, None]), problem.goals], dim=1)
         problem = problem._replace(goals=goals)
         agent = torch.zeros(observation.num_envs, dtype=torch.long, device=self.device)
-        if agent_slots is None or self.frame_warm_starts is None:
+        if starts is None:
             scored = self.mpc.score(problem)
         else:
-            ids, slots = observation.ids(), self.frame_slots(agent_slots.to(self.device), problem.num_goals - 1)
-            warm = self.frame_warm_starts.start(ids, problem.ego, slots)
+            ids, slots = observation.ids(), self._frame_slots(starts.agent_slots.to(self.device), problem.num_goals - 1)
+            warm = starts.store.start(ids, problem.ego, slots)
             scored = self.mpc.score(problem, warm.warm)
-            self.frame_warm_starts.keep(ids, problem.ego, scored.result, warm, slots)
+            starts.store.keep(ids, problem.ego, scored.result, warm, slots)
         return self._safe_plan(self.mpc.choose(problem, scored, self._selector(agent, problem)), agent, commands)
 
-    def frame_slots(self, agent_slots: torch.Tensor, num_standard_goals: int) -> torch.Tensor:
-        """(E, 1 + G0) long slots naming a frame solve's goals for its warm start: the agent's goal
-        ``agent_slots`` (E,) (its column in a :class:`DecisionSolve`, or one of
-        :meth:`new_agent_slots`), then the G0 standard goals as the decision solve's columns."""
+    def frame_starts(self, count: int, solve: Optional[DecisionSolve] = None,
+                     agent_index: Optional[torch.Tensor] = None) -> Optional["FrameStarts"]:
+        """Warm starts for the frame solves of one agent step of ``count`` environments, or ``None``
+        where the layer solves cold. With the step's decision ``solve`` and the agents' candidates
+        ``agent_index`` (E,) in it (:meth:`decide`), the first frame after the decision starts from
+        those candidates; else from cold."""
+        if not self.warm_frames:
+            return None
+        store = WarmStarts(self.mpc, self.mpc.control_period)
+        if solve is None:
+            return FrameStarts(store, torch.full((count,), -1, dtype=torch.long, device=self.device))  # no solve had it
+        columns = self._frame_slots(agent_index, solve.problem.num_goals - self.num_discrete_goals)
+        cold = torch.zeros_like(agent_index)
+        store.keep(solve.ids, solve.problem.ego, solve.scored.result.take_goals(columns), WarmRound(None, cold, cold),
+                   columns)
+        return FrameStarts(store, agent_index)
+
+    def _frame_slots(self, agent_slots: torch.Tensor, num_standard_goals: int) -> torch.Tensor:
+        """(E, 1 + G0) long slots naming a frame solve's goals: the agent's goal ``agent_slots`` (E,)
+        (its column in a :class:`DecisionSolve`; negative: a goal no decision solve had), then the
+        G0 standard goals as the decision solve's columns."""
         standard = self.num_discrete_goals + torch.arange(num_standard_goals, device=agent_slots.device)
         return torch.cat([agent_slots[:, None], standard.expand(agent_slots.shape[0], -1)], dim=1)
-
-    def new_agent_slots(self, count: int) -> torch.Tensor:
-        """(count,) long slots no goal of this layer was named by before (negative): agents' goals
-        that no earlier solve had, e.g. continuous goals at their decision."""
-        self._fresh_slots += count
-        return -torch.arange(self._fresh_slots - count + 1, self._fresh_slots + 1, device=self.device)
 
     def needs_decision_solve(self, continuous: bool) -> bool:
         """Whether an agent's observation comes with a :meth:`decision_solve`: for its solver
@@ -488,11 +514,6 @@ class SafetyLayer:
         """
         index = self.agent_candidates(solve, actions)
         plan = self.mpc.choose(solve.problem, solve.scored, self._selector(index, solve.problem))
-        if self.frame_warm_starts is not None:  # the next frame's solve starts from these candidates
-            columns = self.frame_slots(index, solve.problem.num_goals - self.num_discrete_goals)
-            cold = torch.zeros_like(index)
-            self.frame_warm_starts.keep(solve.ids, solve.problem.ego, solve.scored.result.take_goals(columns),
-                                        WarmRound(None, cold, cold), columns)
         return self._safe_plan(plan, index, self._decision_commands(solve, index))
 
     def frame(
@@ -502,7 +523,7 @@ class SafetyLayer:
         now: float,
         held: Optional[HeldPlan] = None,
         decided: Optional[SafePlan] = None,
-        agent_slots: Optional[torch.Tensor] = None,
+        starts: Optional["FrameStarts"] = None,
     ) -> FrameControl:
         """The commands of one frame of an agent step for E environments.
 
@@ -518,15 +539,15 @@ class SafetyLayer:
             now: time since the decision [s].
             held: the previous frame's :attr:`FrameControl.held`; ``None`` at the decision.
             decided: the decision's plan from :meth:`decide`, or ``None`` to solve it now.
-            agent_slots: (E,) long slots of the agents' goals for the solves' warm starts
-                (:meth:`plan`); ``None``: cold solves.
+            starts: the agent step's frame warm starts, its E rows' (:meth:`frame_starts`);
+                ``None``: cold solves.
         """
         observation, commands = observation.to(self.device), torch.as_tensor(commands, device=self.device)
         if held is None or self.config.replan == "frame":
-            safe = decided if held is None and decided is not None else self.plan(observation, commands, agent_slots)
+            safe = decided if held is None and decided is not None else self.plan(observation, commands, starts)
             control = self._control(safe, now)
         else:
-            control = self._follow(observation, commands, now, held, agent_slots)
+            control = self._follow(observation, commands, now, held, starts)
         return control if self.guard is None else self._guarded(observation, control)
 
     # ------------------------------------------------------------------ frame pieces
@@ -562,7 +583,7 @@ class SafetyLayer:
                             safe)
 
     def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan,
-                agent_slots: Optional[torch.Tensor]) -> FrameControl:
+                starts: Optional["FrameStarts"]) -> FrameControl:
         """Track the held plans; solve again (one call) where they are no longer safe to follow."""
         mpc = self.mpc
         ego = observation.ego.to(mpc.optimizer.dtype)
@@ -581,11 +602,11 @@ class SafetyLayer:
                                replan, 0.0, held)
         rows = replan.nonzero()[:, 0]
         if rows.numel() == 0:
-            if self.frame_warm_starts is not None:  # no solve at this frame: none one frame before the next
-                self.frame_warm_starts.reset()
+            if starts is not None:  # no solve at this frame: none one frame before the next
+                starts.store.reset()
             return control
-        slots = None if agent_slots is None else agent_slots.to(rows.device)[rows]
-        fresh = self._control(self.plan(observation_rows(observation, rows), commands[rows], slots), now)
+        fresh = self._control(self.plan(observation_rows(observation, rows), commands[rows],
+                                        None if starts is None else starts.take(rows)), now)
         executed = [_scatter_rows(mine, rows, theirs) for mine, theirs in zip(control[:7], fresh[:7])]
         trajectory = Trajectories(held.trajectory.times, *(_scatter_rows(mine, rows, theirs)
                                                            for mine, theirs in zip(held.trajectory[1:], fresh.held.trajectory[1:])))

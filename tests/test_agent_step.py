@@ -36,16 +36,19 @@ def road_observation(sim: SimEpisodes, rows: list[int]) -> Observation:
     return Observation(ego[index], vehicles[index], mask[index], None, index)
 
 
-def begin(scenario, layer, sim) -> AgentStep:
+def begin(scenario, layer, sim, count: int = 1) -> list[AgentStep]:
+    """``count`` agent steps of the same actions at the same states, from one decision solve (the
+    layer warm-starts each environment's decision solve from its last one)."""
     observation = road_observation(sim, list(range(len(SEEDS))))
     solve = layer.decision_solve(observation) if layer.config.replan == "decision" else None
-    return AgentStep.begin(layer, observation, ACTIONS, continuous=False, period=scenario.period, solve=solve)
+    return [AgentStep.begin(layer, observation, ACTIONS, continuous=False, period=scenario.period, solve=solve)
+            for _ in range(count)]
 
 
 def test_a_step_lasts_its_frames_and_then_refuses_more(setup):
     scenario, layer = setup
     sim = SimEpisodes(scenario, SEEDS)
-    step = begin(scenario, layer, sim)
+    step, = begin(scenario, layer, sim)
     rows = torch.arange(len(SEEDS))
     for frame in range(layer.config.decision_frames):
         assert not step.over and step.frames_done == frame
@@ -59,7 +62,7 @@ def test_a_step_lasts_its_frames_and_then_refuses_more(setup):
 def test_every_row_starts_a_step_then_rows_may_leave_it_but_not_join_it(setup):
     scenario, layer = setup
     sim = SimEpisodes(scenario, SEEDS)
-    step = begin(scenario, layer, sim)
+    step, = begin(scenario, layer, sim)
     with pytest.raises(ValueError, match=r"first frame of an agent step executes every row in order, \[0, 1, 2\]; got rows \[0, 2\]"):
         step.frame(road_observation(sim, [0, 2]), torch.tensor([0, 2]))
     step.frame(road_observation(sim, [0, 1, 2]), torch.arange(3))
@@ -73,7 +76,7 @@ def test_a_rows_commands_do_not_depend_on_the_order_or_company_of_its_rows(setup
     every row the same commands: a held plan follows its row, not its position in the batch."""
     scenario, layer = setup
     sim = SimEpisodes(scenario, SEEDS)
-    steps = [begin(scenario, layer, sim) for _ in range(3)]
+    steps = begin(scenario, layer, sim, 3)
     everyone = torch.arange(3)
     first = [step.frame(road_observation(sim, everyone.tolist()), everyone) for step in steps][0]
     for _ in range(layer.config.decision_frames - 1):

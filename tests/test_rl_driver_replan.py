@@ -66,9 +66,8 @@ def test_frame_mode_plans_the_held_goal_afresh_at_every_frame(smoke):
     """At a decision the plan comes from the solve behind the features (as in decision mode); at
     every later frame the held goal is solved afresh, warm from the frame before: the driver's
     frames are a twin layer's fed the same states."""
-    warm_iterations = 10
-    smoke = dataclasses.replace(smoke, scenario=smoke.scenario.replace(
-        mpc=dataclasses.replace(smoke.scenario.mpc, warm_iterations=warm_iterations)))
+    warm_iterations = smoke.scenario.mpc.warm_iterations
+    assert warm_iterations > 0  # the default RL scenario warm-starts
     driver = make_driver(smoke, "frame")
     twin = SafetyLayer.for_scenario(smoke.scenario, driver.config)
     calls = count_solves(driver)
@@ -81,10 +80,11 @@ def test_frame_mode_plans_the_held_goal_afresh_at_every_frame(smoke):
         before = calls[0]
         decision = driver.decide(observation)
         if frame % frames == 0:
-            expected = twin.decide(twin.decision_solve(observation), torch.tensor(ACTIONS))
-            slots = expected.agent_index
+            solve = twin.decision_solve(observation)
+            expected = twin.decide(solve, torch.tensor(ACTIONS))
+            starts = twin.frame_starts(len(SEEDS), solve, expected.agent_index)
         else:
-            expected = twin.plan(observation, expected.commands, slots)
+            expected = twin.plan(observation, expected.commands, starts)
             warm = (expected.plan.result.iterations <= warm_iterations).all(dim=1)
             assert warm.any()  # warm from the frame before (rows that had no feasible goal then: cold)
         assert calls[0] - before == 1

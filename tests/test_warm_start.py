@@ -287,9 +287,10 @@ def test_take_goals_picks_each_problems_goals_in_the_order_asked(solved):
 
 
 def test_the_safety_layers_frame_solves_start_from_the_solve_one_frame_before():
-    """A frame solve (SafetyLayer.plan with the agents' goal slots) starts warm from the same
+    """A frame solve (SafetyLayer.plan with an agent step's frame starts) starts warm from the same
     environment's solve one frame before: the decision's candidates at the first frame after it, then
-    the frame before's; a frame without any solve leaves nothing to start from."""
+    the frame before's; starts of their own (another agent step's) or after a frame without any
+    solve start cold."""
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
     from mmpc.rl.safety import SafetyLayer
@@ -302,18 +303,25 @@ def test_the_safety_layers_frame_solves_start_from_the_solve_one_frame_before():
     world = BatchedWorld.start(scenario, [11, 12])
     rows = [0, 1]
     observation, _ = world.observe(rows)
-    decided = layer.decide(layer.decision_solve(observation), torch.tensor([4, 1]))
+    solve = layer.decision_solve(observation)
+    decided = layer.decide(solve, torch.tensor([4, 1]))
     assert decided.agent_index.tolist() == [4, 1]
+    starts = layer.frame_starts(2, solve, decided.agent_index)
     world.apply(rows, decided.plan.acceleration, decided.plan.steering)
     observation, _ = world.observe(rows)
-    first = layer.plan(observation, decided.commands, decided.agent_index)
-    assert first.plan.result.iterations.max() <= warm_iterations  # from the decision's candidates
-    kept = layer.frame_warm_starts.start(observation.ids(), observation.ego,
-                                         layer.frame_slots(decided.agent_index, first.plan.problem.num_goals - 1))
-    assert kept.steps.tolist() == [2, 2]  # the frame's solve is kept: the next is the second warm one since the decision
     longest = lambda safe: safe.plan.result.iterations.max(dim=1).values  # noqa: E731 (early exits stop some sooner)
-    cold = layer.plan(observation, decided.commands, layer.new_agent_slots(2))  # goals no solve had
-    assert (longest(cold) > warm_iterations).all()
-    layer.frame_warm_starts.reset()
-    again = layer.plan(observation, decided.commands, decided.agent_index)
+    first = layer.plan(observation, decided.commands, starts)
+    assert (longest(first) <= warm_iterations).all()  # from the decision's candidates
+    world.apply(rows, first.plan.acceleration, first.plan.steering)
+    observation, _ = world.observe(rows)
+    other = layer.plan(observation, decided.commands, layer.frame_starts(2))  # another step's: nothing kept
+    assert (longest(other) > warm_iterations).all()
+    second = layer.plan(observation, decided.commands, starts)
+    assert (longest(second) <= warm_iterations).all()  # from the first frame's solve, untouched by the other step
+    starts.store.reset()  # what a frame without a solve does
+    again = layer.plan(observation, decided.commands, starts)
     assert (longest(again) > warm_iterations).all()
+    assert layer.frame_starts(2) is not None
+    cold_layer = SafetyLayer.for_scenario(scenario.replace(mpc=dataclasses.replace(scenario.mpc, warm_iterations=0)),
+                                          dataclasses.replace(config.env, verify=False))
+    assert cold_layer.frame_starts(2) is None
