@@ -307,10 +307,12 @@ def test_an_old_rl_yaml_with_an_inline_scenario_still_loads(tmp_path):
     path = tmp_path / "safe_highway.yaml"
     path.write_text(OLD_SAFE_HIGHWAY)
     old = load_config(RLConfig, path)
-    # what it trained with: today's defaults but the heading target the shipped file left unset
+    # what it trained with: today's defaults but the heading target the shipped file left unset, and
+    # cold solves (the default scenario warm-starts since; the old file's runs stay as trained)
     new = RLConfig()
     assert old == dataclasses.replace(new, scenario=new.scenario.replace(
-        optimizer=dataclasses.replace(new.scenario.optimizer, heading_target_deg=None)))
+        optimizer=dataclasses.replace(new.scenario.optimizer, heading_target_deg=None),
+        mpc=dataclasses.replace(new.scenario.mpc, warm_iterations=0)))
 
 
 def test_the_config_an_old_trained_run_recorded_still_loads(tmp_path, caplog):
@@ -326,7 +328,8 @@ def test_the_config_an_old_trained_run_recorded_still_loads(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="mmpc.scenario"):
         config = from_dict(RLConfig, yaml.safe_load((tmp_path / "config.yaml").read_text())["config"])
     assert "mpc.compile" in caplog.text and "mpc.wheelbase" in caplog.text
-    assert config.scenario.mpc == RLConfig().scenario.mpc and config.train == RLConfig().train
+    assert config.scenario.mpc == dataclasses.replace(RLConfig().scenario.mpc, warm_iterations=0)  # cold, as trained
+    assert config.train == RLConfig().train
     caplog.clear()
     (tmp_path / "model.zip").write_bytes(b"")  # load_run reads the config, then fails on this empty model
     with caplog.at_level("WARNING", logger="mmpc.scenario"), pytest.raises(Exception) as failure:

@@ -90,6 +90,7 @@ def test_a_decision_from_the_features_solve_is_the_plan_a_fresh_solve_of_the_age
     layer = layers["decision"]
     observation = random_scenes(7, count=6, vehicles=6)
     actions = torch.arange(6) * 2 % layer.num_discrete_goals
+    layer.forget()  # both solves cold: no other test's decision at these ids to start from
     decided = layer.decide(layer.decision_solve(observation), actions)
     fresh = layer.plan(observation, layer.discrete_commands(observation.ego, actions))
     assert torch.equal(decided.agent_feasible, fresh.agent_feasible)
