@@ -172,6 +172,11 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     return torch.maximum(torch.minimum(turning, capped).amin(dim=-1), never_back) - a.half_length
 
 
+#: Running minima of at most this many values take ``torch.cummin`` (:func:`_running_min`; faster up
+#: to ~8x10^4 values along the pose dimension on one CPU thread, slower above).
+CUMMIN_MAX_VALUES = 32768
+
+
 def turn_frames(assumptions: TrafficAssumptions, frame: float) -> int:
     """Frames of ``frame`` [s] a lane change's turn may take (``lateral_travel / lateral_speed``)."""
     return math.ceil(assumptions.lateral_travel / assumptions.lateral_speed / frame - 1e-9)
@@ -187,8 +192,11 @@ def _window_min(values: torch.Tensor, window: int, dim: int) -> torch.Tensor:
 
 
 def _running_min(values: torch.Tensor, dim: int) -> torch.Tensor:
-    """The minimum of ``values`` up to each index along ``dim`` (``cummin`` without its indices,
-    which is many times slower along an inner dimension)."""
+    """The minimum of ``values`` up to each index along ``dim``: ``cummin`` for a small tensor (one
+    call; a small check is bound by per-op overhead), else a loop of ``minimum`` along ``dim``
+    (``cummin`` is many times slower along an inner dimension of a large one)."""
+    if values.numel() <= CUMMIN_MAX_VALUES:
+        return torch.cummin(values, dim).values
     steps = values.movedim(dim, 0).contiguous()
     for index in range(1, steps.shape[0]):
         torch.minimum(steps[index], steps[index - 1], out=steps[index])
