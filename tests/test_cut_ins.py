@@ -141,10 +141,10 @@ def test_an_unknown_rule_is_refused():
 
 @pytest.mark.parametrize("size", [7, 5000])  # below and above CUMMIN_MAX_VALUES along a middle dimension
 def test_the_running_minimum_is_cummins_on_either_side_of_its_size_switch(size):
-    from mmpc.verify.cut_ins import CUMMIN_MAX_VALUES, _running_min
+    from mmpc.verify.cut_ins import CUMMIN_MAX_VALUES, running_min
 
     values = torch.randn(3, 61, size, dtype=torch.float64, generator=torch.Generator().manual_seed(size))
     values[0, 5, :3] = float("nan")
     assert (values.numel() > CUMMIN_MAX_VALUES) == (size == 5000)
-    torch.testing.assert_close(_running_min(values, dim=1), torch.cummin(values, dim=1).values, equal_nan=True,
+    torch.testing.assert_close(running_min(values, dim=1), torch.cummin(values, dim=1).values, equal_nan=True,
                                rtol=0, atol=0)

@@ -131,7 +131,7 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     ego_speed = path_speed.clamp_min(0.0)[..., None]  # (R, ..., P, 1)
     ahead = path_x[..., None] + safe_distance(a, desired_gap(a, ego_speed, per_car(w[..., 1:])).clamp_min(0.0), ego_speed)
     centre = torch.maximum(ahead, per_car(reached))  # (R, ..., P, S - 1): deciding at pose j at speed >= w_k
-    never_back = _running_min(centre.amin(dim=-1), dim=-1)
+    never_back = running_min(centre.amin(dim=-1), dim=-1)
     if not moving:
         return never_back - a.half_length
     # From then on it never moves back and brakes no harder than max_deceleration from w_k: at time t
@@ -165,14 +165,14 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     progress, turned = per_car(table.transpose(1, 2)), per_car(kept.transpose(1, 2))  # (R, 1.., P, G)
     window = turn_frames(a, float(steps[0]))
     turning = _window_min(best - turned, window, dim=-2).add_(turned)
-    kept_older = _running_min(best - turned, dim=-2).roll(window + 1, dims=-2).add_(turned)
-    older = _running_min(best.sub_(progress), dim=-2).roll(window + 1, dims=-2)
+    kept_older = running_min(best - turned, dim=-2).roll(window + 1, dims=-2).add_(turned)
+    older = running_min(best.sub_(progress), dim=-2).roll(window + 1, dims=-2)
     capped = torch.maximum(older.add_(progress - cap), kept_older)  # both hold for every older decision
     capped[..., :window + 1, :] = torch.inf
     return torch.maximum(torch.minimum(turning, capped).amin(dim=-1), never_back) - a.half_length
 
 
-#: Running minima of at most this many values take ``torch.cummin`` (:func:`_running_min`; faster up
+#: Running minima of at most this many values take ``torch.cummin`` (:func:`running_min`; faster up
 #: to ~8x10^4 values along the pose dimension on one CPU thread, slower above).
 CUMMIN_MAX_VALUES = 32768
 
@@ -191,7 +191,7 @@ def _window_min(values: torch.Tensor, window: int, dim: int) -> torch.Tensor:
     return least.movedim(0, dim)
 
 
-def _running_min(values: torch.Tensor, dim: int) -> torch.Tensor:
+def running_min(values: torch.Tensor, dim: int) -> torch.Tensor:
     """The minimum of ``values`` up to each index along ``dim``: ``cummin`` for a small tensor (one
     call; a small check is bound by per-op overhead), else a loop of ``minimum`` along ``dim``
     (``cummin`` is many times slower along an inner dimension of a large one)."""
