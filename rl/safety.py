@@ -376,7 +376,7 @@ class SafetyLayer:
 
     # ------------------------------------------------------------------ planning
 
-    def plan(self, observation: Observation, commands: torch.Tensor, starts: Optional["FrameStarts"] = None) -> SafePlan:
+    def plan(self, observation: Observation, commands: torch.Tensor, starts: Optional[FrameStarts] = None) -> SafePlan:
         """One frame for E environments: the agents' goals plus the standard goals, one solve.
 
         Args:
@@ -407,7 +407,7 @@ class SafetyLayer:
         return self._safe_plan(self.mpc.choose(problem, scored, self._selector(agent, problem)), agent, commands)
 
     def frame_starts(self, count: int, solve: Optional[DecisionSolve] = None,
-                     agent_index: Optional[torch.Tensor] = None) -> Optional["FrameStarts"]:
+                     agent_index: Optional[torch.Tensor] = None) -> Optional[FrameStarts]:
         """Warm starts for the frame solves of one agent step of ``count`` environments, or ``None``
         where the layer solves cold. With the step's decision ``solve`` and the agents' candidates
         ``agent_index`` (E,) in it (:meth:`decide`), the first frame after the decision starts from
@@ -523,7 +523,7 @@ class SafetyLayer:
         now: float,
         held: Optional[HeldPlan] = None,
         decided: Optional[SafePlan] = None,
-        starts: Optional["FrameStarts"] = None,
+        starts: Optional[FrameStarts] = None,
     ) -> FrameControl:
         """The commands of one frame of an agent step for E environments.
 
@@ -583,7 +583,7 @@ class SafetyLayer:
                             safe)
 
     def _follow(self, observation: Observation, commands: torch.Tensor, now: float, held: HeldPlan,
-                starts: Optional["FrameStarts"]) -> FrameControl:
+                starts: Optional[FrameStarts]) -> FrameControl:
         """Track the held plans; solve again (one call) where they are no longer safe to follow."""
         mpc = self.mpc
         ego = observation.ego.to(mpc.optimizer.dtype)
