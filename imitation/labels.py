@@ -117,10 +117,7 @@ class RankingExpert(Driver):
         count, device = observation.num_envs, self.device
         observation = observation.to(device)
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
-        ids = observation.ids()
-        warm = self.warm_starts.start(ids, observation.ego)
-        scored = self.mpc.score(problem, warm.warm)
-        self.warm_starts.keep(ids, observation.ego, scored.result, warm)
+        scored = self.warm_starts.score(observation.ids(), observation.ego, problem)
         if self.guard is not None:  # a goal is usable only where its first command keeps a verified way out
             scored = scored._replace(result=scored.result._replace(feasible=self._usable(observation, problem, scored)))
         expert = self.mpc.select(problem, scored)

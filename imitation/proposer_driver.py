@@ -166,10 +166,7 @@ class ProposerDriver(Driver):
         problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
         slots = self.propose(observation, problem)
         subset = subset_problem(problem, slots)
-        ids = observation.ids()
-        warm = self.warm_starts.start(ids, observation.ego, slots)
-        plan = self.mpc.plan_problem(subset, warm=warm.warm)
-        self.warm_starts.keep(ids, observation.ego, plan.result, warm, slots)
+        plan = self.mpc.choose(subset, self.warm_starts.score(observation.ids(), observation.ego, subset, slots))
         compile_ms = plan.compile_ms
         selection = plan.selection
         acceleration, steering = plan.acceleration.clone(), plan.steering.clone()

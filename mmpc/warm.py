@@ -26,7 +26,8 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from mmpc.mpc import MPC
+from mmpc.mpc import MPC, Scored
+from mmpc.problem import ProblemBatch
 from mmpc.result import SolveResult, WarmStart
 
 
@@ -67,7 +68,8 @@ class WarmStarts:
             safety layer's decision period); default: the MPC's :attr:`mmpc.MPC.control_period`.
             Needed (> 0) when ``mpc.config.warm_iterations`` > 0.
 
-    Use per solve: ``round = warm_starts.start(ids, ego)``, solve with ``warm=round.warm``, then
+    Use per solve: :meth:`score` (start, the MPC's score, keep), or by hand
+    ``round = warm_starts.start(ids, ego)``, solve with ``warm=round.warm``, then
     ``warm_starts.keep(ids, ego, result, round)``; a solver of some goals of a goal set passes
     their ``slots`` to both. With ``warm_iterations`` 0 :attr:`enabled` is False and
     :meth:`start` always answers cold.
@@ -126,6 +128,16 @@ class WarmStarts:
         restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
         warm = WarmStart(*(torch.where(cold.view(-1, *[1] * (field.dim() - 1)), restart, field) for field in warm))
         return WarmRound(warm, steps, cold_feasible_goals)
+
+    def score(self, ids: torch.Tensor, ego: torch.Tensor, problem: ProblemBatch,
+              slots: Optional[torch.Tensor] = None) -> Scored:
+        """The MPC's :meth:`mmpc.MPC.score` of ``problem`` (the E environments ``ids`` at the ego
+        states ``ego``, the goals ``slots`` of a goal set or ``None``, as for :meth:`start`), started
+        from their last solves where the rules allow and kept for their next."""
+        round = self.start(ids, ego, slots)
+        scored = self.mpc.score(problem, round.warm)
+        self.keep(ids, ego, scored.result, round, slots)
+        return scored
 
     def keep(self, ids: torch.Tensor, ego: torch.Tensor, result: SolveResult, round: WarmRound,
              slots: Optional[torch.Tensor] = None) -> None:

@@ -400,10 +400,8 @@ class SafetyLayer:
         if starts is None:
             scored = self.mpc.score(problem)
         else:
-            ids, slots = observation.ids(), self._frame_slots(starts.agent_slots.to(self.device), problem.num_goals - 1)
-            warm = starts.store.start(ids, problem.ego, slots)
-            scored = self.mpc.score(problem, warm.warm)
-            starts.store.keep(ids, problem.ego, scored.result, warm, slots)
+            slots = self._frame_slots(starts.agent_slots.to(self.device), problem.num_goals - 1)
+            scored = starts.store.score(observation.ids(), problem.ego, problem, slots)
         return self._safe_plan(self.mpc.choose(problem, scored, self._selector(agent, problem)), agent, commands)
 
     def frame_starts(self, count: int, solve: Optional[DecisionSolve] = None,
@@ -447,10 +445,7 @@ class SafetyLayer:
         if self.warm_starts is None or not warm:
             scored = self.mpc.score(problem)
         else:
-            ids = observation.ids()
-            warm = self.warm_starts.start(ids, problem.ego)
-            scored = self.mpc.score(problem, warm.warm)
-            self.warm_starts.keep(ids, problem.ego, scored.result, warm)
+            scored = self.warm_starts.score(observation.ids(), problem.ego, problem)
         expert = self.mpc.select(problem, scored).index if self.config.expert_action else None
         return DecisionSolve(problem, scored, observation.ids(), expert)
 

@@ -40,10 +40,8 @@ class MPCDriver(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
-        ids = observation.ids()
-        warm = self.warm_starts.start(ids, observation.ego)
-        plan = self.mpc.plan(observation.ego, observation.vehicles, observation.vehicle_mask, warm=warm.warm)
-        self.warm_starts.keep(ids, observation.ego, plan.result, warm)
+        problem = self.mpc.build_problem(observation.ego, observation.vehicles, observation.vehicle_mask)
+        plan = self.mpc.choose(problem, self.warm_starts.score(observation.ids(), observation.ego, problem))
         elapsed_ms = (time.perf_counter() - start) * 1e3 - plan.compile_ms
         trajectories = plan.result.trajectories
         candidates = Candidates(
