@@ -53,15 +53,18 @@ class CrashLog:
     Args:
         path: the CSV file, created with its header.
         frequency: simulation frames per second [Hz], to turn frames into time.
+        append: keep the rows of an existing log (a resumed run), adding the header only to a
+            missing or empty file.
     """
 
-    def __init__(self, path: Path, frequency: float) -> None:
+    def __init__(self, path: Path, frequency: float, *, append: bool = False) -> None:
         if not frequency > 0:
             raise ValueError(f"`frequency` must be > 0 Hz; got {frequency}")
         self.path = Path(path)
         self.frequency = frequency
-        with open(self.path, "w", newline="") as handle:
-            csv.writer(handle).writerow(CRASH_LOG_COLUMNS)
+        if not (append and self.path.is_file() and self.path.stat().st_size > 0):
+            with open(self.path, "w", newline="") as handle:
+                csv.writer(handle).writerow(CRASH_LOG_COLUMNS)
 
     def add(self, timesteps: int, env: int, episode: "RunningEpisode") -> None:
         """Append the crashed ``episode`` of environment ``env``."""

@@ -19,7 +19,7 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     subparsers = rl.add_subparsers(dest="rl_command", required=True)
     train = subparsers.add_parser(
         "train", help="train an SB3 agent on the safe layer (or plain highway-env): TensorBoard, checkpoints, eval.json")
-    train.add_argument("--algo", choices=sorted(ALGORITHMS), required=True, help="dqn, ppo or sac")
+    train.add_argument("--algo", choices=sorted(ALGORITHMS), default=None, help="dqn, ppo or sac (required, but with --resume)")
     add_config(train, "RL config (mmpc.rl.config.RLConfig; scenario keys as scenario.KEY)")
     add_sim(train)
     add_compile(train)
@@ -30,9 +30,15 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
                             "trained_timesteps")
     train.add_argument("--out", required=True,
                        help="run directory, new or empty (config.yaml, tb/, checkpoints/, model.zip, crashes.csv, eval.json)")
-    train.add_argument("--env", choices=("safe", "highway"), default="safe",
-                       help="safe: the agent picks goals through the safety layer (default); highway: plain highway-env")
-    train.add_argument("--seed", type=int, default=0, help="seed of the model and the training environments, in [0, 2^32 - 1]")
+    train.add_argument("--env", choices=("safe", "plain", "highway"), default=None,
+                       help="safe: the agent picks goals through the safety layer (default); plain: no layer, "
+                            "highway-env's meta-actions on the scenario's world (--sim batched trains fast); highway: "
+                            "plain highway-env")
+    train.add_argument("--seed", type=int, default=None,
+                       help="seed of the model and the training environments, in [0, 2^32 - 1] (default 0)")
+    train.add_argument("--resume", action="store_true",
+                       help="go on with the run in --out from its latest checkpoint up to --timesteps in all, with the "
+                            "settings its config.yaml records (no --algo, --config, --set, --sim, --env or --seed)")
     train.add_argument("--eval-episodes", type=int, default=None, help="override train.eval_episodes of the config")
     train.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     train.add_argument("--progress", action="store_true", help="show SB3's progress bar")
@@ -68,20 +74,39 @@ def _train(args: argparse.Namespace) -> int:
     from mmpc.cli.arguments import apply_compile
     from mmpc.config import load_config
     from mmpc.rl.config import RLConfig
+    from mmpc.rl.runs import recorded_run
     from mmpc.rl.train import train
 
     if args.timesteps < 1:
         print("mmpc rl train: error: --timesteps must be >= 1", file=sys.stderr)
         return 2
     apply_compile(args.compile)
-    overrides = dict(args.set)
-    if args.sim is not None:
-        if args.env == "highway" and args.sim == "batched":
-            print("mmpc rl train: error: --env highway trains on plain highway-env; the batched simulator runs the "
-                  "safe environments only (--env safe)", file=sys.stderr)
+    if args.resume:
+        given = [flag for flag, value in (("--algo", args.algo), ("--config", args.config), ("--set", args.set),
+                                          ("--sim", args.sim), ("--env", args.env), ("--seed", args.seed)) if value]
+        if given:
+            print(f"mmpc rl train: error: --resume takes the run's settings from {args.out}/config.yaml; drop "
+                  f"{', '.join(given)}", file=sys.stderr)
             return 2
-        overrides["scenario.sim"] = args.sim
-    config = load_config(RLConfig, args.config, overrides)
+        record = recorded_run(Path(args.out))
+        if record is None:
+            print(f"mmpc rl train: error: --resume needs a training run in --out; {args.out} holds no readable "
+                  "config.yaml of one", file=sys.stderr)
+            return 2
+        algo, env_kind, seed, config = record.algo, record.env_kind, record.seed, record.config
+    else:
+        if args.algo is None:
+            print("mmpc rl train: error: --algo is required (dqn, ppo or sac)", file=sys.stderr)
+            return 2
+        algo, env_kind, seed = args.algo, args.env or "safe", 0 if args.seed is None else args.seed
+        overrides = dict(args.set)
+        if args.sim is not None:
+            if env_kind == "highway" and args.sim == "batched":
+                print("mmpc rl train: error: --env highway trains on plain highway-env; on the batched simulator the "
+                      "unprotected baseline is --env plain", file=sys.stderr)
+                return 2
+            overrides["scenario.sim"] = args.sim
+        config = load_config(RLConfig, args.config, overrides)
     if args.eval_episodes is not None:
         if args.eval_episodes < 1:
             print("mmpc rl train: error: --eval-episodes must be >= 1", file=sys.stderr)
@@ -89,8 +114,8 @@ def _train(args: argparse.Namespace) -> int:
         config = _with_episodes(config, args.eval_episodes)
     # settings it cannot start with (ConfigError) and a folder it may not write to (OutputFolderError) are refused
     # before it writes anything, and mmpc.cli.main prints them as one line
-    summary = train(config, args.algo, args.timesteps, Path(args.out), env_kind=args.env, seed=args.seed,
-                    progress_bar=args.progress, evaluate_after=not args.no_eval)
+    summary = train(config, algo, args.timesteps, Path(args.out), env_kind=env_kind, seed=seed,
+                    progress_bar=args.progress, evaluate_after=not args.no_eval, resume=args.resume)
     if summary:
         print(format_summary(summary))
     print(f"wrote {args.out}/model.zip, {args.out}/tb/, {args.out}/crashes.csv"

@@ -18,7 +18,6 @@ layer's device (:attr:`SafeAgentDriver.device`, the run's), the plain ones on th
 
 from __future__ import annotations
 
-import math
 import time
 import zlib
 from pathlib import Path
@@ -28,7 +27,7 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Candidates, Decision, Driver, Observation
-from mmpc.problem import EGO_PSI, EGO_PSIDOT, EGO_V, EGO_Y
+from mmpc.rl.meta_actions import MetaTargets, apply_meta_actions, meta_command, start_targets
 
 if TYPE_CHECKING:
     from mmpc.rl.agent_step import AgentStep
@@ -248,35 +247,14 @@ class ContinuousActionDriver(Driver):
                                      torch.as_tensor(steering, dtype=torch.float32), (time.perf_counter() - start) * 1e3)
 
 
-def bicycle_slip(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
-    """The slip angle beta [rad] at which highway-env's kinematic bicycle (turn rate
-    ``v sin(beta) / (L / 2)``) turns at ``rate`` [rad/s] at ``speed`` [m/s] with length ``length``
-    [m]; rates beyond the model's reach saturate at +-90 deg. Shapes: rate and speed broadcast;
-    the result has their shape."""
-    return torch.asin((length / 2 / speed * rate).clamp(-1.0, 1.0))
-
-
-def bicycle_steering(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
-    """The steering angle [rad] (``beta = atan(tan(delta) / 2)``) of :func:`bicycle_slip`'s slip."""
-    return torch.atan(2 * torch.tan(bicycle_slip(rate, speed, length)))
-
-
 class MetaActionDriver(Driver):
-    """A plain highway-env agent with ``DiscreteMetaAction`` (0 LANE_LEFT, 1 IDLE, 2 LANE_RIGHT,
-    3 FASTER, 4 SLOWER), executed by highway-env's ``MDPVehicle`` control laws in the road frame:
-
-    - speed: target speeds (20, 25, 30) m/s; FASTER / SLOWER step the index of the current speed;
-      ``acceleration = (v_target - v) / 0.6 s``;
-    - lane: LANE_LEFT / RIGHT move the target lane (clamped to the road); lateral speed command
-      ``-(y - y_lane) / 0.6 s``, heading reference ``asin(v_lat / v)`` (within +-45 deg), heading
-      rate ``(psi_ref - psi) / 0.2 s``, steering :func:`bicycle_steering` (within +-60 deg; L the
-      scenario's vehicle length, highway-env's 5 m unless ``vehicle_size`` says otherwise).
-    """
+    """A plain agent with highway-env's ``DiscreteMetaAction`` (0 LANE_LEFT, 1 IDLE, 2 LANE_RIGHT,
+    3 FASTER, 4 SLOWER), executed as highway-env's ``MDPVehicle`` executes it
+    (:mod:`mmpc.rl.meta_actions`, the plain environments' controller): a new meta-action every
+    ``decision_frames`` frames, the lane and speed controller's command at every frame (L the
+    scenario's vehicle length, highway-env's 5 m unless ``vehicle_size`` says otherwise)."""
 
     name = "sb3"
-    TARGET_SPEEDS = (20.0, 25.0, 30.0)
-    TAU_ACCELERATION, TAU_HEADING, TAU_LATERAL = 0.6, 0.2, 0.6
-    MAX_STEERING = math.pi / 3
 
     def __init__(self, run: "TrainedRun", scenario: "ScenarioConfig") -> None:
         self.model = run.model
@@ -284,52 +262,36 @@ class MetaActionDriver(Driver):
         self.road = scenario.road
         self.length = scenario.vehicle[0]
         self.hold = _Hold(run.config.env.decision_frames)
-        self.target: dict[int, tuple[int, float]] = {}
+        self.targets: dict[int, tuple[int, int]] = {}  # environment -> (lane, speed index)
 
     def reset(self, num_envs: int) -> None:
         self.hold.clear()
-        self.target.clear()
-
-    def _speed_index(self, speed: float) -> int:
-        low, high = self.TARGET_SPEEDS[0], self.TARGET_SPEEDS[-1]
-        return int(np.clip(round((speed - low) / (high - low) * (len(self.TARGET_SPEEDS) - 1)), 0, len(self.TARGET_SPEEDS) - 1))
+        self.targets.clear()
 
     def decide(self, observation: Observation) -> Decision:
         start = time.perf_counter()
         ids = [int(i) for i in observation.ids()]
-        ego = observation.ego.to(torch.float64)
-        for row, env in enumerate(ids):
-            if env not in self.target:
-                speed = float(ego[row, EGO_V])
-                self.target[env] = (int(self.road.lane_index(ego[row, EGO_Y])), self.TARGET_SPEEDS[self._speed_index(speed)])
+        ego = observation.ego.to(torch.float64).cpu()
+        new = [row for row, env in enumerate(ids) if env not in self.targets]
+        if new:
+            started = start_targets(ego[new], self.road)
+            self.targets.update((ids[row], (int(lane), int(index)))
+                                for row, lane, index in zip(new, started.lane, started.speed_index))
+        lanes, indices = zip(*(self.targets[env] for env in ids))
+        targets = MetaTargets(torch.tensor(lanes), torch.tensor(indices))
         due = self.hold.due(ids)
         if due:
             actions, _ = self.model.predict(_flat_kinematics(observation, due, self.vehicles), deterministic=True)
-            for row, action in zip(due, np.asarray(actions).reshape(-1)):
-                env = ids[row]
-                lane, speed = self.target[env]
-                index = self._speed_index(float(ego[row, EGO_V]))
-                if action == 0:
-                    lane = max(lane - 1, 0)
-                elif action == 2:
-                    lane = min(lane + 1, self.road.num_lanes - 1)
-                elif action == 3:
-                    speed = self.TARGET_SPEEDS[min(index + 1, len(self.TARGET_SPEEDS) - 1)]
-                elif action == 4:
-                    speed = self.TARGET_SPEEDS[max(index - 1, 0)]
-                self.target[env] = (lane, speed)
-                self.hold.set(env, int(action))
+            actions = np.asarray(actions).reshape(-1)
+            rows = torch.tensor(due)
+            moved = apply_meta_actions(MetaTargets(targets.lane[rows], targets.speed_index[rows]),
+                                       torch.as_tensor(actions), ego[rows], self.road)
+            targets.lane[rows], targets.speed_index[rows] = moved.lane, moved.speed_index
+            for row, action in zip(due, actions):
+                self.targets[ids[row]] = (int(targets.lane[row]), int(targets.speed_index[row]))
+                self.hold.set(ids[row], int(action))
         self.hold.tick(ids)
-        lanes = torch.tensor([self.target[env][0] for env in ids], dtype=torch.float64) * self.road.lane_width
-        speeds = torch.tensor([self.target[env][1] for env in ids], dtype=torch.float64)
-        v = ego[:, EGO_V].clamp_min(1e-3)
-        beta = bicycle_slip(ego[:, EGO_PSIDOT], v, self.length)
-        heading = ego[:, EGO_PSI] - beta  # the body heading; psi is the direction of motion
-        lateral_speed = -(ego[:, EGO_Y] - lanes) / self.TAU_LATERAL
-        heading_ref = torch.asin((lateral_speed / v).clamp(-1.0, 1.0)).clamp(-math.pi / 4, math.pi / 4)
-        rate = (heading_ref - heading) / self.TAU_HEADING
-        steering = bicycle_steering(rate, v, self.length).clamp(-self.MAX_STEERING, self.MAX_STEERING)
-        acceleration = (speeds - ego[:, EGO_V]) / self.TAU_ACCELERATION
+        acceleration, steering = meta_command(targets, ego, self.road, self.length)
         return Decision.command_only(acceleration.to(torch.float32), steering.to(torch.float32),
                                      (time.perf_counter() - start) * 1e3)
 

@@ -61,6 +61,27 @@ def recorded_config(path: str | Path) -> Optional[RLConfig]:
     return run_config(record["config"], path)
 
 
+class RecordedRun(NamedTuple):
+    """The settings a training run recorded in its ``config.yaml``."""
+
+    algo: str
+    env_kind: str
+    seed: int
+    config: RLConfig
+
+
+def recorded_run(folder: str | Path) -> Optional[RecordedRun]:
+    """The settings of the training run in ``folder``; ``None`` where it holds no readable record of one."""
+    path = Path(folder) / "config.yaml"
+    try:
+        record = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    if not (isinstance(record, dict) and {"algo", "env", "seed", "config"} <= set(record)):
+        return None
+    return RecordedRun(record["algo"], record["env"], int(record["seed"]), run_config(record["config"], path))
+
+
 def run_config(values: Any, path: Path) -> RLConfig:
     """The RL config recorded in a run's ``config.yaml`` (``path``), read as the run was trained: a
     run recorded before ``env.verify`` existed trained without the check, so its ``verify`` is

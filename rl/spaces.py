@@ -92,13 +92,23 @@ def check_action(action: Any, config: SafeEnvConfig, continuous: bool) -> Any:
         if not np.isfinite(values).all():
             raise ValueError(f"`action` must be finite numbers (in [-1, 1]); got {values.tolist()}")
         return values
-    count = config.num_actions
+    meaning = "a goal of the grid lane_offsets x speeds" + (
+        f", or {config.num_actions - 1}: the expert's choice" if config.expert_action else "")
+    return check_index(action, config.num_actions, meaning)
+
+
+def check_index(action: Any, count: int, meaning: str) -> int:
+    """A discrete ``action`` as an int in [0, ``count``): a Python or numpy integer, or a 0-d integer
+    array. ``meaning`` says in a refusal what the indices stand for.
+
+    Raises:
+        ValueError: anything else (a float, a bool, an array of indices) or an index out of range.
+    """
     if isinstance(action, np.ndarray) and action.shape == ():
         action = action[()]
     if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)):
         came = (f"an array of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray)
                 else f"{action!r} ({type(action).__name__})")
-        meaning = "a goal of the grid lane_offsets x speeds" + (f", or {count - 1}: the expert's choice" if config.expert_action else "")
         raise ValueError(f"`action` must be an int in [0, {count}) ({meaning}); got {came}")
     if not 0 <= action < count:
         raise ValueError(f"`action` must be an int in [0, {count}); got {action}")

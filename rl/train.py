@@ -1,5 +1,5 @@
-"""Train stable-baselines3 agents on the safe environments (or on plain highway-env, the
-unprotected baseline) and evaluate them on fixed seeds.
+"""Train stable-baselines3 agents on the safe environments (or, unprotected baselines, on the plain
+environments or plain highway-env) and evaluate them on fixed seeds.
 
 A run directory holds::
 
@@ -8,7 +8,8 @@ A run directory holds::
                          up to whole rollouts)
     scenario.yaml        its scenario alone, for ``mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip``
     tb/<algo>_1/         TensorBoard event files: SB3's scalars plus solver/, safety/, driving/
-    checkpoints/         <algo>_<steps>_steps.zip every ``train.checkpoint_every`` steps
+    checkpoints/         <algo>_<steps>_steps.zip every ``train.checkpoint_every`` steps and at the end (and
+                         an off-policy algorithm's latest replay buffer): ``--resume`` goes on from the latest
     model.zip            the final model
     crashes.csv          the training episodes that ended in a collision (:class:`mmpc.rl.callbacks.CrashLog`):
                          their seed, step and actions replay them
@@ -17,8 +18,8 @@ A run directory holds::
     .train.lock          held by the run while it writes, removed at its end (:data:`RUN_LOCK`)
 
 A run gets a folder of its own: :func:`train` refuses a folder another run is writing to, and
-one holding anything (an earlier run's files would be replaced or mixed with the new run's).
-It builds its environments and its model before it writes anything there, so a start refused
+one holding anything (an earlier run's files would be replaced or mixed with the new run's),
+unless it resumes the run there (``resume``: same settings, from its latest checkpoint). It builds its environments and its model before it writes anything there, so a start refused
 for its settings leaves the folder empty for the corrected command.
 """
 
@@ -30,7 +31,7 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable, NamedTuple, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Optional, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -45,10 +46,14 @@ from mmpc.rl.reward import frame_reward, vehicle_reward
 from mmpc.rl.folders import run_folder
 from mmpc.rl.runs import ALGORITHM_CLASSES, TrainedRun, algorithm_class
 
+if TYPE_CHECKING:
+    from mmpc.rl.checkpoints import Checkpoint
+
 logger = logging.getLogger(__name__)
 
-#: Environments ``train`` can train on: the safe layer or plain highway-env.
-ENV_KINDS = ("safe", "highway")
+#: Environments ``train`` can train on: the safe layer, the plain environments (the scenario's world,
+#: no layer, highway-env's meta-actions) or plain highway-env.
+ENV_KINDS = ("safe", "plain", "highway")
 #: The lock file a training run holds in its folder (:func:`mmpc.rl.folders.run_folder`).
 RUN_LOCK = ".train.lock"
 #: Seeds numpy (and so stable-baselines3 and highway-env) accepts: [0, 2^32 - 1].
@@ -63,10 +68,13 @@ class HighwayBaseline(gym.Wrapper):
     reward and observation as the safe environments, and highway-env's own action at
     ``frequency / decision_frames`` Hz (the agent's decision rate in the safe environments).
 
-    Differences that remain: highway-env's traffic without :mod:`mmpc.highway.traffic`'s initial
-    clearance; the reward is computed once per agent step, at its last frame (the safe
+    Differences that remain: highway-env's traffic (not re-spawned around the ego: an ego faster
+    than the traffic drives on an empty road once it passed it) without
+    :mod:`mmpc.highway.traffic`'s initial clearance; MDPVehicle's unbounded acceleration and
+    +-60 deg steering; the reward is computed once per agent step, at its last frame (the safe
     environments sum it over the step's frames): highway-env's, or with ``source: meta_cost`` the
-    step's frames times the meta cost reward of the state it ends in.
+    step's frames times the meta cost reward of the state it ends in. The plain environments
+    (:class:`mmpc.rl.plain.PlainEnvs`, ``--env plain``) have none of these differences.
 
     ``info`` adds ``mean_speed`` (the ego's speed at the end of the step) [m/s] and ``frames``.
     """
@@ -91,11 +99,16 @@ class HighwayBaseline(gym.Wrapper):
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[Any, dict]:
         """Start an episode; ``seed`` (or one drawn from the environment's generator) seeds
         highway-env, so a seed fixes the episode: ``info["episode_seed"]`` says which."""
+        from highway_env.vehicle.controller import MDPVehicle
+
         if seed is None:
             seed = int(self.np_random.integers(2**31 - 1))
         observation, info = self.env.reset(seed=seed, options=options)
         ego = self.env.unwrapped.vehicle
         ego.speed = self.ego_speed
+        if isinstance(ego, MDPVehicle):  # its targets as if created at that speed (mmpc.rl.meta_actions.start_targets)
+            ego.speed_index = ego.speed_to_index(ego.speed)
+            ego.target_speed = ego.index_to_speed(ego.speed_index)
         return self.env.unwrapped.observation_type.observe(), dict(info, episode_seed=seed)
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
@@ -157,17 +170,18 @@ def evaluate(
     """Run one episode per seed with a policy and summarize them (:func:`summarize`), in
     highway-env, the reference world, whichever world the agent trained in (``scenario.sim``).
     A safe agent drives through mmpc's one episode loop (:func:`mmpc.highway.runner.run_lockstep`)
-    as :class:`mmpc.rl.driver.SafeAgentDriver`, its reward and speed counted after every frame
-    as in training; a plain agent drives highway-env's own environment with its own actions.
+    as :class:`mmpc.rl.driver.SafeAgentDriver`, a plain-environment agent as
+    :class:`mmpc.rl.driver.MetaActionDriver`, their reward and speed counted after every frame as
+    in training; a plain highway-env agent drives highway-env's own environment with its own actions.
 
     Args:
         policy: ``observations (B, obs) -> actions (B, ...)`` (e.g. a model's deterministic
             ``predict``).
         config: the run's configuration.
-        env_kind: ``safe`` or ``highway``.
+        env_kind: ``safe``, ``plain`` or ``highway``.
         continuous: Box actions.
         seeds: one episode per seed.
-        lockstep: safe environments: episodes run together, one batched solve per frame (on the
+        lockstep: safe and plain environments: episodes run together, one batched solve per frame (on the
             run's device, :func:`mmpc.device.run_device`), in groups ``seed // lockstep``
             (mmpc's one grouping rule).
         on_episode: called with every finished episode.
@@ -178,18 +192,19 @@ def evaluate(
     if not seeds:
         raise ValueError("`seeds` must not be empty")
     rows: list[EpisodeRow] = []
-    if env_kind == "safe":
+    if env_kind in ("safe", "plain"):
         from mmpc.evaluate.tasks import lockstep_groups
         from mmpc.highway.runner import run_lockstep
-        from mmpc.rl.driver import SafeAgentDriver
+        from mmpc.rl.driver import MetaActionDriver, SafeAgentDriver
 
         scenario = config.scenario.replace(sim="highway-env")
-        driver = SafeAgentDriver(TrainedRun(_PolicyModel(policy), "policy", "safe", continuous, config), scenario)
+        run = TrainedRun(_PolicyModel(policy), "policy", env_kind, continuous, config)
+        driver = SafeAgentDriver(run, scenario) if env_kind == "safe" else MetaActionDriver(run, scenario)
         tally = _FrameTally(config)
         for chunk in lockstep_groups(seeds, lockstep).values():
             for index, (seed, result) in enumerate(zip(chunk, run_lockstep(scenario, chunk, driver=driver, observers=[tally]))):
                 frames = len(result.records)
-                intervened = driver.intervention_frames[index]
+                intervened = driver.intervention_frames[index] if env_kind == "safe" else 0
                 rows.append(EpisodeRow(seed, bool(result.metrics["collisions"]),
                                        tally.rewards[index] - config.env.intervention_penalty * intervened,
                                        tally.speeds[index] / frames, math.ceil(frames / config.env.decision_frames), frames,
@@ -273,8 +288,8 @@ class _EpisodeStats:
 
 
 def make_training_env(config: RLConfig, *, env_kind: str, continuous: bool, seed: int):
-    """The vectorized training environment (``train.n_envs`` environments, monitored): the safe
-    environments on the scenario's world (``scenario.sim``), or plain highway-env."""
+    """The vectorized training environment (``train.n_envs`` environments, monitored): the safe or
+    the plain environments on the scenario's world (``scenario.sim``), or plain highway-env."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
     n_envs = config.train.n_envs
@@ -282,6 +297,13 @@ def make_training_env(config: RLConfig, *, env_kind: str, continuous: bool, seed
         from mmpc.rl.vec_env import SafeVecEnv
 
         venv = SafeVecEnv(n_envs, config.scenario, config.env, config.reward, continuous=continuous, seed=seed)
+    elif env_kind == "plain":
+        from mmpc.rl.vec_env import PlainVecEnv
+
+        if continuous:
+            raise ValueError("the plain environments take highway-env's DiscreteMetaAction (dqn or ppo); continuous "
+                             "actions (sac) train on plain highway-env (--env highway)")
+        venv = PlainVecEnv(n_envs, config.scenario, config.env, config.reward, seed=seed)
     elif env_kind == "highway":
         venv = DummyVecEnv([lambda: make_highway_env(config, continuous=continuous) for _ in range(n_envs)])
     else:
@@ -323,8 +345,13 @@ def train(
     seed: int = 0,
     progress_bar: bool = False,
     evaluate_after: bool = True,
+    resume: bool = False,
 ) -> dict:
     """Train ``algo`` for ``timesteps`` environment steps, save it, evaluate it.
+
+    With ``resume`` the run in ``out`` (the same algorithm, environment, seed and configuration)
+    goes on from its latest checkpoint until it has trained ``timesteps`` steps in all; its
+    TensorBoard curves and crash log continue where the checkpoint left them.
 
     stable-baselines3 trains whole rollouts (:func:`rollout_steps`): a budget that is not a
     multiple of one is rounded up, with a warning, and the run records the steps it trained
@@ -334,8 +361,10 @@ def train(
         config: the run's configuration.
         algo: ``dqn``, ``ppo`` or ``sac``.
         timesteps: environment (agent) steps, summed over the vectorized environments.
-        out: the run directory: new, empty or missing (created; see the module docstring).
-        env_kind: ``safe`` (the goal-choosing environments) or ``highway`` (plain highway-env).
+        out: the run directory: new, empty or missing (created; see the module docstring); with
+            ``resume``, the folder of the run to go on with.
+        env_kind: ``safe`` (the goal-choosing environments), ``plain`` (no layer, highway-env's
+            meta-actions, on the scenario's world) or ``highway`` (plain highway-env).
         seed: seeds the model and the training environments, in [0, 2^32 - 1].
         progress_bar: SB3's progress bar.
         evaluate_after: run the evaluation (``train.eval_episodes`` episodes) and write eval.json.
@@ -348,11 +377,13 @@ def train(
             the expert prior, or what the environments or the model refuse, e.g. the action space
             or the scenario's MPC), before anything is written to ``out``.
         mmpc.files.OutputFolderError: ``out`` cannot be written, is held by another run or holds
-            files (:func:`mmpc.rl.folders.run_folder`).
+            files (:func:`mmpc.rl.folders.run_folder`); with ``resume``: it holds no run of these
+            settings, or no checkpoint of it.
     """
-    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+    from stable_baselines3.common.callbacks import CallbackList
 
     from mmpc.rl.callbacks import CrashLog, SafetyTensorboardCallback
+    from mmpc.rl.checkpoints import Checkpoints
 
     if algo not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algo!r}; expected one of {sorted(ALGORITHMS)}")
@@ -371,26 +402,32 @@ def train(
     kwargs = algorithm_kwargs(config, algo)
     torch.set_num_threads(config.train.torch_threads)
     out = Path(out)
-    with run_folder(out, RUN_LOCK, "another `mmpc rl train` run", fresh="a training run neither resumes nor overwrites one",
-                    describe=_held_run):
-        env, model = _start(config, algo, env_kind, continuous, seed, out, kwargs, expert_prior)
-        run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete",
-               "timesteps": timesteps, "seed": seed, "config": to_dict(config)}
-        (out / "config.yaml").write_text(yaml.safe_dump(run, sort_keys=False))
-        # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
-        (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
+    run = {"algo": algo, "env": env_kind, "action": "continuous" if continuous else "discrete",
+           "timesteps": timesteps, "seed": seed, "config": to_dict(config)}
+    fresh = None if resume else "a training run neither resumes nor overwrites one (--resume goes on with it)"
+    with run_folder(out, RUN_LOCK, "another `mmpc rl train` run", fresh=fresh, describe=_held_run):
+        checkpoint = _resume_point(out, run) if resume else None
+        env, model = _start(config, algo, env_kind, continuous, seed, out, kwargs, expert_prior, checkpoint)
+        if checkpoint is None:
+            # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
+            (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
+        else:
+            run["resumed_at"] = _recorded_run(out).get("resumed_at", []) + [checkpoint.steps]
+            logger.info("%s resumes from %s (%d steps)", out, checkpoint.model.name, checkpoint.steps)
+        atomic_write_text(out / "config.yaml", yaml.safe_dump(run, sort_keys=False))
         rollout = rollout_steps(model)
         if rollout is not None and timesteps % rollout:
             logger.warning("%s trains whole rollouts of %d steps (n_envs = %d): %d timesteps round up to %d (config.yaml "
                            "records trained_timesteps)", algo, rollout, config.train.n_envs, timesteps,
                            math.ceil(timesteps / rollout) * rollout)
-        checkpoints = CheckpointCallback(max(config.train.checkpoint_every // config.train.n_envs, 1),
-                                         str(out / "checkpoints"), name_prefix=algo)
+        checkpoints = Checkpoints(config.train.checkpoint_every, out / "checkpoints", algo)
         safety = SafetyTensorboardCallback(config.train.log_every,
-                                           crash_log=CrashLog(out / "crashes.csv", config.scenario.frequency))
+                                           crash_log=CrashLog(out / "crashes.csv", config.scenario.frequency,
+                                                              append=checkpoint is not None))
         start = time.perf_counter()
         try:
-            model.learn(timesteps, callback=CallbackList([checkpoints, safety]), tb_log_name=algo, progress_bar=progress_bar)
+            model.learn(max(timesteps - model.num_timesteps, 0), callback=CallbackList([checkpoints, safety]),
+                        tb_log_name=algo, progress_bar=progress_bar, reset_num_timesteps=checkpoint is None)
         finally:
             env.close()
         train_s = time.perf_counter() - start
@@ -407,17 +444,54 @@ def train(
         return summary
 
 
-def _start(config: RLConfig, algo: str, env_kind: str, continuous: bool, seed: int, out: Path, kwargs: dict,
-           expert_prior: float) -> tuple[Any, Any]:
-    """The training environments and the model, built before the run writes anything in ``out``:
-    a setting they refuse (a ``ValueError`` of the environments, the MPC, stable-baselines3 or
-    torch) raises :class:`mmpc.config.ConfigError` with its message."""
+def _recorded_run(out: Path) -> dict:
     try:
-        env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=seed)
+        record = yaml.safe_load((out / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
+def _resume_point(out: Path, run: dict) -> "Checkpoint":
+    """The checkpoint a resumed run starts from: the latest of the run in ``out``, whose recorded
+    settings must be ``run``'s (all but the budget)."""
+    from mmpc.files import OutputFolderError
+    from mmpc.rl.checkpoints import latest_checkpoint
+
+    recorded = _recorded_run(out)
+    if not recorded:
+        raise OutputFolderError(f"`out` {out} holds no training run to resume (no readable config.yaml); start one there "
+                                "without --resume")
+    keys = ("algo", "env", "action", "seed", "config")
+    differing = [key for key in keys if recorded.get(key) != run[key]]
+    if differing:
+        raise OutputFolderError(f"`out` {out} holds {_held_run(out)}; resuming it needs its own settings, these differ in "
+                                f"{differing} (resume with the run's algorithm, environment, seed and config)")
+    checkpoint = latest_checkpoint(out / "checkpoints", run["algo"])
+    if checkpoint is None:
+        raise OutputFolderError(f"`out` {out} holds no checkpoint of {run['algo']} to resume from (checkpoints/ is empty); "
+                                "start the run afresh in an empty folder")
+    return checkpoint
+
+
+def _start(config: RLConfig, algo: str, env_kind: str, continuous: bool, seed: int, out: Path, kwargs: dict,
+           expert_prior: float, checkpoint: Optional["Checkpoint"] = None) -> tuple[Any, Any]:
+    """The training environments and the model (new, or read from ``checkpoint``), built before the
+    run writes anything in ``out``: a setting they refuse (a ``ValueError`` of the environments, the
+    MPC, stable-baselines3 or torch) raises :class:`mmpc.config.ConfigError` with its message."""
+    # a resumed run's environments draw other episodes than its start's did
+    env_seed = seed if checkpoint is None else (seed + checkpoint.steps) % (MAX_SEED + 1)
+    try:
+        env = make_training_env(config, env_kind=env_kind, continuous=continuous, seed=env_seed)
         try:
             # the policy stays on the CPU and reads numpy whatever --device says (that is the MPC's and the simulator's)
-            model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"),
-                                          **{"device": "cpu", **kwargs})
+            if checkpoint is None:
+                model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, tensorboard_log=str(out / "tb"),
+                                              **{"device": "cpu", **kwargs})
+            else:
+                model = algorithm_class(algo).load(checkpoint.model, env=env, device="cpu", tensorboard_log=str(out / "tb"))
+                if checkpoint.replay_buffer is not None:
+                    model.load_replay_buffer(checkpoint.replay_buffer)
         except BaseException:
             env.close()
             raise
@@ -425,7 +499,7 @@ def _start(config: RLConfig, algo: str, env_kind: str, continuous: bool, seed: i
         raise
     except ValueError as error:
         raise ConfigError(f"{algo} on {env_kind} cannot start: {error}") from error
-    if expert_prior > 0:
+    if expert_prior > 0 and checkpoint is None:
         prefer_expert_action(model, expert_prior)
     return env, model
 

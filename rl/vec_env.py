@@ -1,7 +1,8 @@
 """The safe environments as vector environments: E environments of one world (highway-env's
 episodes or the batched simulator, ``scenario.sim``) with ONE optimizer call per simulation frame
 for all of them, as a stable-baselines3 ``VecEnv`` (:class:`SafeVecEnv`) and a gymnasium 1.x
-``VectorEnv`` (:class:`SafeVectorEnv`); both are views of :class:`mmpc.rl.engine.SafeEnvs`.
+``VectorEnv`` (:class:`SafeVectorEnv`); both are views of :class:`mmpc.rl.engine.SafeEnvs`. The
+plain environments (:class:`mmpc.rl.plain.PlainEnvs`, no layer) as a ``VecEnv``: :class:`PlainVecEnv`.
 
 Observations, actions, rewards and ``info`` mean what they mean in :mod:`mmpc.rl.envs`.
 Episodes that end are started again at once from a new seed (SB3's auto-reset; gymnasium's
@@ -20,6 +21,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, Vec
 
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.engine import SafeEnvs
+from mmpc.rl.plain import PlainEnvs, plain_action_space, plain_observation_space
 from mmpc.rl.safety import SafetyLayer
 from mmpc.rl.spaces import action_space, observation_space
 from mmpc.scenario import ScenarioConfig
@@ -46,25 +48,17 @@ class TensorVecEnv(VecEnv):
         return [False for _ in self._get_indices(indices)]
 
 
-class SafeVecEnv(TensorVecEnv):
-    """E safe environments on the world of ``scenario.sim`` as a stable-baselines3 ``VecEnv``, ONE
-    optimizer call per frame for all of them.
+class EngineVecEnv(TensorVecEnv):
+    """A stable-baselines3 ``VecEnv`` over an engine of E environments (``batch``: ``reset(seeds)``,
+    ``advance(actions)``, ``close()``, as :class:`mmpc.rl.engine.SafeEnvs`). An environment whose
+    episode ends is reset at once; its last observation is in ``info["terminal_observation"]`` and
+    ``info["TimeLimit.truncated"]`` says whether time ran out."""
 
-    Arguments as :class:`mmpc.rl.engine.SafeEnvs`. An environment whose episode ends is reset at
-    once; its last observation is in ``info["terminal_observation"]`` and
-    ``info["TimeLimit.truncated"]`` says whether time ran out.
-    """
-
-    def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
-                 continuous: bool = False, seed: Optional[int] = None) -> None:
-        self.batch = SafeEnvs(num_envs, scenario, config, reward, continuous=continuous, seed=seed)
+    def __init__(self, batch: Any, observation_space: gym.Space, action_space: gym.Space) -> None:
+        self.batch = batch
         self.render_mode = None
-        super().__init__(num_envs, observation_space(config), action_space(config, continuous))
+        super().__init__(batch.num_envs, observation_space, action_space)
         self._actions: Sequence[Any] = ()
-
-    @property
-    def layer(self) -> SafetyLayer:
-        return self.batch.layer
 
     def close(self) -> None:
         """Release the world (highway-env's episodes)."""
@@ -89,6 +83,30 @@ class SafeVecEnv(TensorVecEnv):
                 info["terminal_observation"] = step.final[index]
                 self.reset_infos[index] = step.reset_infos[index]
         return step.observations, step.rewards.astype(np.float32), dones, step.infos
+
+
+class SafeVecEnv(EngineVecEnv):
+    """E safe environments on the world of ``scenario.sim`` as a stable-baselines3 ``VecEnv``, ONE
+    optimizer call per frame for all of them. Arguments as :class:`mmpc.rl.engine.SafeEnvs`."""
+
+    def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
+                 continuous: bool = False, seed: Optional[int] = None) -> None:
+        super().__init__(SafeEnvs(num_envs, scenario, config, reward, continuous=continuous, seed=seed),
+                         observation_space(config), action_space(config, continuous))
+
+    @property
+    def layer(self) -> SafetyLayer:
+        return self.batch.layer
+
+
+class PlainVecEnv(EngineVecEnv):
+    """E plain environments (no layer, highway-env's meta-actions) on the world of ``scenario.sim``
+    as a stable-baselines3 ``VecEnv``. Arguments as :class:`mmpc.rl.plain.PlainEnvs`."""
+
+    def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
+                 seed: Optional[int] = None) -> None:
+        super().__init__(PlainEnvs(num_envs, scenario, config, reward, seed=seed), plain_observation_space(config),
+                         plain_action_space())
 
 
 class SafeVectorEnv(gym.vector.VectorEnv):

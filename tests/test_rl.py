@@ -19,7 +19,7 @@ from mmpc.highway.runner import run_episode
 from mmpc.drivers import Observation, make_driver
 from mmpc.highway import HighwayEpisode
 from mmpc.problem import ego_state
-from mmpc.config import from_dict, load_config, to_dict
+from mmpc.config import ConfigError, from_dict, load_config, to_dict
 from mmpc.rl.config import RLConfig, TrainConfig
 from mmpc.rl.reward import frame_reward
 from mmpc.rl.safety import SafetyLayer
@@ -220,6 +220,66 @@ def test_plain_highway_baseline_trains_and_its_meta_actions_drive(smoke, tmp_pat
     assert all(abs(record.y - 4.0 * round(record.y / 4.0)) < 2.0 for record in result.records)
 
 
+def test_the_plain_baseline_trains_on_the_batched_world_and_drives_both_worlds_through_the_runner(smoke, tmp_path, one_thread):
+    """--env plain: no layer, the recipe's world and traffic; the run drives as MetaActionDriver in
+    either world, and its evaluation (highway-env, the reference) counts no interventions."""
+    from mmpc.rl.runs import load_run
+    from mmpc.rl.train import train
+
+    out = tmp_path / "plain"
+    config = dataclasses.replace(smoke, scenario=smoke.scenario.replace(sim="batched"))
+    summary = train(config, "ppo", 64, out, env_kind="plain", seed=1)
+    assert summary["env"] == "plain" and summary["intervention_rate"] is None and summary["episodes"] == smoke.train.eval_episodes
+    run = load_run(out / "model.zip")
+    assert run.env_kind == "plain" and run.model.action_space.n == 5 and run.model.observation_space.shape == (25,)
+    for sim in ("batched", "highway-env"):
+        scenario = smoke.scenario.replace(sim=sim)
+        driver = make_driver(f"sb3:{out / 'model.zip'}", scenario)
+        assert type(driver).__name__ == "MetaActionDriver"
+        result = run_episode(scenario, seed=2, driver=driver)
+        assert len(result.records) == 20 and all(15.0 < record.v < 32.0 for record in result.records)
+    with pytest.raises(ConfigError, match="DiscreteMetaAction"):
+        train(config, "sac", 16, tmp_path / "plain_sac", env_kind="plain")
+
+
+def test_a_stopped_run_resumes_from_its_latest_checkpoint(smoke, tmp_path, one_thread):
+    """--resume: the run goes on from its latest checkpoint (the model's steps, DQN's replay buffer,
+    the TensorBoard run and the crash log continued); other settings or no checkpoint are refused."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from mmpc.files import OutputFolderError
+    from mmpc.rl.checkpoints import latest_checkpoint
+    from mmpc.rl.train import train
+
+    config = dataclasses.replace(smoke, scenario=smoke.scenario.replace(sim="batched"),
+                                 train=dataclasses.replace(smoke.train, n_envs=4, checkpoint_every=32))
+    out = tmp_path / "dqn"
+    train(config, "dqn", 48, out, env_kind="plain", evaluate_after=False)
+    (out / "checkpoints" / "dqn_48_steps.zip").unlink()  # as if stopped before its end
+    (out / "crashes.csv").write_text((out / "crashes.csv").read_text() + "40,0,7,3,0.6,[1, 1, 1]\n")
+    checkpoint = latest_checkpoint(out / "checkpoints", "dqn")
+    assert checkpoint.steps == 32 and checkpoint.replay_buffer is None  # the buffer of 48 went with a newer one
+    with pytest.raises(OutputFolderError, match="neither resumes nor overwrites"):
+        train(config, "dqn", 96, out, env_kind="plain", evaluate_after=False)
+    with pytest.raises(OutputFolderError, match=r"differ in \['seed'\]"):
+        train(config, "dqn", 96, out, env_kind="plain", seed=5, evaluate_after=False, resume=True)
+    train(config, "dqn", 96, out, env_kind="plain", evaluate_after=False, resume=True)
+    record = yaml.safe_load((out / "config.yaml").read_text())
+    assert record["resumed_at"] == [32] and record["trained_timesteps"] == 96 and record["timesteps"] == 96
+    assert latest_checkpoint(out / "checkpoints", "dqn").steps == 96
+    assert sorted(p.name for p in (out / "checkpoints").glob("*.pkl")) == ["dqn_replay_buffer_96_steps.pkl"]
+    assert "40,0,7,3,0.6" in (out / "crashes.csv").read_text()  # the rows before the resume are kept
+    (folder,) = (out / "tb").iterdir()  # one TensorBoard run, its steps going on past the checkpoint
+    events = EventAccumulator(str(folder))
+    events.Reload()
+    steps = [event.step for event in events.Scalars("driving/mean_speed")]
+    assert max(steps) == 96 and 32 in steps
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(OutputFolderError, match="no training run to resume"):
+        train(config, "dqn", 96, empty, env_kind="plain", evaluate_after=False, resume=True)
+
+
 def test_rl_command_lines_reject_bad_arguments(capsys, tmp_path):
     import re
 
@@ -345,7 +405,7 @@ def test_meta_action_steering_turns_highway_envs_bicycle_at_the_asked_rate(lengt
     from highway_env.road.road import Road, RoadNetwork
     from highway_env.vehicle.kinematics import Vehicle
 
-    from mmpc.rl.driver import bicycle_steering
+    from mmpc.rl.meta_actions import bicycle_steering
 
     rates, speeds = torch.tensor([-0.3, -0.05, 0.0, 0.02, 0.25]), torch.tensor([8.0, 15.0, 20.0, 25.0, 30.0])
     steering = bicycle_steering(rates, speeds, length)
