@@ -40,7 +40,7 @@ SUPPORTED_ACTIONS: dict[str, tuple[str, ...]] = {"dqn": ("discrete",), "ppo": ("
 #: the agent would read inputs that mean something else (:func:`require_same_agent_inputs`).
 AGENT_INPUTS = ("action", "scenario.lanes", "scenario.frequency", "env.decision_frames", "env.lane_offsets",
                 "env.speeds", "env.lateral_range", "env.speed_range", "env.expert_action", "env.solver_features",
-                "env.feature_cost_scale", "env.kinematics_vehicles")
+                "env.feature_cost_scale", "env.kinematics_vehicles", "env.meta_speeds")
 
 
 #: The scenario of the RL environments (``configs/scenarios/rl_highway_fast.yaml``): highway-env's
@@ -173,6 +173,10 @@ class SafeEnvConfig:
             ``hypot(dv / intervention_speed_scale, dy / lane_width)``: a lane weighs like this
             speed difference [m/s].
         kinematics_vehicles: rows of highway-env's ``Kinematics`` observation (ego first).
+        meta_speeds: the plain agents' (``--env plain`` and ``highway``) target speeds, highway-env's
+            ``DiscreteMetaAction`` ``target_speeds``: ascending and evenly spaced [m/s]
+            (highway-env's default 20, 25, 30; a set that reaches the traffic's speeds lets a
+            plain agent follow it).
         verify: every frame's command is taken only if it keeps a verified way out
             (:class:`mmpc.verify.Guard`: else braking, the plan's other feasible candidates, a
             fail-safe); an override counts as an intervention. On by default, in both worlds:
@@ -195,6 +199,7 @@ class SafeEnvConfig:
     intervention_penalty: float = 0.1
     intervention_speed_scale: float = 5.0
     kinematics_vehicles: int = 5
+    meta_speeds: tuple[float, ...] = (20.0, 25.0, 30.0)
     verify: bool = True
 
     def __post_init__(self) -> None:
@@ -219,6 +224,12 @@ class SafeEnvConfig:
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
         require_non_negative(where, intervention_penalty=self.intervention_penalty)
         require_int(where, low=1, kinematics_vehicles=self.kinematics_vehicles)
+        speeds = self.meta_speeds
+        listed = isinstance(speeds, tuple) and len(speeds) >= 2 and all(is_finite_number(v) for v in speeds)
+        steps = [b - a for a, b in zip(speeds, speeds[1:])] if listed else [0.0]
+        require(listed and min(steps) > 0 and max(steps) - min(steps) <= 1e-6 * max(steps),
+                f"{where}: `meta_speeds` must be >= 2 ascending, evenly spaced speeds [m/s] (MDPVehicle steps through them "
+                f"by index); got {speeds!r}")
         require(isinstance(self.verify, bool), f"{where}: `verify` must be true or false; got {self.verify!r}")
 
     @property

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from mmpc.drivers import Candidates, Decision, Driver, Observation
-from mmpc.rl.meta_actions import MetaTargets, apply_meta_actions, meta_command, start_targets
+from mmpc.rl.meta_actions import MetaActions, MetaTargets
 
 if TYPE_CHECKING:
     from mmpc.rl.agent_step import AgentStep
@@ -250,17 +250,17 @@ class ContinuousActionDriver(Driver):
 class MetaActionDriver(Driver):
     """A plain agent with highway-env's ``DiscreteMetaAction`` (0 LANE_LEFT, 1 IDLE, 2 LANE_RIGHT,
     3 FASTER, 4 SLOWER), executed as highway-env's ``MDPVehicle`` executes it
-    (:mod:`mmpc.rl.meta_actions`, the plain environments' controller): a new meta-action every
-    ``decision_frames`` frames, the lane and speed controller's command at every frame (L the
-    scenario's vehicle length, highway-env's 5 m unless ``vehicle_size`` says otherwise)."""
+    (:class:`mmpc.rl.meta_actions.MetaActions`, the plain environments' controller, with the run's
+    ``env.meta_speeds``): a new meta-action every ``decision_frames`` frames, the lane and speed
+    controller's command at every frame (L the scenario's vehicle length, highway-env's 5 m
+    unless ``vehicle_size`` says otherwise)."""
 
     name = "sb3"
 
     def __init__(self, run: "TrainedRun", scenario: "ScenarioConfig") -> None:
         self.model = run.model
         self.vehicles = run.config.env.kinematics_vehicles
-        self.road = scenario.road
-        self.length = scenario.vehicle[0]
+        self.meta = MetaActions(scenario.road, scenario.vehicle[0], run.config.env.meta_speeds)
         self.hold = _Hold(run.config.env.decision_frames)
         self.targets: dict[int, tuple[int, int]] = {}  # environment -> (lane, speed index)
 
@@ -274,7 +274,7 @@ class MetaActionDriver(Driver):
         ego = observation.ego.to(torch.float64).cpu()
         new = [row for row, env in enumerate(ids) if env not in self.targets]
         if new:
-            started = start_targets(ego[new], self.road)
+            started = self.meta.start(ego[new])
             self.targets.update((ids[row], (int(lane), int(index)))
                                 for row, lane, index in zip(new, started.lane, started.speed_index))
         lanes, indices = zip(*(self.targets[env] for env in ids))
@@ -284,14 +284,13 @@ class MetaActionDriver(Driver):
             actions, _ = self.model.predict(_flat_kinematics(observation, due, self.vehicles), deterministic=True)
             actions = np.asarray(actions).reshape(-1)
             rows = torch.tensor(due)
-            moved = apply_meta_actions(MetaTargets(targets.lane[rows], targets.speed_index[rows]),
-                                       torch.as_tensor(actions), ego[rows], self.road)
+            moved = self.meta.apply(targets.select(rows), torch.as_tensor(actions), ego[rows])
             targets.lane[rows], targets.speed_index[rows] = moved.lane, moved.speed_index
             for row, action in zip(due, actions):
                 self.targets[ids[row]] = (int(targets.lane[row]), int(targets.speed_index[row]))
                 self.hold.set(ids[row], int(action))
         self.hold.tick(ids)
-        acceleration, steering = meta_command(targets, ego, self.road, self.length)
+        acceleration, steering = self.meta.command(targets, ego)
         return Decision.command_only(acceleration.to(torch.float32), steering.to(torch.float32),
                                      (time.perf_counter() - start) * 1e3)
 

@@ -4,11 +4,12 @@ A meta-action moves the ego's targets; a lane and speed controller turns the tar
 (acceleration, steering) command at every simulation frame. highway-env's laws (``ControlledVehicle``,
 ``MDPVehicle``, HighwayEnv 1.x):
 
-- targets: a lane and an index into the target speeds (20, 25, 30) m/s. FASTER / SLOWER set the
-  index to the one nearest the *current* speed, plus or minus one (clamped); LANE_LEFT /
-  LANE_RIGHT move the *target* lane by one (clamped to the road) where the new lane is reachable
-  (its centre within two lane widths of the ego); IDLE keeps both. An ego starts with the lane
-  it is in and the speed of the set nearest its own;
+- targets: a lane and an index into the target speeds (``env.meta_speeds``; highway-env's
+  default (20, 25, 30) m/s). FASTER / SLOWER set the index to the one nearest the *current*
+  speed, plus or minus one (clamped); LANE_LEFT / LANE_RIGHT move the *target* lane by one
+  (clamped to the road) where the new lane is reachable (its centre within two lane widths of
+  the ego); IDLE keeps both. An ego starts with the lane it is in and the speed of the set
+  nearest its own;
 - speed: ``acceleration = (v_target - v) / 0.6 s``;
 - lane: lateral speed command ``-(y - y_lane) / 0.6 s``, heading reference ``asin(v_lat / v)``
   (within +-45 deg), heading rate ``(psi_ref - psi_body) / 0.2 s``, the bicycle's steering for
@@ -22,7 +23,7 @@ centre at ``y = k * lane_width``; lane 0 is highway-env's leftmost, so LANE_LEFT
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import torch
 
@@ -32,7 +33,7 @@ from mmpc.road import Road
 #: highway-env's DiscreteMetaAction indices.
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = range(5)
 META_ACTIONS = ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
-#: MDPVehicle's target speeds [m/s].
+#: MDPVehicle's default target speeds [m/s].
 TARGET_SPEEDS = (20.0, 25.0, 30.0)
 #: ControlledVehicle's time constants [s] and steering limit [rad].
 TAU_ACCELERATION, TAU_HEADING, TAU_LATERAL = 0.6, 0.2, 0.6
@@ -42,47 +43,80 @@ REACH_LANE_WIDTHS = 2.0
 
 
 class MetaTargets(NamedTuple):
-    """The targets of E egos: ``lane`` (E,) int64 lane index, ``speed_index`` (E,) int64 into
-    :data:`TARGET_SPEEDS`."""
+    """The targets of E egos: ``lane`` (E,) int64 lane index, ``speed_index`` (E,) int64 into the target speeds."""
 
     lane: torch.Tensor
     speed_index: torch.Tensor
 
-    def speeds(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        """(E,) target speeds [m/s]."""
-        return torch.tensor(TARGET_SPEEDS, dtype=dtype, device=self.speed_index.device)[self.speed_index]
+    def select(self, rows: torch.Tensor) -> "MetaTargets":
+        """The targets of the egos ``rows`` (R,)."""
+        return MetaTargets(self.lane[rows], self.speed_index[rows])
 
 
-def nearest_speed_index(speed: torch.Tensor) -> torch.Tensor:
-    """(E,) int64 index of the target speed nearest ``speed`` (E,) [m/s] (MDPVehicle's ``speed_to_index``)."""
-    low, high, top = TARGET_SPEEDS[0], TARGET_SPEEDS[-1], len(TARGET_SPEEDS) - 1
-    return torch.round((speed.to(torch.float64) - low) / (high - low) * top).clamp(0, top).to(torch.int64)
+class MetaActions:
+    """The meta-actions and the lane and speed controller of E egos on ``road``.
 
-
-def start_targets(ego: torch.Tensor, road: Road) -> MetaTargets:
-    """The targets of egos ``ego`` (E, 6) (road frame, :data:`mmpc.EGO_FIELDS`) as highway-env
-    creates an MDPVehicle: its lane and the target speed nearest its speed."""
-    return MetaTargets(road.lane_index(ego[:, EGO_Y]), nearest_speed_index(ego[:, EGO_V]))
-
-
-def apply_meta_actions(targets: MetaTargets, actions: torch.Tensor, ego: torch.Tensor, road: Road) -> MetaTargets:
-    """The targets after meta-actions ``actions`` (E,) (indices of :data:`META_ACTIONS`) at states ``ego`` (E, 6).
-
-    Raises:
-        ValueError: an action outside [0, 4].
+    Args:
+        road: the road (lane k's centre at ``y = k * lane_width``).
+        length: the vehicle's length [m] (the bicycle's wheelbase as highway-env takes it).
+        speeds: the target speeds, ascending and evenly spaced as MDPVehicle assumes [m/s]
+            (``env.meta_speeds``; highway-env's default :data:`TARGET_SPEEDS`).
     """
-    actions = torch.as_tensor(actions, device=targets.lane.device).to(torch.int64).reshape(-1)
-    if actions.numel() and (int(actions.min()) < 0 or int(actions.max()) >= len(META_ACTIONS)):
-        raise ValueError(f"meta-actions are indices of {META_ACTIONS}; got {sorted(set(actions.tolist()))}")
-    step = (actions == LANE_RIGHT).to(torch.int64) - (actions == LANE_LEFT).to(torch.int64)
-    lane = (targets.lane + step).clamp(0, road.num_lanes - 1)
-    reachable = (lane * road.lane_width - ego[:, EGO_Y].to(torch.float64)).abs() <= REACH_LANE_WIDTHS * road.lane_width
-    lane = torch.where(reachable, lane, targets.lane)
-    nearest = nearest_speed_index(ego[:, EGO_V])
-    top = len(TARGET_SPEEDS) - 1
-    speed_index = torch.where(actions == FASTER, (nearest + 1).clamp(max=top), targets.speed_index)
-    speed_index = torch.where(actions == SLOWER, (nearest - 1).clamp(min=0), speed_index)
-    return MetaTargets(lane, speed_index)
+
+    def __init__(self, road: Road, length: float, speeds: Sequence[float] = TARGET_SPEEDS) -> None:
+        speeds = tuple(float(v) for v in speeds)
+        if len(speeds) < 2 or any(b <= a for a, b in zip(speeds, speeds[1:])):
+            raise ValueError(f"target speeds must be >= 2 ascending values [m/s]; got {speeds}")
+        self.road = road
+        self.length = float(length)
+        self.speeds = speeds
+
+    def nearest_index(self, speed: torch.Tensor) -> torch.Tensor:
+        """(E,) int64 index of the target speed nearest ``speed`` (E,) [m/s] (MDPVehicle's ``speed_to_index``)."""
+        low, high, top = self.speeds[0], self.speeds[-1], len(self.speeds) - 1
+        return torch.round((speed.to(torch.float64) - low) / (high - low) * top).clamp(0, top).to(torch.int64)
+
+    def target_speeds(self, targets: MetaTargets) -> torch.Tensor:
+        """(E,) float64 target speeds [m/s]."""
+        return torch.tensor(self.speeds, dtype=torch.float64, device=targets.speed_index.device)[targets.speed_index]
+
+    def start(self, ego: torch.Tensor) -> MetaTargets:
+        """The targets of egos ``ego`` (E, 6) (road frame, :data:`mmpc.EGO_FIELDS`) as highway-env
+        creates an MDPVehicle: its lane and the target speed nearest its speed."""
+        return MetaTargets(self.road.lane_index(ego[:, EGO_Y]), self.nearest_index(ego[:, EGO_V]))
+
+    def apply(self, targets: MetaTargets, actions: torch.Tensor, ego: torch.Tensor) -> MetaTargets:
+        """The targets after meta-actions ``actions`` (E,) (indices of :data:`META_ACTIONS`) at states ``ego`` (E, 6).
+
+        Raises:
+            ValueError: an action outside [0, 4].
+        """
+        road = self.road
+        actions = torch.as_tensor(actions, device=targets.lane.device).to(torch.int64).reshape(-1)
+        if actions.numel() and (int(actions.min()) < 0 or int(actions.max()) >= len(META_ACTIONS)):
+            raise ValueError(f"meta-actions are indices of {META_ACTIONS}; got {sorted(set(actions.tolist()))}")
+        step = (actions == LANE_RIGHT).to(torch.int64) - (actions == LANE_LEFT).to(torch.int64)
+        lane = (targets.lane + step).clamp(0, road.num_lanes - 1)
+        reachable = (lane * road.lane_width - ego[:, EGO_Y].to(torch.float64)).abs() <= REACH_LANE_WIDTHS * road.lane_width
+        lane = torch.where(reachable, lane, targets.lane)
+        nearest = self.nearest_index(ego[:, EGO_V])
+        top = len(self.speeds) - 1
+        speed_index = torch.where(actions == FASTER, (nearest + 1).clamp(max=top), targets.speed_index)
+        speed_index = torch.where(actions == SLOWER, (nearest - 1).clamp(min=0), speed_index)
+        return MetaTargets(lane, speed_index)
+
+    def command(self, targets: MetaTargets, ego: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The controller's command towards ``targets`` at states ``ego`` (E, 6): (E,) acceleration
+        [m/s^2] and (E,) steering [rad], float64."""
+        ego = ego.to(torch.float64)
+        v = ego[:, EGO_V].clamp_min(1e-3)
+        body_heading = ego[:, EGO_PSI] - bicycle_slip(ego[:, EGO_PSIDOT], v, self.length)  # psi: the direction of motion
+        lateral_speed = -(ego[:, EGO_Y] - targets.lane.to(torch.float64) * self.road.lane_width) / TAU_LATERAL
+        heading_ref = torch.asin((lateral_speed / v).clamp(-1.0, 1.0)).clamp(-math.pi / 4, math.pi / 4)
+        rate = (heading_ref - body_heading) / TAU_HEADING
+        steering = bicycle_steering(rate, v, self.length).clamp(-MAX_STEERING, MAX_STEERING)
+        acceleration = (self.target_speeds(targets) - ego[:, EGO_V]) / TAU_ACCELERATION
+        return acceleration, steering
 
 
 def bicycle_slip(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
@@ -96,22 +130,3 @@ def bicycle_slip(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torc
 def bicycle_steering(rate: torch.Tensor, speed: torch.Tensor, length: float) -> torch.Tensor:
     """The steering angle [rad] (``beta = atan(tan(delta) / 2)``) of :func:`bicycle_slip`'s slip."""
     return torch.atan(2 * torch.tan(bicycle_slip(rate, speed, length)))
-
-
-def meta_command(targets: MetaTargets, ego: torch.Tensor, road: Road, length: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The lane and speed controller's command towards ``targets`` at states ``ego`` (E, 6).
-
-    Args:
-        length: the vehicle's length [m] (the bicycle's wheelbase as highway-env takes it).
-
-    Returns:
-        (E,) acceleration [m/s^2] and (E,) steering [rad], float64.
-    """
-    ego = ego.to(torch.float64)
-    v = ego[:, EGO_V].clamp_min(1e-3)
-    body_heading = ego[:, EGO_PSI] - bicycle_slip(ego[:, EGO_PSIDOT], v, length)  # psi is the direction of motion
-    lateral_speed = -(ego[:, EGO_Y] - targets.lane.to(torch.float64) * road.lane_width) / TAU_LATERAL
-    heading_ref = torch.asin((lateral_speed / v).clamp(-1.0, 1.0)).clamp(-math.pi / 4, math.pi / 4)
-    steering = bicycle_steering((heading_ref - body_heading) / TAU_HEADING, v, length).clamp(-MAX_STEERING, MAX_STEERING)
-    acceleration = (targets.speeds() - ego[:, EGO_V]) / TAU_ACCELERATION
-    return acceleration, steering

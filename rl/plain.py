@@ -25,7 +25,7 @@ from mmpc.config import require_int
 from mmpc.highway.worlds import World, make_world
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.engine import SEED_RANGE, BatchStep
-from mmpc.rl.meta_actions import META_ACTIONS, MetaTargets, apply_meta_actions, meta_command, start_targets
+from mmpc.rl.meta_actions import META_ACTIONS, MetaActions, MetaTargets
 from mmpc.rl.reward import task_rewards
 from mmpc.rl.spaces import KINEMATICS_FEATURES, check_index
 from mmpc.scenario import ScenarioConfig
@@ -48,8 +48,8 @@ class PlainEnvs:
         num_envs: E.
         scenario: the driving scenario (its ``sim`` chooses the world, its ``duration`` is the
             episode length, its ``device`` where the batched world runs).
-        config: the environment settings of the recipe; the plain agent reads ``decision_frames``
-            and ``kinematics_vehicles`` (the goal settings are the layer's).
+        config: the environment settings of the recipe; the plain agent reads ``decision_frames``,
+            ``kinematics_vehicles`` and ``meta_speeds`` (the goal settings are the layer's).
         reward: reward settings (``intervention_penalty`` never applies: nothing intervenes).
         seed: seeds the draws of episode seeds for resets that get none.
         device: where the batched world runs; default the run's (:func:`mmpc.device.run_device`).
@@ -63,6 +63,7 @@ class PlainEnvs:
         self.config = config
         self.reward = reward
         self.device = device
+        self.meta = MetaActions(scenario.road, scenario.vehicle[0], config.meta_speeds)
         self.rng = np.random.default_rng(seed)
         self.world: Optional[World] = None
         self.seeds: list[int] = []
@@ -80,7 +81,7 @@ class PlainEnvs:
         return np.clip(kinematics.reshape(kinematics.shape[0], -1), -1.0, 1.0).astype(np.float32)
 
     def _start_targets(self, rows: torch.Tensor) -> None:
-        started = start_targets(self._egos(rows), self.scenario.road)
+        started = self.meta.start(self._egos(rows))
         self.targets.lane[rows], self.targets.speed_index[rows] = started.lane, started.speed_index
 
     def reset(self, seeds: Sequence[Optional[int]]) -> tuple[np.ndarray, list[dict]]:
@@ -124,7 +125,7 @@ class PlainEnvs:
         if bool(done.any()):
             raise RuntimeError(f"environments {done.nonzero()[:, 0].tolist()} are over: call reset() first")
         everyone = torch.arange(self.num_envs)
-        self.targets = apply_meta_actions(self.targets, checked, self._egos(everyone), self.scenario.road)
+        self.targets = self.meta.apply(self.targets, checked, self._egos(everyone))
         rewards = torch.zeros(self.num_envs, dtype=torch.float64)
         speed_sum = torch.zeros(self.num_envs, dtype=torch.float64)
         frames = torch.zeros(self.num_envs, dtype=torch.int64)
@@ -132,8 +133,7 @@ class PlainEnvs:
             rows = (~self.world.done().cpu()).nonzero()[:, 0]
             if rows.numel() == 0:
                 break
-            acceleration, steering = meta_command(MetaTargets(self.targets.lane[rows], self.targets.speed_index[rows]),
-                                                  self._egos(rows), self.scenario.road, self.scenario.vehicle[0])
+            acceleration, steering = self.meta.command(self.targets.select(rows), self._egos(rows))
             world_rows = rows.to(self.world.device)
             self.world.apply(world_rows, acceleration.to(self.world.device, self.world.dtype),
                              steering.to(self.world.device, self.world.dtype))

@@ -89,7 +89,7 @@ class HighwayBaseline(gym.Wrapper):
         values["observation"] = {"type": "Kinematics", "vehicles_count": config.env.kinematics_vehicles}
         values["policy_frequency"] = scenario.frequency / frames
         if not continuous:
-            values["action"] = {"type": "DiscreteMetaAction"}
+            values["action"] = {"type": "DiscreteMetaAction", "target_speeds": list(config.env.meta_speeds)}
         super().__init__(gym.make(scenario.env_id, config=values))
         self.ego_speed = scenario.ego.speed
         self.frames = frames
@@ -106,7 +106,7 @@ class HighwayBaseline(gym.Wrapper):
         observation, info = self.env.reset(seed=seed, options=options)
         ego = self.env.unwrapped.vehicle
         ego.speed = self.ego_speed
-        if isinstance(ego, MDPVehicle):  # its targets as if created at that speed (mmpc.rl.meta_actions.start_targets)
+        if isinstance(ego, MDPVehicle):  # its targets as if created at that speed (mmpc.rl.meta_actions.MetaActions.start)
             ego.speed_index = ego.speed_to_index(ego.speed)
             ego.target_speed = ego.index_to_speed(ego.speed_index)
         return self.env.unwrapped.observation_type.observe(), dict(info, episode_seed=seed)

@@ -34,7 +34,7 @@ METRICS = (("collisions", "episodes with a collision"), ("fallback_steps", "fall
            ("short_ttc_steps", "steps with time to collision < 2 s"),
            ("near_lane_change_steps", "car-steps of lane changes near the ego"),
            ("min_clearance", "closest approach (ellipse-normalised)"), ("mean_speed", "mean speed [m/s]"),
-           ("meta_cost_mean", "meta cost (mean per step)"))
+           ("meta_cost_mean", "meta cost (mean per step)"), ("task_return", "task return (highway-env's reward)"))
 
 
 def _bounds(centre: Optional[float], interval: Optional[Sequence[float]]) -> tuple[float, float, float]:

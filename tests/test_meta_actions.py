@@ -12,16 +12,16 @@ import torch
 from mmpc.config import load_config
 from mmpc.highway.episode import RoadFrame, road_state
 from mmpc.rl.config import RLConfig
-from mmpc.rl.meta_actions import (FASTER, IDLE, LANE_LEFT, LANE_RIGHT, META_ACTIONS, SLOWER, apply_meta_actions,
-                                  meta_command, start_targets)
+from mmpc.rl.meta_actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, META_ACTIONS, SLOWER, TARGET_SPEEDS, MetaActions
 from mmpc.road import Road
 
 
-@pytest.mark.parametrize("speed", [25.0, 14.0])
-def test_meta_actions_command_what_highway_envs_mdp_vehicle_commands(speed):
+@pytest.mark.parametrize("speed, speeds", [(25.0, TARGET_SPEEDS), (14.0, TARGET_SPEEDS), (14.0, (0.0, 5.0, 10.0, 15.0, 20.0, 25.0, 30.0))])
+def test_meta_actions_command_what_highway_envs_mdp_vehicle_commands(speed, speeds):
     """Frame by frame, on highway-env's own road: a real MDPVehicle given a sequence of meta-actions
     (lane changes at the edge and in a row, speed steps at the ends of the set) and the meta-action
-    controller reading the road-frame state agree on the targets and on the command."""
+    controller reading the road-frame state agree on the targets and on the command, with
+    highway-env's target speeds and a set that reaches down to rest."""
     from highway_env.vehicle.controller import MDPVehicle
 
     env = gym.make("highway-v0", config={"action": {"type": "DiscreteMetaAction"}, "lanes_count": 4, "vehicles_count": 0,
@@ -30,11 +30,12 @@ def test_meta_actions_command_what_highway_envs_mdp_vehicle_commands(speed):
     highway = env.unwrapped
     ego = highway.vehicle
     ego.speed = speed  # an ego created at this speed targets the nearest speed of the set
-    ego = highway.vehicle = MDPVehicle(highway.road, ego.position, ego.heading, ego.speed)
+    ego = highway.vehicle = MDPVehicle(highway.road, ego.position, ego.heading, ego.speed, target_speeds=speeds)
     highway.road.vehicles = [ego]
     road, frame = Road(num_lanes=4, lane_width=4.0), RoadFrame.of(highway)
+    meta = MetaActions(road, ego.LENGTH, speeds)
     state = road_state(highway, frame, dtype=torch.float64).ego
-    targets = start_targets(state, road)
+    targets = meta.start(state)
     assert (int(targets.lane[0]), int(targets.speed_index[0])) == (ego.target_lane_index[2], ego.speed_index)
     actions = [LANE_LEFT, LANE_LEFT, IDLE, FASTER, FASTER, FASTER, LANE_RIGHT, LANE_RIGHT, LANE_RIGHT, IDLE, SLOWER,
                LANE_LEFT, SLOWER, SLOWER, IDLE, LANE_RIGHT, FASTER] + [IDLE] * 4
@@ -43,11 +44,11 @@ def test_meta_actions_command_what_highway_envs_mdp_vehicle_commands(speed):
         for first in (True, False):
             state = road_state(highway, frame, dtype=torch.float64).ego
             if first:
-                targets = apply_meta_actions(targets, torch.tensor([action]), state, road)
+                targets = meta.apply(targets, torch.tensor([action]), state)
                 ego.act(META_ACTIONS[action])
             highway.road.act()
-            assert (int(targets.lane[0]), float(targets.speeds()[0])) == (ego.target_lane_index[2], ego.target_speed)
-            acceleration, steering = meta_command(targets, state, road, ego.LENGTH)
+            assert (int(targets.lane[0]), float(meta.target_speeds(targets)[0])) == (ego.target_lane_index[2], ego.target_speed)
+            acceleration, steering = meta.command(targets, state)
             commands.append(((float(acceleration), float(steering)), (ego.action["acceleration"], ego.action["steering"])))
             highway.road.step(1 / 10)
     ours, theirs = np.array([c[0] for c in commands]), np.array([c[1] for c in commands])
@@ -55,11 +56,17 @@ def test_meta_actions_command_what_highway_envs_mdp_vehicle_commands(speed):
     assert np.abs(theirs[:, 1]).max() > 0.05 and np.abs(theirs[:, 0]).max() > 5  # lanes changed, speeds stepped
 
 
-def test_meta_actions_refuse_an_index_outside_the_set():
-    road = Road(num_lanes=3)
+def test_meta_actions_refuse_an_index_outside_the_set_and_speeds_they_cannot_step_through():
+    from mmpc.rl.config import SafeEnvConfig
+
+    meta = MetaActions(Road(num_lanes=3), 5.0)
     ego = torch.tensor([[0.0, 4.0, 0.0, 25.0, 0.0, 0.0]], dtype=torch.float64)
     with pytest.raises(ValueError, match="LANE_LEFT"):
-        apply_meta_actions(start_targets(ego, road), torch.tensor([5]), ego, road)
+        meta.apply(meta.start(ego), torch.tensor([5]), ego)
+    for speeds in [(20.0,), (30.0, 25.0, 20.0), (15.0, 25.0, 30.0), ("fast", 30.0)]:
+        with pytest.raises(ValueError, match="meta_speeds"):
+            SafeEnvConfig(meta_speeds=speeds)
+    assert SafeEnvConfig(meta_speeds=(0.0, 10.0, 20.0, 30.0)).meta_speeds[-1] == 30.0
 
 
 def test_the_plain_environments_drive_the_safe_environments_world_without_a_layer():

@@ -426,8 +426,8 @@ def test_meta_action_driver_reads_the_scenarios_vehicle_length():
     from mmpc.scenario import load_scenario
 
     run = type("Run", (), {"model": None, "config": load_config(RLConfig, "smoke")})()
-    assert MetaActionDriver(run, load_scenario("cruise_paper")).length == 4.0
-    assert MetaActionDriver(run, load_scenario("cruise")).length == 5.0
+    assert MetaActionDriver(run, load_scenario("cruise_paper")).meta.length == 4.0
+    assert MetaActionDriver(run, load_scenario("cruise")).meta.length == 5.0
 
 
 def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_ignored_elsewhere(smoke, tmp_path):
@@ -457,6 +457,7 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_igno
     def settings(config: dict) -> dict:
         config["scenario"]["mpc"].pop("warm_iterations")
         config["env"].pop("verify", None)
+        config["env"].pop("meta_speeds", None)  # the plain agents' setting, added since
         config["scenario"]["traffic"].setdefault("ego_as_follower", False)
         return config
 
