@@ -458,6 +458,9 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_igno
         config["scenario"]["mpc"].pop("warm_iterations")
         config["env"].pop("verify", None)
         config["env"].pop("meta_speeds", None)  # the plain agents' setting, added since
+        config["train"].pop("n_envs")  # the task recipes train 256 environments since (throughput), with
+        config["train"].pop("log_every")  # DQN's gradient steps per transition kept
+        config["algorithms"]["dqn"].pop("gradient_steps")
         config["scenario"]["traffic"].setdefault("ego_as_follower", False)
         return config
 
