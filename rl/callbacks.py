@@ -93,16 +93,18 @@ class SafetyTensorboardCallback(BaseCallback):
         crash_log: where the episodes that ended in a collision are written (optional). The
             episodes' seeds are read from the training environment's ``reset_infos``
             (``info["episode_seed"]`` of its resets).
+        totals: the collisions and finished episodes counted before this process (a resumed
+            run's at its checkpoint), so ``safety/crashes`` and ``safety/episodes`` go on from them.
     """
 
-    def __init__(self, log_every: int = 500, window: int = 100, *, crash_log: Optional[CrashLog] = None) -> None:
+    def __init__(self, log_every: int = 500, window: int = 100, *, crash_log: Optional[CrashLog] = None,
+                 totals: tuple[int, int] = (0, 0)) -> None:
         super().__init__()
         if log_every < 1 or window < 1:
             raise ValueError(f"`log_every` and `window` must be >= 1; got {log_every}, {window}")
         self.log_every = log_every
         self.crashes: deque[bool] = deque(maxlen=window)
-        self.total_crashes = 0
-        self.total_episodes = 0
+        self.total_crashes, self.total_episodes = (int(count) for count in totals)
         self.crash_log = crash_log
         self.episodes: list[RunningEpisode] = []
         self._reset_window()
@@ -119,6 +121,7 @@ class SafetyTensorboardCallback(BaseCallback):
         self.speed_count = 0
 
     def _on_training_start(self) -> None:
+        self._last_write = self.model.num_timesteps
         if self.crash_log is not None:
             self.episodes = [RunningEpisode(info.get("episode_seed")) for info in self.training_env.unwrapped.reset_infos]
 

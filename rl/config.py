@@ -260,14 +260,14 @@ class TrainConfig:
         checkpoint_every: environment steps between two checkpoints.
         eval_episodes: evaluation episodes at the end of training.
         eval_seed: seed of the first evaluation episode; episode i uses ``eval_seed + i`` (the
-            same seeds for the safe and the plain highway-env agent).
+            same seeds for the safe and the plain agents).
         eval_envs: evaluation episodes run in lockstep (one batched solve per frame).
         torch_threads: torch CPU threads of the run.
         expert_prior: with ``env.expert_action`` and PPO: the probability the untrained policy
             gives the expert action (the rest shared evenly), so that training starts from the
             expert and learns where to deviate; 0 keeps stable-baselines3's initialisation. DQN
-            and SAC ignore it (as they ignore ``algorithms.ppo``), and so does the plain
-            highway-env baseline (``--env highway``), which has no expert action.
+            and SAC ignore it (as they ignore ``algorithms.ppo``), and so do the plain baselines
+            (``--env plain``, ``--env highway``), which have no expert action.
     """
 
     n_envs: int = 8
@@ -292,9 +292,10 @@ class RLConfig:
     """One training setup: scenario, environment, reward, training and per-algorithm settings.
     The defaults are the documented training run: DQN picks goals (lane offset x target speed)
     every 0.5 s and the batch optimizer plans towards them at 10 Hz among highway-env's own
-    highway-fast traffic; the same settings train the unprotected baseline on plain highway-env
-    (``mmpc rl train --env highway``: same road, traffic, episode length, reward, observation
-    and decision rate, highway-env's DiscreteMetaAction).
+    highway-fast traffic; the same settings train the unprotected baselines with highway-env's
+    DiscreteMetaAction: on the same world without the layer (``mmpc rl train --env plain``:
+    same traffic, car, episode length, reward, observation and decision rate) or on plain
+    highway-env (``--env highway``: highway-env's own traffic and MDPVehicle).
 
     Attributes:
         scenario: the driving scenario (default :data:`RL_SCENARIO`, the shipped file). In YAML

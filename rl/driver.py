@@ -7,10 +7,10 @@ what the model was trained on:
   its observation (highway-env kinematics + solver features); the goal is held while the safety
   layer plans towards it at every step, or plans at the decision and tracks the plan in between,
   as the agent was trained (``replan``, :class:`SafeAgentDriver`);
-- a plain highway-env agent (``--env highway``) with continuous actions has its action mapped
-  to acceleration and steering; with highway-env's ``DiscreteMetaAction`` its meta-action is
-  executed by a lane and speed controller with highway-env's ``MDPVehicle`` control laws
-  (:class:`MetaActionDriver`). Either holds its action for ``decision_frames`` steps.
+- a plain agent (``--env plain``, or ``--env highway``: plain highway-env) with highway-env's
+  ``DiscreteMetaAction`` has its meta-action executed as highway-env's ``MDPVehicle`` does
+  (:class:`MetaActionDriver`); a plain highway-env agent with continuous actions has its action
+  mapped to acceleration and steering. Either holds its action for ``decision_frames`` steps.
 
 The SB3 policies run on the CPU and read numpy; a safe-layer driver computes on its safety
 layer's device (:attr:`SafeAgentDriver.device`, the run's), the plain ones on the CPU.

@@ -423,7 +423,8 @@ def train(
         checkpoints = Checkpoints(config.train.checkpoint_every, out / "checkpoints", algo)
         safety = SafetyTensorboardCallback(config.train.log_every,
                                            crash_log=CrashLog(out / "crashes.csv", config.scenario.frequency,
-                                                              append=checkpoint is not None))
+                                                              append=checkpoint is not None),
+                                           totals=(0, 0) if checkpoint is None else _counts_at(out, checkpoint.steps))
         start = time.perf_counter()
         try:
             model.learn(max(timesteps - model.num_timesteps, 0), callback=CallbackList([checkpoints, safety]),
@@ -450,6 +451,18 @@ def _recorded_run(out: Path) -> dict:
     except (OSError, yaml.YAMLError):
         return {}
     return record if isinstance(record, dict) else {}
+
+
+def _counts_at(out: Path, steps: int) -> tuple[int, int]:
+    """The run's ``safety/crashes`` and ``safety/episodes`` last logged at or before ``steps`` (0 where none)."""
+    from mmpc.rl.report import read_scalars
+
+    scalars = read_scalars(out)
+    counts = []
+    for tag in ("safety/crashes", "safety/episodes"):
+        logged = [(step, value) for step, value in scalars.get(tag, []) if step <= steps]
+        counts.append(int(max(logged)[1]) if logged else 0)
+    return counts[0], counts[1]
 
 
 def _resume_point(out: Path, run: dict) -> "Checkpoint":

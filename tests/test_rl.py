@@ -274,6 +274,9 @@ def test_a_stopped_run_resumes_from_its_latest_checkpoint(smoke, tmp_path, one_t
     events.Reload()
     steps = [event.step for event in events.Scalars("driving/mean_speed")]
     assert max(steps) == 96 and 32 in steps
+    episodes = [(event.step, event.value) for event in events.Scalars("safety/episodes")]
+    at_checkpoint = max(value for step, value in episodes if step <= 32)
+    assert at_checkpoint > 0 and min(value for step, value in episodes if step > 32) >= at_checkpoint  # counted on
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(OutputFolderError, match="no training run to resume"):
