@@ -91,6 +91,7 @@ class HighwayBaseline(gym.Wrapper):
         if not continuous:
             values["action"] = {"type": "DiscreteMetaAction", "target_speeds": list(config.env.meta_speeds)}
         super().__init__(gym.make(scenario.env_id, config=values))
+        self.continuous = continuous
         self.ego_speed = scenario.ego.speed
         self.frames = frames
         self.scenario = scenario
@@ -99,14 +100,12 @@ class HighwayBaseline(gym.Wrapper):
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None) -> tuple[Any, dict]:
         """Start an episode; ``seed`` (or one drawn from the environment's generator) seeds
         highway-env, so a seed fixes the episode: ``info["episode_seed"]`` says which."""
-        from highway_env.vehicle.controller import MDPVehicle
-
         if seed is None:
             seed = int(self.np_random.integers(2**31 - 1))
         observation, info = self.env.reset(seed=seed, options=options)
         ego = self.env.unwrapped.vehicle
         ego.speed = self.ego_speed
-        if isinstance(ego, MDPVehicle):  # its targets as if created at that speed (mmpc.rl.meta_actions.MetaActions.start)
+        if not self.continuous:  # an MDPVehicle: its targets as if created at that speed (mmpc.rl.meta_actions.MetaActions.start)
             ego.speed_index = ego.speed_to_index(ego.speed)
             ego.target_speed = ego.index_to_speed(ego.speed_index)
         return self.env.unwrapped.observation_type.observe(), dict(info, episode_seed=seed)

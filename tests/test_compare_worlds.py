@@ -32,7 +32,7 @@ def _folder(path, speeds, collisions, *, sim="highway-env", duration=10.0):
         for seed, (speed, collided) in enumerate(zip(speeds, collisions)):
             row = {column: 0 for column in COLUMNS}
             row.update(driver="mpc", scenario="cruise", seed=seed, status="ok", error="", worker="w", mean_speed=speed,
-                       collisions=collided, meta_cost_mean=speed / 10, short_ttc_steps=int(speed) % 3,
+                       collisions=collided, meta_cost_mean=speed / 10, short_ttc_steps=int(speed) % 3, task_return=20 * speed,
                        verified_share="")  # a driver not verified: no such metric
             writer.writerow(row)
     return path
@@ -45,13 +45,14 @@ def test_two_folders_agree_or_not(tmp_path, capsys):
     assert main([str(reference), str(close), "--out", str(tmp_path / "out")]) == 0
     rows = json.loads((tmp_path / "out" / "compare_worlds.json").read_text())["rows"]
     assert [r["metric"] for r in rows] == ["collisions", "fallback_steps", "failsafe_steps", "short_ttc_steps",
-                                           "near_lane_change_steps", "min_clearance", "mean_speed", "meta_cost_mean"]
+                                           "near_lane_change_steps", "min_clearance", "mean_speed", "meta_cost_mean",
+                                           "task_return"]
     assert all(r["agree"] for r in rows)
     assert "| mpc | cruise | mean speed [m/s] | 40 / 40 |" in capsys.readouterr().out
     assert main([str(reference), str(far), "--out", str(tmp_path / "out")]) == 0
     rows = json.loads((tmp_path / "out" / "compare_worlds.json").read_text())["rows"]
     disagree = {r["metric"] for r in rows if not r["agree"]}
-    assert disagree == {"collisions", "short_ttc_steps", "mean_speed", "meta_cost_mean"}, disagree
+    assert disagree == {"collisions", "short_ttc_steps", "mean_speed", "meta_cost_mean", "task_return"}, disagree
     assert main([str(reference), str(tmp_path / "out")]) == 2
 
 
