@@ -121,7 +121,7 @@ class SafetyTensorboardCallback(BaseCallback):
         self.speed_count = 0
 
     def _on_training_start(self) -> None:
-        self._last_write = self.model.num_timesteps
+        self._last_write = self.num_timesteps
         if self.crash_log is not None:
             self.episodes = [RunningEpisode(info.get("episode_seed")) for info in self.training_env.unwrapped.reset_infos]
 

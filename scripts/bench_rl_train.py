@@ -2,11 +2,12 @@
 environments and the learner together), per algorithm, environment kind and E.
 
 Each row builds the recipe's training environments (:func:`mmpc.rl.train.make_training_env`) with
-``train.n_envs = E``, trains one rollout to warm up (compiles, first solves), then times ``rollouts``
-more. Rows run one after another in this process, so their ratios come from one machine state.
+``train.n_envs = E``, trains one rollout to warm up (compiles, first solves), then times ``--steps``
+agent steps (rounded up to whole rollouts: PPO's ``n_steps x E``, DQN's ``train_freq x E``). Rows
+run one after another in this process, so their ratios come from one machine state.
 
-    python scripts/bench_rl_train.py --config cruise_task --envs 64,256 --algos ppo,dqn --kinds safe,plain \
-        --threads 1 --out benchmarks/bench_rl_train_cruise_task_cpu.json
+    python scripts/bench_rl_train.py --config cruise_task --envs 64,256 --algos ppo,dqn --kinds safe \
+        --steps 8192 --threads 1 --out benchmarks/bench_rl_train_cruise_task_cpu.json
 """
 
 from __future__ import annotations
@@ -27,8 +28,9 @@ from mmpc.config import load_config
 from mmpc.rl.config import RLConfig
 
 
-def time_training(config: RLConfig, algo: str, kind: str, num_envs: int, rollouts: int, seed: int = 0) -> dict:
-    """Agent steps per second of ``rollouts`` rollouts of ``algo`` on ``num_envs`` environments of ``kind``."""
+def time_training(config: RLConfig, algo: str, kind: str, num_envs: int, steps: int, seed: int = 0) -> dict:
+    """Agent steps per second of ``algo`` training ``steps`` agent steps (whole rollouts) on
+    ``num_envs`` environments of ``kind``."""
     from mmpc.rl.runs import algorithm_class
     from mmpc.rl.train import algorithm_kwargs, make_training_env, rollout_steps
 
@@ -40,13 +42,13 @@ def time_training(config: RLConfig, algo: str, kind: str, num_envs: int, rollout
     try:
         model = algorithm_class(algo)("MlpPolicy", env, seed=seed, verbose=0, device="cpu", **kwargs)
         rollout = rollout_steps(model)
+        steps = -(-steps // rollout) * rollout
         model.learn(rollout)
         start = time.perf_counter()
-        model.learn(rollouts * rollout, reset_num_timesteps=False)
+        model.learn(steps, reset_num_timesteps=False)
         seconds = time.perf_counter() - start
     finally:
         env.close()
-    steps = rollouts * rollout
     return {"algo": algo, "kind": kind, "envs": num_envs, "steps": steps, "seconds": seconds,
             "agent_steps_per_s": steps / seconds}
 
@@ -59,7 +61,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--envs", default="64,256", help="E values, comma-separated")
     parser.add_argument("--algos", default="ppo,dqn")
     parser.add_argument("--kinds", default="safe", help="safe and/or plain, comma-separated")
-    parser.add_argument("--rollouts", type=int, default=2, help="timed rollouts per row (after one warm-up rollout)")
+    parser.add_argument("--steps", type=int, default=8192,
+                        help="timed agent steps per row, rounded up to whole rollouts (after one warm-up rollout)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="write the table as JSON here")
     args = parser.parse_args(argv)
@@ -75,7 +78,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     for kind in args.kinds.split(","):
         for algo in args.algos.split(","):
             for num_envs in (int(e) for e in args.envs.split(",")):
-                row = time_training(config, algo, kind, num_envs, args.rollouts)
+                row = time_training(config, algo, kind, num_envs, args.steps)
                 rows.append(row)
                 print(f"{algo:>5} {kind:>6} {num_envs:>5} {row['steps']:>7} {row['seconds']:>8.1f} "
                       f"{row['agent_steps_per_s']:>14.1f}", flush=True)

@@ -51,7 +51,9 @@ def test_rl_train_refuses_a_folder_holding_a_finished_run(tmp_path, capsys, monk
     assert main(_rl_train(out, "dqn")) == 0
     capsys.readouterr()
     files = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
-    (checkpoint,) = (out / "checkpoints").glob("dqn_*_steps.zip")
+    checkpoints = sorted(p.name for p in (out / "checkpoints").glob("dqn_*_steps.zip"))
+    assert checkpoints == ["dqn_16_steps.zip", "dqn_24_steps.zip"]  # every checkpoint_every steps, and at the end
+    checkpoint = out / "checkpoints" / checkpoints[-1]
 
     for argv in (_rl_train(out, "ppo"), _rl_train(out, "dqn", seed=1)):  # another algorithm, another seed
         assert main(argv) == 2
