@@ -464,6 +464,7 @@ def test_the_expert_prior_starts_ppo_at_the_expert_action_and_is_refused_or_igno
         config["train"].pop("n_envs")  # the task recipes train 256 environments since (throughput), with
         config["train"].pop("log_every")  # DQN's gradient steps per transition kept
         config["algorithms"]["dqn"].pop("gradient_steps")
+        config["algorithms"]["ppo"].pop("n_steps")
         config["scenario"]["traffic"].setdefault("ego_as_follower", False)
         return config
 
