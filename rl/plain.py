@@ -97,7 +97,7 @@ class PlainEnvs:
         return self._observations(everyone), [{"episode_seed": s} for s in self.seeds]
 
     def check_actions(self, actions: Sequence[Any]) -> torch.Tensor:
-        """(E,) int64 meta-actions, each checked (:func:`mmpc.rl.spaces.check_action`); a refusal names the environment."""
+        """(E,) int64 meta-actions, each checked (:func:`mmpc.rl.spaces.check_index`); a refusal names the environment."""
         if len(actions) != self.num_envs:
             raise ValueError(f"`actions` must hold one action per environment ({self.num_envs}); got {len(actions)}")
         meaning = "a meta-action: " + ", ".join(f"{index} {name}" for index, name in enumerate(META_ACTIONS))
