@@ -83,7 +83,8 @@ def _train(args: argparse.Namespace) -> int:
     apply_compile(args.compile)
     if args.resume:
         given = [flag for flag, value in (("--algo", args.algo), ("--config", args.config), ("--set", args.set),
-                                          ("--sim", args.sim), ("--env", args.env), ("--seed", args.seed)) if value]
+                                          ("--sim", args.sim), ("--env", args.env), ("--seed", args.seed))
+                 if value is not None and value != []]
         if given:
             print(f"mmpc rl train: error: --resume takes the run's settings from {args.out}/config.yaml; drop "
                   f"{', '.join(given)}", file=sys.stderr)

@@ -41,6 +41,11 @@ from mmpc.scenario import ScenarioConfig
 SEED_RANGE = 2 ** 31 - 1
 
 
+def draw_seeds(rng: np.random.Generator, seeds: Sequence[Optional[int]]) -> list[int]:
+    """``seeds`` as ints, each ``None`` drawn from ``rng`` in [0, :data:`SEED_RANGE`)."""
+    return [int(s) if s is not None else int(rng.integers(SEED_RANGE)) for s in seeds]
+
+
 class BatchStep(NamedTuple):
     """One agent step of E environments (:meth:`SafeEnvs.advance`).
 
@@ -109,9 +114,6 @@ class SafeEnvs:
 
     # ------------------------------------------------------------------ state
 
-    def _draw_seeds(self, seeds: Sequence[Optional[int]]) -> list[int]:
-        return [int(s) if s is not None else int(self.rng.integers(SEED_RANGE)) for s in seeds]
-
     def observe(self, rows: torch.Tensor) -> Observation:
         """The road-frame state of the environments ``rows`` (R,) for the layer (its dtype and
         device), under the environments' ids."""
@@ -143,7 +145,7 @@ class SafeEnvs:
         """Start every environment (``None`` seeds drawn); ``(observations (E, size), infos)``."""
         if len(seeds) != self.num_envs:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
-        self.seeds = self._draw_seeds(seeds)
+        self.seeds = draw_seeds(self.rng, seeds)
         if self.world is not None:
             self.world.close()
             self.world = None
@@ -209,7 +211,7 @@ class SafeEnvs:
             if last_solve is not None:
                 solve_ms.append(last_solve.scored.solve_ms)
         if finished.numel() and auto_reset:
-            episode_seeds = self._draw_seeds([None] * finished.numel())
+            episode_seeds = draw_seeds(self.rng, [None] * finished.numel())
             self.world.restart(finished, episode_seeds)
             for row, seed in zip(finished.tolist(), episode_seeds):
                 self.seeds[row] = seed

@@ -24,10 +24,10 @@ from gymnasium import spaces
 from mmpc.config import require_int
 from mmpc.highway.worlds import World, make_world
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
-from mmpc.rl.engine import SEED_RANGE, BatchStep
+from mmpc.rl.engine import BatchStep, draw_seeds
 from mmpc.rl.meta_actions import META_ACTIONS, MetaActions, MetaTargets
 from mmpc.rl.reward import task_rewards
-from mmpc.rl.spaces import KINEMATICS_FEATURES, check_index
+from mmpc.rl.spaces import KINEMATICS_FEATURES, check_index, observation_vectors
 from mmpc.scenario import ScenarioConfig
 
 
@@ -69,16 +69,13 @@ class PlainEnvs:
         self.seeds: list[int] = []
         self.targets: Optional[MetaTargets] = None
 
-    def _draw_seeds(self, seeds: Sequence[Optional[int]]) -> list[int]:
-        return [int(s) if s is not None else int(self.rng.integers(SEED_RANGE)) for s in seeds]
-
     def _egos(self, rows: torch.Tensor) -> torch.Tensor:
         """(R, 6) float64 road-frame ego states of environments ``rows``, on the host."""
         return self.world.observe(rows.to(self.world.device))[0].ego.to(device="cpu", dtype=torch.float64)
 
     def _observations(self, rows: torch.Tensor) -> np.ndarray:
-        kinematics = self.world.kinematics_rows(rows.to(self.world.device), self.config.kinematics_vehicles)
-        return np.clip(kinematics.reshape(kinematics.shape[0], -1), -1.0, 1.0).astype(np.float32)
+        return observation_vectors(self.world.kinematics_rows(rows.to(self.world.device), self.config.kinematics_vehicles),
+                                   None, self.config)
 
     def _start_targets(self, rows: torch.Tensor) -> None:
         started = self.meta.start(self._egos(rows))
@@ -88,7 +85,7 @@ class PlainEnvs:
         """Start every environment (``None`` seeds drawn); ``(observations (E, size), infos)``."""
         if len(seeds) != self.num_envs:
             raise ValueError(f"`seeds` must hold one seed (or None) per environment ({self.num_envs}); got {len(seeds)}")
-        self.seeds = self._draw_seeds(seeds)
+        self.seeds = draw_seeds(self.rng, seeds)
         self.close()
         self.world = make_world(self.scenario, self.seeds, kinematics=False, device=self.device)
         everyone = torch.arange(self.num_envs)
@@ -151,7 +148,7 @@ class PlainEnvs:
         final = dict(zip(finished.tolist(), self._observations(finished))) if finished.numel() else {}
         reset_infos: dict[int, dict] = {}
         if finished.numel():  # the ended episodes start again; without auto-reset they show their last observation
-            episode_seeds = self._draw_seeds([None] * finished.numel())
+            episode_seeds = draw_seeds(self.rng, [None] * finished.numel())
             self.world.restart(finished.to(self.world.device), episode_seeds)
             for row, seed in zip(finished.tolist(), episode_seeds):
                 self.seeds[row] = seed

@@ -59,13 +59,13 @@ def observation_space(config: SafeEnvConfig) -> spaces.Box:
 
 
 def observation_vectors(kinematics: np.ndarray, features: Optional[np.ndarray], config: SafeEnvConfig) -> np.ndarray:
-    """(E, rows, 5) Kinematics observations and (E, A, 3) solver features -> (E, size) float32
-    observations, clipped to [-1, 1]."""
+    """(E, rows, 5) Kinematics observations and (E, A, 3) solver features (``None``: observations
+    without them, as the plain environments') -> (E, size) float32 observations, clipped to [-1, 1]."""
     expected = (config.kinematics_vehicles, len(KINEMATICS_FEATURES))
     if kinematics.shape[1:] != expected:
         raise RuntimeError(f"the Kinematics observation has shape {kinematics.shape[1:]}; expected {expected}")
     parts = [kinematics.reshape(kinematics.shape[0], -1)]
-    if config.solver_features:
+    if features is not None:
         parts.append(np.asarray(features, dtype=np.float32).reshape(kinematics.shape[0], -1))
     return np.clip(np.concatenate(parts, axis=1), -1.0, 1.0).astype(np.float32)
 

@@ -405,13 +405,14 @@ def train(
            "timesteps": timesteps, "seed": seed, "config": to_dict(config)}
     fresh = None if resume else "a training run neither resumes nor overwrites one (--resume goes on with it)"
     with run_folder(out, RUN_LOCK, "another `mmpc rl train` run", fresh=fresh, describe=_held_run):
-        checkpoint = _resume_point(out, run) if resume else None
+        recorded = _recorded_run(out) if resume else {}
+        checkpoint = _resume_point(out, recorded, run) if resume else None
         env, model = _start(config, algo, env_kind, continuous, seed, out, kwargs, expert_prior, checkpoint)
         if checkpoint is None:
             # the scenario alone, for `mmpc drive --scenario DIR/scenario.yaml --driver sb3:DIR/model.zip`
             (out / "scenario.yaml").write_text(yaml.safe_dump(run["config"]["scenario"], sort_keys=False))
         else:
-            run["resumed_at"] = _recorded_run(out).get("resumed_at", []) + [checkpoint.steps]
+            run["resumed_at"] = recorded.get("resumed_at", []) + [checkpoint.steps]
             logger.info("%s resumes from %s (%d steps)", out, checkpoint.model.name, checkpoint.steps)
         atomic_write_text(out / "config.yaml", yaml.safe_dump(run, sort_keys=False))
         rollout = rollout_steps(model)
@@ -444,14 +445,6 @@ def train(
         return summary
 
 
-def _recorded_run(out: Path) -> dict:
-    try:
-        record = yaml.safe_load((out / "config.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return {}
-    return record if isinstance(record, dict) else {}
-
-
 def _counts_at(out: Path, steps: int) -> tuple[int, int]:
     """The run's ``safety/crashes`` and ``safety/episodes`` last logged at or before ``steps`` (0 where none)."""
     from mmpc.rl.report import read_scalars
@@ -464,13 +457,21 @@ def _counts_at(out: Path, steps: int) -> tuple[int, int]:
     return counts[0], counts[1]
 
 
-def _resume_point(out: Path, run: dict) -> "Checkpoint":
+def _recorded_run(out: Path) -> dict:
+    """The record in ``out``'s config.yaml (``{}`` where there is none or it is not a mapping)."""
+    try:
+        record = yaml.safe_load((out / "config.yaml").read_text())
+    except (OSError, yaml.YAMLError):
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
+def _resume_point(out: Path, recorded: dict, run: dict) -> "Checkpoint":
     """The checkpoint a resumed run starts from: the latest of the run in ``out``, whose recorded
-    settings must be ``run``'s (all but the budget)."""
+    settings (``recorded``, its config.yaml) must be ``run``'s (all but the budget)."""
     from mmpc.files import OutputFolderError
     from mmpc.rl.checkpoints import latest_checkpoint
 
-    recorded = _recorded_run(out)
     if not recorded:
         raise OutputFolderError(f"`out` {out} holds no training run to resume (no readable config.yaml); start one there "
                                 "without --resume")
@@ -532,11 +533,10 @@ def rollout_steps(model: Any) -> Optional[int]:
 
 def _held_run(out: Path) -> str:
     """What an occupied run folder holds, as words (the run its config.yaml records, or files)."""
-    try:
-        run = yaml.safe_load((out / "config.yaml").read_text())
-        described = f"{run['algo']} on {run['env']}, seed {run['seed']}"
-    except (OSError, yaml.YAMLError, TypeError, KeyError):
+    run = _recorded_run(out)
+    if not {"algo", "env", "seed"} <= set(run):
         return "files"
+    described = f"{run['algo']} on {run['env']}, seed {run['seed']}"
     return f"a {'finished' if (out / 'model.zip').is_file() else 'unfinished'} run ({described})"
 
 

@@ -263,6 +263,9 @@ def test_a_stopped_run_resumes_from_its_latest_checkpoint(smoke, tmp_path, one_t
         train(config, "dqn", 96, out, env_kind="plain", evaluate_after=False)
     with pytest.raises(OutputFolderError, match=r"differ in \['seed'\]"):
         train(config, "dqn", 96, out, env_kind="plain", seed=5, evaluate_after=False, resume=True)
+    from mmpc.cli.main import main
+
+    assert main(["rl", "train", "--resume", "--seed", "0", "--out", str(out), "--timesteps", "96"]) == 2  # even seed 0
     train(config, "dqn", 96, out, env_kind="plain", evaluate_after=False, resume=True)
     record = yaml.safe_load((out / "config.yaml").read_text())
     assert record["resumed_at"] == [32] and record["trained_timesteps"] == 96 and record["timesteps"] == 96
