@@ -43,6 +43,16 @@ AGENT_INPUTS = ("action", "scenario.lanes", "scenario.frequency", "env.decision_
                 "env.feature_cost_scale", "env.kinematics_vehicles", "env.meta_speeds")
 
 
+def check_meta_speeds(speeds: Any, what: str = "meta-action target speeds") -> None:
+    """Refuse (:class:`mmpc.config.ConfigError`) target speeds that are not >= 2 ascending, evenly
+    spaced numbers [m/s] as a tuple: MDPVehicle steps through them by index."""
+    listed = isinstance(speeds, tuple) and len(speeds) >= 2 and all(is_finite_number(v) for v in speeds)
+    steps = [b - a for a, b in zip(speeds, speeds[1:])] if listed else [0.0]
+    require(listed and min(steps) > 0 and max(steps) - min(steps) <= 1e-6 * max(steps),
+            f"{what} must be >= 2 ascending, evenly spaced speeds [m/s] (MDPVehicle steps through them by index); "
+            f"got {speeds!r}")
+
+
 #: The scenario of the RL environments (``configs/scenarios/rl_highway_fast.yaml``): highway-env's
 #: ``highway-fast-v0`` traffic, 30 s episodes at 10 Hz, the high-speed scenario's ellipse and band.
 RL_SCENARIO = "rl_highway_fast"
@@ -224,12 +234,7 @@ class SafeEnvConfig:
         require_positive(where, feature_cost_scale=self.feature_cost_scale, intervention_speed_scale=self.intervention_speed_scale)
         require_non_negative(where, intervention_penalty=self.intervention_penalty)
         require_int(where, low=1, kinematics_vehicles=self.kinematics_vehicles)
-        speeds = self.meta_speeds
-        listed = isinstance(speeds, tuple) and len(speeds) >= 2 and all(is_finite_number(v) for v in speeds)
-        steps = [b - a for a, b in zip(speeds, speeds[1:])] if listed else [0.0]
-        require(listed and min(steps) > 0 and max(steps) - min(steps) <= 1e-6 * max(steps),
-                f"{where}: `meta_speeds` must be >= 2 ascending, evenly spaced speeds [m/s] (MDPVehicle steps through them "
-                f"by index); got {speeds!r}")
+        check_meta_speeds(self.meta_speeds, f"{where}: `meta_speeds`")
         require(isinstance(self.verify, bool), f"{where}: `verify` must be true or false; got {self.verify!r}")
 
     @property

@@ -28,6 +28,7 @@ from typing import NamedTuple, Sequence
 import torch
 
 from mmpc.problem import EGO_PSI, EGO_PSIDOT, EGO_V, EGO_Y
+from mmpc.rl.config import check_meta_speeds
 from mmpc.road import Road
 
 #: highway-env's DiscreteMetaAction indices.
@@ -64,9 +65,9 @@ class MetaActions:
     """
 
     def __init__(self, road: Road, length: float, speeds: Sequence[float] = TARGET_SPEEDS) -> None:
+        speeds = tuple(speeds)
+        check_meta_speeds(speeds)
         speeds = tuple(float(v) for v in speeds)
-        if len(speeds) < 2 or any(b <= a for a, b in zip(speeds, speeds[1:])):
-            raise ValueError(f"target speeds must be >= 2 ascending values [m/s]; got {speeds}")
         self.road = road
         self.length = float(length)
         self.speeds = speeds

@@ -27,13 +27,8 @@ from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.engine import BatchStep, draw_seeds
 from mmpc.rl.meta_actions import META_ACTIONS, MetaActions, MetaTargets
 from mmpc.rl.reward import task_rewards
-from mmpc.rl.spaces import KINEMATICS_FEATURES, check_index, observation_vectors
+from mmpc.rl.spaces import check_index, observation_vectors
 from mmpc.scenario import ScenarioConfig
-
-
-def plain_observation_space(config: SafeEnvConfig) -> spaces.Box:
-    """The flat ``Kinematics`` observation (``kinematics_vehicles`` x 5 values in [-1, 1])."""
-    return spaces.Box(-1.0, 1.0, shape=(config.kinematics_vehicles * len(KINEMATICS_FEATURES),), dtype=np.float32)
 
 
 def plain_action_space() -> spaces.Discrete:

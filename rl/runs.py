@@ -50,15 +50,18 @@ def recorded_config(path: str | Path) -> Optional[RLConfig]:
     where ``path`` is neither (e.g. a plain RL config file)."""
     path = Path(path)
     path = path / "config.yaml" if path.is_dir() else path
-    if not path.is_file():
-        return None
+    record = _run_record(path, {"algo", "config"})
+    return None if record is None else run_config(record["config"], path)
+
+
+def _run_record(path: Path, keys: set[str]) -> Optional[dict]:
+    """The mapping a run's ``config.yaml`` (``path``) holds, where it has ``keys``; ``None`` where
+    the file is missing, not YAML or not a run's record."""
     try:
         record = yaml.safe_load(path.read_text())
-    except yaml.YAMLError:
+    except (OSError, yaml.YAMLError):
         return None
-    if not (isinstance(record, dict) and {"algo", "config"} <= set(record)):
-        return None
-    return run_config(record["config"], path)
+    return record if isinstance(record, dict) and keys <= set(record) else None
 
 
 class RecordedRun(NamedTuple):
@@ -73,11 +76,8 @@ class RecordedRun(NamedTuple):
 def recorded_run(folder: str | Path) -> Optional[RecordedRun]:
     """The settings of the training run in ``folder``; ``None`` where it holds no readable record of one."""
     path = Path(folder) / "config.yaml"
-    try:
-        record = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError):
-        return None
-    if not (isinstance(record, dict) and {"algo", "env", "seed", "config"} <= set(record)):
+    record = _run_record(path, {"algo", "env", "seed", "config"})
+    if record is None:
         return None
     return RecordedRun(record["algo"], record["env"], int(record["seed"]), run_config(record["config"], path))
 

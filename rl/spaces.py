@@ -50,10 +50,11 @@ def action_space(config: SafeEnvConfig, continuous: bool) -> spaces.Space:
     return spaces.Discrete(config.num_actions)
 
 
-def observation_space(config: SafeEnvConfig) -> spaces.Box:
-    """The flat observation: kinematics rows, then (with ``solver_features``) the goal features."""
+def observation_space(config: SafeEnvConfig, *, layer: bool = True) -> spaces.Box:
+    """The flat observation: kinematics rows, then (with ``solver_features``, behind the layer
+    only: ``layer=False`` is the plain agent's) the goal features."""
     size = config.kinematics_vehicles * len(KINEMATICS_FEATURES)
-    if config.solver_features:
+    if layer and config.solver_features:
         size += config.num_actions * FEATURES_PER_GOAL
     return spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
 

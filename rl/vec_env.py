@@ -21,7 +21,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvObs, Vec
 
 from mmpc.rl.config import RewardConfig, SafeEnvConfig
 from mmpc.rl.engine import SafeEnvs
-from mmpc.rl.plain import PlainEnvs, plain_action_space, plain_observation_space
+from mmpc.rl.plain import PlainEnvs, plain_action_space
 from mmpc.rl.safety import SafetyLayer
 from mmpc.rl.spaces import action_space, observation_space
 from mmpc.scenario import ScenarioConfig
@@ -105,7 +105,7 @@ class PlainVecEnv(EngineVecEnv):
 
     def __init__(self, num_envs: int, scenario: ScenarioConfig, config: SafeEnvConfig, reward: RewardConfig, *,
                  seed: Optional[int] = None) -> None:
-        super().__init__(PlainEnvs(num_envs, scenario, config, reward, seed=seed), plain_observation_space(config),
+        super().__init__(PlainEnvs(num_envs, scenario, config, reward, seed=seed), observation_space(config, layer=False),
                          plain_action_space())
 
 

@@ -66,6 +66,8 @@ def test_meta_actions_refuse_an_index_outside_the_set_and_speeds_they_cannot_ste
     for speeds in [(20.0,), (30.0, 25.0, 20.0), (15.0, 25.0, 30.0), ("fast", 30.0)]:
         with pytest.raises(ValueError, match="meta_speeds"):
             SafeEnvConfig(meta_speeds=speeds)
+        with pytest.raises(ValueError, match="evenly spaced"):  # the same check where no config stands before it
+            MetaActions(Road(num_lanes=3), 5.0, speeds)
     assert SafeEnvConfig(meta_speeds=(0.0, 10.0, 20.0, 30.0)).meta_speeds[-1] == 30.0
 
 
