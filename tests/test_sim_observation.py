@@ -21,6 +21,7 @@ from highway_env.vehicle.kinematics import Vehicle  # noqa: E402
 
 from mmpc.highway import HighwayEpisode  # noqa: E402
 from mmpc.highway.episode import env_config  # noqa: E402
+from mmpc.highway.kinematics import DeferredKinematics  # noqa: E402
 from mmpc.scenario import EgoConfig, ScenarioConfig, load_scenario  # noqa: E402
 from mmpc.traffic_config import IDMTraffic, ScriptedTraffic  # noqa: E402
 from mmpc.sim import SimConfig, VehicleState, kinematics_observation, vehicle_state  # noqa: E402
@@ -182,6 +183,36 @@ def test_perception_borders_norm_and_ties(highway_envs):
     np.testing.assert_allclose(observation[1:7, 2].numpy() * 24.0, [4.0, -4.0, 4.0, -4.0, 8.0, 0.0], atol=1e-12)
     assert observation[7].tolist() == [0.0] * 5
     np.testing.assert_array_equal(observation.numpy(), highway_env_observations(highway_envs[6], state, 0, 8)[1])
+
+
+@pytest.mark.parametrize("rows", (1,) + ROW_COUNTS)
+@pytest.mark.parametrize("lanes", LANE_COUNTS)
+def test_the_highway_env_worlds_numpy_kinematics_are_highway_env_s_to_the_bit(highway_envs, lanes, rows):
+    """mmpc.highway's own Kinematics (no pandas) on the random scenes: highway-env's float32 values exactly."""
+    generator = torch.Generator().manual_seed(1000 + 100 * lanes + rows)
+    for environments, slots in SCENE_BATCHES:
+        state = random_scenes(lanes, environments, slots, generator)
+        for environment in range(environments):
+            expected = highway_env_observations(highway_envs[lanes], state, environment, rows)[0]
+            ours = DeferredKinematics(highway_envs[lanes].unwrapped, rows)
+            assert ours.observe().shape == (rows, 5) and not ours.observe().any()  # highway-env's per-frame call: a placeholder
+            observation = ours.compute()
+            assert observation.dtype == np.float32 and observation.shape == expected.shape
+            np.testing.assert_array_equal(observation, expected)
+
+
+def test_a_highway_env_episode_observes_only_when_asked_and_as_highway_env_does():
+    """Along real traffic: highway-env's own observation at every frame is the placeholder, the
+    episode's Kinematics rows are highway-env's (5 by default, any count asked for)."""
+    episode = HighwayEpisode(load_scenario("cruise"), 7)
+    assert isinstance(episode.unwrapped.observation_type, DeferredKinematics)
+    for step in range(10):
+        episode.apply(0.5 * np.sin(step), 0.01 * np.cos(step))
+        for rows, asked in [(5, None), (7, 7), (7, None), (5, 5)]:  # None: the rows last asked for (first: 5)
+            np.testing.assert_array_equal(episode.kinematics(asked),
+                                          KinematicObservation(episode.unwrapped, vehicles_count=rows).observe())
+        assert episode.observe().kinematics.shape == (1, 5, 5)
+    episode.close()
 
 
 def test_float32_states_are_observed_in_float64(highway_envs):

@@ -174,6 +174,7 @@ class HighwayEpisode:
         self.env = gym.make(scenario.env_id, config=env_config(scenario), render_mode="rgb_array" if render else None)
         self.env.reset(seed=seed)
         self.unwrapped: AbstractEnv = self.env.unwrapped
+        self.unwrapped.observation_type = DeferredKinematics(self.unwrapped, self.unwrapped.observation_type.vehicles_count)
         self.unwrapped.vehicle.speed = scenario.ego.speed
         self.traffic: TrafficController = make_traffic(scenario, self.unwrapped)
         self.traffic.reset()
@@ -197,15 +198,12 @@ class HighwayEpisode:
 
     def kinematics(self, vehicles_count: Optional[int] = None) -> np.ndarray:
         """highway-env's ``Kinematics`` observation of the current state, (rows, features) float32:
-        the scenario's rows, or ``vehicles_count`` rows computed only when asked for (highway-env then
-        stops building an observation at every frame, :class:`mmpc.highway.kinematics.DeferredKinematics`)."""
+        ``vehicles_count`` rows (default: the count last asked for, first highway-env's 5); computed only when asked for
+        (:class:`mmpc.highway.kinematics.DeferredKinematics`: highway-env's own observation at every frame is a placeholder)."""
         observer = self.unwrapped.observation_type
-        if vehicles_count is not None and not (isinstance(observer, DeferredKinematics)
-                                               and observer.vehicles_count == vehicles_count):
+        if vehicles_count is not None and observer.vehicles_count != vehicles_count:
             observer = self.unwrapped.observation_type = DeferredKinematics(self.unwrapped, vehicles_count)
-        if isinstance(observer, DeferredKinematics):
-            return observer.compute()
-        return np.asarray(observer.observe(), dtype=np.float32)
+        return observer.compute()
 
     def observe(self, dtype: torch.dtype = torch.float32, *, kinematics: bool = True) -> Observation:
         """The current state for a driver (E = 1), with highway-env's ``Kinematics`` rows unless ``kinematics`` is off."""
