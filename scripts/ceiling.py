@@ -28,14 +28,16 @@ from typing import Sequence
 import torch
 
 from mmpc.cli.arguments import COMPILE_CHOICES, apply_compile, seed_list, unwritable
-from mmpc.evaluate.ceiling import CeilingConfig, search_ceiling
+from mmpc.evaluate.ceiling import RANKS, CeilingConfig, search_ceiling
 from mmpc.evaluate.intervals import mean_ci
 from mmpc.scenario import load_scenario
 
 KINDS = ("verified", "unprotected")
 ROWS = "ceiling.jsonl"
 #: The settings a row is kept under; rows of another setting in one folder are refused.
-SETTINGS = ("duration", "beam", "branch_period", "screened", "siblings")
+SETTINGS = ("duration", "beam", "branch_period", "screened", "siblings", "rank")
+#: A setting's value in folders written before it existed.
+SETTING_DEFAULTS = {"rank": "scenario"}
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -52,6 +54,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                         help="screened x beam best children per seed enter the check")
     parser.add_argument("--siblings", type=int, default=CeilingConfig.siblings,
                         help="children of one node kept before others'")
+    parser.add_argument("--rank", choices=RANKS, default="scenario",
+                        help="what the search maximises: the scenario's score (distance at high speed, the meta cost in "
+                             "cruise) or task_return, highway-env's reward summed over the frames (default %(default)s)")
     parser.add_argument("--batch", type=int, default=8, help="seeds searched together")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--compile", choices=tuple(COMPILE_CHOICES), default="auto", help="compile the optimizer")
@@ -103,7 +108,7 @@ def summarize(rows: list[dict]) -> list[dict]:
                  "driver_crashed": sum(row["driver_crashed"] for row in mine),
                  "at_or_above_driver": sum(row["score"] >= row["driver_score"] - 1e-6 for row in mine),
                  "nodes_crashed": sum(row["nodes_crashed"] for row in mine)}
-        for metric in ("mean_speed", "meta_cost"):
+        for metric in ("mean_speed", "meta_cost") + (("task_return",) if all("task_return" in row for row in mine) else ()):
             entry[metric] = mean_ci([row[metric] for row in mine])
             entry[f"driver_{metric}"] = mean_ci([row[f"driver_{metric}"] for row in mine])
             entry[f"gain_{metric}"] = mean_ci([row[metric] - row[f"driver_{metric}"] for row in mine])
@@ -118,12 +123,16 @@ def format_table(table: list[dict]) -> str:
             return "-"
         return f"{mean:.2f}" if interval is None else f"{mean:.2f} [{interval[0]:.2f}, {interval[1]:.2f}]"
 
-    lines = ["| scenario | ceiling | seeds | speed [m/s] | meta cost | driver | driver speed | driver meta cost | "
-             "speed gain | meta cost gain | ceiling >= driver | crashed (ceiling / driver) |", "|" + "---|" * 12]
+    lines = ["| scenario | ceiling | seeds | speed [m/s] | meta cost | task return | driver | driver speed | driver meta cost | "
+             "driver task return | speed gain | meta cost gain | task return gain | ceiling >= driver | crashed (ceiling / driver) |",
+             "|" + "---|" * 15]
     for entry in table:
+        unknown = (None, None)
         lines.append(f"| {entry['scenario']} | {entry['kind']} | {entry['seeds']} | {cell(entry['mean_speed'])} | "
-                     f"{cell(entry['meta_cost'])} | {entry['driver']} | {cell(entry['driver_mean_speed'])} | "
-                     f"{cell(entry['driver_meta_cost'])} | {cell(entry['gain_mean_speed'])} | {cell(entry['gain_meta_cost'])} | "
+                     f"{cell(entry['meta_cost'])} | {cell(entry.get('task_return', unknown))} | {entry['driver']} | "
+                     f"{cell(entry['driver_mean_speed'])} | {cell(entry['driver_meta_cost'])} | "
+                     f"{cell(entry.get('driver_task_return', unknown))} | {cell(entry['gain_mean_speed'])} | "
+                     f"{cell(entry['gain_meta_cost'])} | {cell(entry.get('gain_task_return', unknown))} | "
                      f"{entry['at_or_above_driver']}/{entry['seeds']} | {entry['ceiling_crashed']} / {entry['driver_crashed']} |")
     return "\n".join(lines)
 
@@ -137,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     settings_path = args.out / "settings.json"
     if settings_path.exists():
-        before = json.loads(settings_path.read_text(encoding="utf-8"))
+        before = {**SETTING_DEFAULTS, **json.loads(settings_path.read_text(encoding="utf-8"))}
         differ = {key: (before.get(key), value) for key, value in settings_of(args).items() if before.get(key) != value}
         if differ:
             print(f"ceiling: {args.out} holds rows of other settings (was, now): {differ}; use another --out",
@@ -153,7 +162,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for kind in args.kinds:
             todo = [seed for seed in args.seeds if (name, kind, seed) not in done]
             config = CeilingConfig(beam=args.beam, verify=kind == "verified", screened=args.screened,
-                                   siblings=args.siblings, branch_period=args.branch_period)
+                                   siblings=args.siblings, branch_period=args.branch_period, rank=args.rank)
             for first in range(0, len(todo), args.batch):
                 seeds = todo[first:first + args.batch]
                 start = time.perf_counter()
@@ -166,7 +175,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         rows.write(json.dumps(row) + "\n")
                 print(f"{name} {kind} seeds {seeds[0]}..{seeds[-1]}: {seconds:.0f} s; ceiling speed "
                       + " ".join(f"{r.mean_speed:.2f}" for r in found) + "; driver "
-                      + " ".join(f"{r.driver_mean_speed:.2f}" for r in found), flush=True)
+                      + " ".join(f"{r.driver_mean_speed:.2f}" for r in found) + "; task return ceiling "
+                      + " ".join(f"{r.task_return:.1f}" for r in found) + ", driver "
+                      + " ".join(f"{r.driver_task_return:.1f}" for r in found), flush=True)
     wanted = set(args.scenarios), set(args.kinds), set(args.seeds)
     rows = [row for row in read_rows(path)
             if row["scenario"] in wanted[0] and row["kind"] in wanted[1] and row["seed"] in wanted[2]]

@@ -17,6 +17,7 @@ from mmpc.evaluate.ceiling import CeilingConfig, search_ceiling
 from mmpc.highway.runner import run_lockstep
 from mmpc.scenario import load_scenario
 from mmpc.sim import SimEpisodes
+from mmpc.sim.reward import highway_reward
 from mmpc.verify import Verifier
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,6 +66,16 @@ def replay(name: str, seed: int, commands: list) -> tuple[SimEpisodes, list]:
     return episodes, states
 
 
+def replayed_task_return(name: str, seed: int, commands) -> float:
+    """highway-env's reward of the states after each of ``commands``, summed (the evaluation's task return)."""
+    episodes = SimEpisodes(scenario(name), [seed])
+    total = 0.0
+    for acceleration, steering in commands:
+        episodes.step(torch.tensor([[acceleration, steering]]))
+        total += float(highway_reward(episodes.state, episodes.config)[0])
+    return total
+
+
 def test_the_verified_ceiling_replays_and_keeps_a_way_out_at_every_step(verified_ceiling):
     checker = Verifier.for_scenario(scenario(), compile=False)
     for result in verified_ceiling:
@@ -75,6 +86,7 @@ def test_the_verified_ceiling_replays_and_keeps_a_way_out_at_every_step(verified
         assert float(episodes.state.x[0, 0]) - start_x == pytest.approx(result.distance, abs=1e-3)
         speeds = torch.stack([state[0][0, 3] for state in states]).double()
         assert float(speeds.mean()) == pytest.approx(result.mean_speed, abs=1e-4)
+        assert replayed_task_return("high_speed", result.seed, result.commands) == pytest.approx(result.task_return, abs=1e-6)
         stored = None
         for (ego, vehicles, mask), (acceleration, steering) in zip(states, result.commands):
             verdict = checker.check(ego, vehicles, mask, torch.tensor([[acceleration]]), torch.tensor([[steering]]))
@@ -98,6 +110,7 @@ def test_the_drivers_node_drives_as_the_driver_alone(verified_ceiling):
     for result, episode in zip(verified_ceiling, alone):
         assert result.driver_mean_speed == pytest.approx(episode.metrics["mean_speed"], abs=1e-4)
         assert result.driver_meta_cost == pytest.approx(episode.metrics["meta_cost_mean"], rel=1e-4)
+        assert result.driver_task_return == pytest.approx(episode.metrics["task_return"], rel=1e-4)
 
 
 def test_the_unprotected_ceiling_in_cruise_ranks_by_the_meta_cost():
@@ -109,9 +122,20 @@ def test_the_unprotected_ceiling_in_cruise_ranks_by_the_meta_cost():
     assert not bool(episodes.crashed[0])
 
 
+def test_a_search_ranked_by_the_task_return_finds_the_return_it_reports():
+    """Cruise pays highway-env's reward only for the right lane below 20 m/s: ranked by it, the
+    search finds at least the driver's return, and its episode replays to the return it reports."""
+    found = search_ceiling(scenario("cruise", 1.0), [5, 6], CeilingConfig(beam=4, siblings=2, rank="task_return"))
+    for result in found:
+        assert not result.crashed and result.score == pytest.approx(result.task_return)
+        assert result.task_return >= result.driver_task_return - 1e-9 and result.driver_score == pytest.approx(result.driver_task_return)
+        assert replayed_task_return("cruise", result.seed, result.commands) == pytest.approx(result.task_return, abs=1e-6)
+
+
 @pytest.mark.parametrize("settings, message", [({"beam": 0}, "beam"), ({"screened": 0}, "screened"),
                                                ({"siblings": 0}, "siblings"), ({"branch_period": 0.0}, "branch_period"),
-                                               ({"cell": (0.1, 0.0, 0.1)}, "cell_y"), ({"beam": "8"}, "beam"), ({"driver": "nope"}, "nope")])
+                                               ({"cell": (0.1, 0.0, 0.1)}, "cell_y"), ({"beam": "8"}, "beam"), ({"driver": "nope"}, "nope"),
+                                               ({"rank": "reward"}, "rank")])
 def test_bad_settings_are_refused(settings, message):
     with pytest.raises(ValueError, match=message):
         CeilingConfig(**settings)
@@ -146,3 +170,9 @@ def test_the_script_keeps_its_rows_resumes_and_refuses_other_settings(tmp_path, 
     assert entry["seeds"] == 1 and entry["at_or_above_driver"] == 1
     assert script.main([*argv[:-2], "--beam", "3", "--out", str(tmp_path)]) == 2
     assert "other settings" in capsys.readouterr().err
+    settings = json.loads((tmp_path / "settings.json").read_text())
+    assert settings.pop("rank") == "scenario"
+    (tmp_path / "settings.json").write_text(json.dumps(settings))  # a folder written before `rank` existed
+    assert script.main(argv) == 0  # read as ranked by the scenario's score
+    assert script.main([*argv[:-2], "--rank", "task_return", "--out", str(tmp_path)]) == 2
+    assert "'rank': ('scenario', 'task_return')" in capsys.readouterr().err

@@ -7,7 +7,8 @@ branches into the multi-modal MPC's whole candidate set (every feasible goal's f
 the chosen plan's), the chosen command with the guard's braking variants
 (:data:`mmpc.verify.guard.BRAKING`) and the fail-safes' first commands, each child a clone of the
 simulator state (:meth:`mmpc.sim.SimEpisodes.take`). Children are ranked by the scenario's score
-(distance travelled at high speed, the meta cost's sum in cruise), one per cell of ego state kept,
+(distance travelled at high speed, the meta cost's sum in cruise) or by highway-env's task reward
+summed over the frames (``rank="task_return"``), one per cell of ego state kept,
 with a share of the beam reserved for each lane so that a pass that first brakes survives
 long enough to pay off.
 
@@ -32,15 +33,21 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 
-from mmpc.config import require_field_types, require_int, require_positive
+from mmpc.config import require, require_field_types, require_int, require_positive
 from mmpc.drivers import Driver, Observation, make_driver
 from mmpc.drivers.registry import check_spec
 from mmpc.problem import EGO_V, EGO_X, EGO_Y
 from mmpc.scenario import CruiseObjective, ScenarioConfig, build_mpc
 from mmpc.sim import SimEpisodes
+from mmpc.sim.reward import highway_reward
+from mmpc.task_reward import HighwayReward
 from mmpc.verify import Verifier
 from mmpc.verify.failsafe import Body, drive, failsafe_table
 from mmpc.verify.guard import BRAKING
+
+
+#: What the search can maximise (:attr:`CeilingConfig.rank`).
+RANKS = ("scenario", "task_return")
 
 
 @dataclass(frozen=True)
@@ -63,6 +70,9 @@ class CeilingConfig:
         driver: the driver the ceiling bounds, driving one node of each beam (a driver spec:
             ``verified:mpc``, ``mpc``); ``None``: the scenario's MPC behind the check where
             ``verify``, alone otherwise.
+        rank: what the search maximises: ``"scenario"``, the scenario's score (distance at high
+            speed, minus the meta cost in cruise), or ``"task_return"``, highway-env's reward
+            (:class:`mmpc.task_reward.HighwayReward`) summed over the frames, as the RL agents' task.
     """
 
     beam: int = 64
@@ -72,9 +82,11 @@ class CeilingConfig:
     driver: Optional[str] = None
     branch_period: float = 0.5
     siblings: int = 8
+    rank: str = "scenario"
 
     def __post_init__(self) -> None:
         require_field_types(self)
+        require(self.rank in RANKS, f"CeilingConfig: `rank` must be one of {list(RANKS)}; got {self.rank!r}")
         require_int("CeilingConfig", low=1, beam=self.beam, screened=self.screened, siblings=self.siblings)
         require_positive("CeilingConfig", branch_period=self.branch_period, cell_x=self.cell[0], cell_y=self.cell[1],
                          cell_speed=self.cell[2])
@@ -93,11 +105,13 @@ class SeedCeiling(NamedTuple):
     Fields:
         seed: the episode seed.
         score: the best node's score (higher is better: distance [m] at high speed, minus the
-            meta cost's mean in cruise).
+            meta cost's mean in cruise; with ``rank="task_return"`` the task return).
         mean_speed, meta_cost, distance: the best episode's mean speed [m/s] and meta-cost mean
             over its steps' states, and the distance travelled [m].
+        task_return: its highway-env reward summed over the states after each step (the
+            evaluation's ``task_return``).
         crashed: every node of the beam collided (no episode left; the figures are NaN).
-        driver_score, driver_mean_speed, driver_meta_cost, driver_distance: the same for the
+        driver_score, driver_mean_speed, driver_meta_cost, driver_distance, driver_task_return: the same for the
             bounded driver's episode (up to its collision, if any).
         driver_crashed: the driver's episode ended in a collision.
         nodes_crashed: beam nodes that collided over the search (with ``verify``: a car left the
@@ -111,11 +125,13 @@ class SeedCeiling(NamedTuple):
     mean_speed: float
     meta_cost: float
     distance: float
+    task_return: float
     crashed: bool
     driver_score: float
     driver_mean_speed: float
     driver_meta_cost: float
     driver_distance: float
+    driver_task_return: float
     driver_crashed: bool
     nodes_crashed: int
     commands: list[tuple[float, float]]
@@ -134,6 +150,7 @@ class _Beam(NamedTuple):
     distance: torch.Tensor  # float64 [m] since the start
     speed_sum: torch.Tensor  # float64, the states' speeds summed [m/s]
     cost_sum: torch.Tensor  # float64, the states' meta-cost terms summed
+    reward_sum: torch.Tensor  # float64, the task rewards of the states after each step summed
     lane: torch.Tensor  # long, the fail-safe verified at the node's last step (-1: none)
     deceleration: torch.Tensor  # float64, its deceleration [m/s^2] (NaN: none)
     mode: torch.Tensor  # long, what the node drives until the next branching: a goal index or FAILSAFE
@@ -216,6 +233,7 @@ class _Search:
         self.driver.reset(count)
         self.road = scenario.road
         self.cruise = isinstance(scenario.objective, CruiseObjective)
+        self.reward = HighwayReward()
         self.branch_every = max(1, int(config.branch_period * scenario.frequency + 1e-9))
         nodes = count * width
         double = dict(dtype=torch.float64)
@@ -224,10 +242,11 @@ class _Search:
         self.beam = _Beam(
             seed=torch.arange(count).repeat_interleave(width), alive=first.clone(), driver=first.clone(),
             distance=torch.zeros(nodes, **double), speed_sum=torch.zeros(nodes, **double), cost_sum=torch.zeros(nodes, **double),
+            reward_sum=torch.zeros(nodes, **double),
             lane=torch.full((nodes,), -1, dtype=torch.long), deceleration=torch.full((nodes,), float("nan"), **double),
             mode=torch.zeros(nodes, dtype=torch.long), hold_lane=torch.zeros(nodes, dtype=torch.long),
             hold_deceleration=torch.zeros(nodes, **double), commands=torch.zeros(nodes, steps, 2, **double))
-        self.driver_final: dict[int, tuple[float, float, float]] = {}  # seed index -> a crashed driver's figures
+        self.driver_final: dict[int, tuple[float, float, float, float]] = {}  # seed index -> a crashed driver's figures
         self.nodes_crashed = torch.zeros(count, dtype=torch.long)
         self.steps = 0
 
@@ -401,17 +420,18 @@ class _Search:
         self.nodes_crashed += torch.bincount(beam.seed[rows][crashed & beam.alive[rows] & kept & first],
                                              minlength=len(self.seeds))
         distance = beam.distance[rows] + (self.sim.state.x[:, 0].double().cpu() - x_before)
+        reward_sum = beam.reward_sum[rows] + highway_reward(self.sim.state, self.sim.config, self.reward).double().cpu()
         steps = self.steps + 1
         for node in (is_driver & crashed).nonzero().squeeze(1).tolist():
             self.driver_final[int(beam.seed[rows[node]])] = (float(distance[node]), float(beam.speed_sum[rows[node]]) / steps,
-                                                             float(beam.cost_sum[rows[node]]) / steps)
+                                                             float(beam.cost_sum[rows[node]]) / steps, float(reward_sum[node]))
         checked = checks.lane[picked] >= 0
         lane = torch.where(checked, checks.lane[picked], beam.lane[rows])
         deceleration = torch.where(checked, checks.deceleration[picked], beam.deceleration[rows])
         commands = beam.commands[rows]
         commands[:, self.steps] = command.double().cpu()
         self.beam = _Beam(beam.seed[rows], alive, is_driver & ~crashed, distance, beam.speed_sum[rows], beam.cost_sum[rows],
-                          lane, deceleration, flat[4], flat[5], flat[6], commands)
+                          reward_sum, lane, deceleration, flat[4], flat[5], flat[6], commands)
         self.steps = steps
 
     def _stage_cost(self, speed: torch.Tensor, lateral: torch.Tensor) -> torch.Tensor:
@@ -420,7 +440,14 @@ class _Search:
 
     def _score(self, beam: _Beam, parent: torch.Tensor, ego: torch.Tensor, end: Body) -> torch.Tensor:
         """(C,) the children's scores, higher better: distance at high speed, minus the meta cost
-        summed over the states so far and the child's next one in cruise."""
+        summed over the states so far and the child's next one in cruise; with ``rank="task_return"``
+        the task rewards so far plus the child's next state's."""
+        if self.config.rank == "task_return":
+            lane = self.road.lane_index(end.y.double())
+            on_road = (end.y.double() - lane.double() * self.road.lane_width).abs() <= 0.5 * self.road.lane_width
+            reward = self.reward(end.speed.double() * torch.cos(end.heading.double()), lane, self.road.num_lanes,
+                                 torch.zeros_like(on_road), on_road)
+            return beam.reward_sum[parent] + reward
         if self.cruise:
             return -(beam.cost_sum[parent] + self._stage_cost(end.speed.double(), end.y.double()))
         return beam.distance[parent] + (end.x.double() - ego[:, EGO_X].double())
@@ -445,6 +472,13 @@ class _Search:
             picked.append(torch.cat([mine, order[:1].expand(width - mine.numel())]))
         return torch.cat(picked)
 
+    def _final_score(self, distance: torch.Tensor, cost_mean: torch.Tensor, reward_sum: torch.Tensor) -> torch.Tensor:
+        """The score episodes are ranked by at the end (:attr:`CeilingConfig.rank`), from their
+        distance [m], meta-cost mean and task return."""
+        if self.config.rank == "task_return":
+            return reward_sum
+        return -cost_mean if self.cruise else distance
+
     def results(self, steps: int) -> list[SeedCeiling]:
         """Each seed's best episode and the bounded driver's."""
         beam = self.beam
@@ -453,20 +487,21 @@ class _Search:
             mine = (beam.seed == index) & beam.alive
             if bool(mine.any()):
                 nodes = mine.nonzero().squeeze(1)
-                score = -beam.cost_sum[nodes] / steps if self.cruise else beam.distance[nodes]
+                score = self._final_score(beam.distance[nodes], beam.cost_sum[nodes] / steps, beam.reward_sum[nodes])
                 best = nodes[int(torch.argmax(score))]
                 figures = (float(score.max()), float(beam.speed_sum[best]) / steps, float(beam.cost_sum[best]) / steps,
-                           float(beam.distance[best]), False)
+                           float(beam.distance[best]), float(beam.reward_sum[best]), False)
                 commands = [tuple(command) for command in beam.commands[best].tolist()]
             else:
-                figures, commands = (float("nan"),) * 4 + (True,), []
+                figures, commands = (float("nan"),) * 5 + (True,), []
             if index in self.driver_final:
-                (distance, speed, cost), crashed = self.driver_final[index], True
+                (distance, speed, cost, reward), crashed = self.driver_final[index], True
             else:
                 node = int(((beam.seed == index) & beam.driver).nonzero()[0, 0])
-                distance, speed, cost, crashed = (float(beam.distance[node]), float(beam.speed_sum[node]) / steps,
-                                                  float(beam.cost_sum[node]) / steps, False)
-            found.append(SeedCeiling(seed, *figures, -cost if self.cruise else distance, speed, cost, distance, crashed,
+                distance, speed, cost, reward, crashed = (float(beam.distance[node]), float(beam.speed_sum[node]) / steps,
+                                                          float(beam.cost_sum[node]) / steps, float(beam.reward_sum[node]), False)
+            driver_score = float(self._final_score(*(torch.tensor([value], dtype=torch.float64) for value in (distance, cost, reward))))
+            found.append(SeedCeiling(seed, *figures, driver_score, speed, cost, distance, reward, crashed,
                                      int(self.nodes_crashed[index]), commands))
         return found
 
