@@ -56,7 +56,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                         help="children of one node kept before others'")
     parser.add_argument("--rank", choices=RANKS, default="scenario",
                         help="what the search maximises: the scenario's score (distance at high speed, the meta cost in "
-                             "cruise) or task_return, highway-env's reward summed over the frames (default %(default)s)")
+                             "cruise), task_return (highway-env's reward summed over the frames) or distance, in any "
+                             "scenario (default %(default)s)")
     parser.add_argument("--batch", type=int, default=8, help="seeds searched together")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--compile", choices=tuple(COMPILE_CHOICES), default="auto", help="compile the optimizer")

@@ -122,6 +122,12 @@ def test_the_unprotected_ceiling_in_cruise_ranks_by_the_meta_cost():
     assert not bool(episodes.crashed[0])
 
 
+def test_a_cruise_search_ranked_by_distance_drives_at_least_as_far_as_its_driver():
+    (result,) = search_ceiling(scenario("cruise", 1.0), [5], CeilingConfig(beam=4, verify=False, siblings=2, rank="distance"))
+    assert result.score == pytest.approx(result.distance) and result.driver_score == pytest.approx(result.driver_distance)
+    assert result.distance >= result.driver_distance - 1e-9
+
+
 def test_a_search_ranked_by_the_task_return_finds_the_return_it_reports():
     """Cruise pays highway-env's reward only for the right lane below 20 m/s: ranked by it, the
     search finds at least the driver's return, and its episode replays to the return it reports."""

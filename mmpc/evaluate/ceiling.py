@@ -8,7 +8,8 @@ the chosen plan's), the chosen command with the guard's braking variants
 (:data:`mmpc.verify.guard.BRAKING`) and the fail-safes' first commands, each child a clone of the
 simulator state (:meth:`mmpc.sim.SimEpisodes.take`). Children are ranked by the scenario's score
 (distance travelled at high speed, the meta cost's sum in cruise) or by highway-env's task reward
-summed over the frames (``rank="task_return"``), one per cell of ego state kept,
+summed over the frames (``rank="task_return"``) or the distance in any scenario (``"distance"``),
+one per cell of ego state kept,
 with a share of the beam reserved for each lane so that a pass that first brakes survives
 long enough to pay off.
 
@@ -47,7 +48,7 @@ from mmpc.verify.guard import BRAKING
 
 
 #: What the search can maximise (:attr:`CeilingConfig.rank`).
-RANKS = ("scenario", "task_return")
+RANKS = ("scenario", "task_return", "distance")
 
 
 @dataclass(frozen=True)
@@ -71,8 +72,9 @@ class CeilingConfig:
             ``verified:mpc``, ``mpc``); ``None``: the scenario's MPC behind the check where
             ``verify``, alone otherwise.
         rank: what the search maximises: ``"scenario"``, the scenario's score (distance at high
-            speed, minus the meta cost in cruise), or ``"task_return"``, highway-env's reward
-            (:class:`mmpc.task_reward.HighwayReward`) summed over the frames, as the RL agents' task.
+            speed, minus the meta cost in cruise); ``"task_return"``, highway-env's reward
+            (:class:`mmpc.task_reward.HighwayReward`) summed over the frames, as the RL agents' task;
+            ``"distance"``, the distance travelled in any scenario (how fast a driver could go).
     """
 
     beam: int = 64
@@ -105,7 +107,8 @@ class SeedCeiling(NamedTuple):
     Fields:
         seed: the episode seed.
         score: the best node's score (higher is better: distance [m] at high speed, minus the
-            meta cost's mean in cruise; with ``rank="task_return"`` the task return).
+            meta cost's mean in cruise; with ``rank="task_return"`` the task return, with
+            ``"distance"`` the distance).
         mean_speed, meta_cost, distance: the best episode's mean speed [m/s] and meta-cost mean
             over its steps' states, and the distance travelled [m].
         task_return: its highway-env reward summed over the states after each step (the
@@ -448,7 +451,7 @@ class _Search:
             reward = self.reward(end.speed.double() * torch.cos(end.heading.double()), lane, self.road.num_lanes,
                                  torch.zeros_like(on_road), on_road)
             return beam.reward_sum[parent] + reward
-        if self.cruise:
+        if self.cruise and self.config.rank == "scenario":
             return -(beam.cost_sum[parent] + self._stage_cost(end.speed.double(), end.y.double()))
         return beam.distance[parent] + (end.x.double() - ego[:, EGO_X].double())
 
@@ -477,7 +480,7 @@ class _Search:
         distance [m], meta-cost mean and task return."""
         if self.config.rank == "task_return":
             return reward_sum
-        return -cost_mean if self.cruise else distance
+        return -cost_mean if self.cruise and self.config.rank == "scenario" else distance
 
     def results(self, steps: int) -> list[SeedCeiling]:
         """Each seed's best episode and the bounded driver's."""
