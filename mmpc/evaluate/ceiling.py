@@ -41,6 +41,7 @@ from mmpc.problem import EGO_V, EGO_X, EGO_Y
 from mmpc.scenario import CruiseObjective, ScenarioConfig, build_mpc
 from mmpc.sim import SimEpisodes
 from mmpc.sim.reward import highway_reward
+from mmpc.sim.state import lane_of, on_road
 from mmpc.task_reward import HighwayReward
 from mmpc.verify import Verifier
 from mmpc.verify.failsafe import Body, drive, failsafe_table
@@ -446,10 +447,10 @@ class _Search:
         summed over the states so far and the child's next one in cruise; with ``rank="task_return"``
         the task rewards so far plus the child's next state's."""
         if self.config.rank == "task_return":
-            lane = self.road.lane_index(end.y.double())
-            on_road = (end.y.double() - lane.double() * self.road.lane_width).abs() <= 0.5 * self.road.lane_width
-            reward = self.reward(end.speed.double() * torch.cos(end.heading.double()), lane, self.road.num_lanes,
-                                 torch.zeros_like(on_road), on_road)
+            y = end.y.double()
+            on = on_road(y, self.sim.config)
+            reward = self.reward(end.speed.double() * torch.cos(end.heading.double()), lane_of(y, self.sim.config),
+                                 self.road.num_lanes, torch.zeros_like(on), on)
             return beam.reward_sum[parent] + reward
         if self.cruise and self.config.rank == "scenario":
             return -(beam.cost_sum[parent] + self._stage_cost(end.speed.double(), end.y.double()))
@@ -475,9 +476,10 @@ class _Search:
             picked.append(torch.cat([mine, order[:1].expand(width - mine.numel())]))
         return torch.cat(picked)
 
-    def _final_score(self, distance: torch.Tensor, cost_mean: torch.Tensor, reward_sum: torch.Tensor) -> torch.Tensor:
+    def _final_score(self, distance: float | torch.Tensor, cost_mean: float | torch.Tensor,
+                     reward_sum: float | torch.Tensor) -> float | torch.Tensor:
         """The score episodes are ranked by at the end (:attr:`CeilingConfig.rank`), from their
-        distance [m], meta-cost mean and task return."""
+        distance [m], meta-cost mean and task return (tensors of one shape, or floats)."""
         if self.config.rank == "task_return":
             return reward_sum
         return -cost_mean if self.cruise and self.config.rank == "scenario" else distance
@@ -503,9 +505,8 @@ class _Search:
                 node = int(((beam.seed == index) & beam.driver).nonzero()[0, 0])
                 distance, speed, cost, reward, crashed = (float(beam.distance[node]), float(beam.speed_sum[node]) / steps,
                                                           float(beam.cost_sum[node]) / steps, float(beam.reward_sum[node]), False)
-            driver_score = float(self._final_score(*(torch.tensor([value], dtype=torch.float64) for value in (distance, cost, reward))))
-            found.append(SeedCeiling(seed, *figures, driver_score, speed, cost, distance, reward, crashed,
-                                     int(self.nodes_crashed[index]), commands))
+            found.append(SeedCeiling(seed, *figures, self._final_score(distance, cost, reward), speed, cost, distance, reward,
+                                     crashed, int(self.nodes_crashed[index]), commands))
         return found
 
 
