@@ -50,18 +50,18 @@ def recorded_config(path: str | Path) -> Optional[RLConfig]:
     where ``path`` is neither (e.g. a plain RL config file)."""
     path = Path(path)
     path = path / "config.yaml" if path.is_dir() else path
-    record = _run_record(path, {"algo", "config"})
-    return None if record is None else run_config(record["config"], path)
+    record = run_record(path)
+    return run_config(record["config"], path) if {"algo", "config"} <= set(record) else None
 
 
-def _run_record(path: Path, keys: set[str]) -> Optional[dict]:
-    """The mapping a run's ``config.yaml`` (``path``) holds, where it has ``keys``; ``None`` where
-    the file is missing, not YAML or not a run's record."""
+def run_record(path: Path) -> dict:
+    """The mapping a run's ``config.yaml`` (``path``) holds; ``{}`` where the file is missing,
+    not YAML or not a mapping."""
     try:
         record = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError):
-        return None
-    return record if isinstance(record, dict) and keys <= set(record) else None
+        return {}
+    return record if isinstance(record, dict) else {}
 
 
 class RecordedRun(NamedTuple):
@@ -76,8 +76,8 @@ class RecordedRun(NamedTuple):
 def recorded_run(folder: str | Path) -> Optional[RecordedRun]:
     """The settings of the training run in ``folder``; ``None`` where it holds no readable record of one."""
     path = Path(folder) / "config.yaml"
-    record = _run_record(path, {"algo", "env", "seed", "config"})
-    if record is None:
+    record = run_record(path)
+    if not {"algo", "env", "seed", "config"} <= set(record):
         return None
     return RecordedRun(record["algo"], record["env"], int(record["seed"]), run_config(record["config"], path))
 

@@ -44,7 +44,7 @@ from mmpc.highway.runner import Observer, Step
 from mmpc.rl.config import ALGORITHMS, RLConfig
 from mmpc.rl.reward import frame_reward, vehicle_reward
 from mmpc.rl.folders import run_folder
-from mmpc.rl.runs import ALGORITHM_CLASSES, TrainedRun, algorithm_class
+from mmpc.rl.runs import ALGORITHM_CLASSES, TrainedRun, algorithm_class, run_record
 
 if TYPE_CHECKING:
     from mmpc.rl.checkpoints import Checkpoint
@@ -405,7 +405,7 @@ def train(
            "timesteps": timesteps, "seed": seed, "config": to_dict(config)}
     fresh = None if resume else "a training run neither resumes nor overwrites one (--resume goes on with it)"
     with run_folder(out, RUN_LOCK, "another `mmpc rl train` run", fresh=fresh, describe=_held_run):
-        recorded = _recorded_run(out) if resume else {}
+        recorded = run_record(out / "config.yaml") if resume else {}
         checkpoint = _resume_point(out, recorded, run) if resume else None
         env, model = _start(config, algo, env_kind, continuous, seed, out, kwargs, expert_prior, checkpoint)
         if checkpoint is None:
@@ -455,15 +455,6 @@ def _counts_at(out: Path, steps: int) -> tuple[int, int]:
         logged = [(step, value) for step, value in scalars.get(tag, []) if step <= steps]
         counts.append(int(max(logged)[1]) if logged else 0)
     return counts[0], counts[1]
-
-
-def _recorded_run(out: Path) -> dict:
-    """The record in ``out``'s config.yaml (``{}`` where there is none or it is not a mapping)."""
-    try:
-        record = yaml.safe_load((out / "config.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return {}
-    return record if isinstance(record, dict) else {}
 
 
 def _resume_point(out: Path, recorded: dict, run: dict) -> "Checkpoint":
@@ -533,7 +524,7 @@ def rollout_steps(model: Any) -> Optional[int]:
 
 def _held_run(out: Path) -> str:
     """What an occupied run folder holds, as words (the run its config.yaml records, or files)."""
-    run = _recorded_run(out)
+    run = run_record(out / "config.yaml")
     if not {"algo", "env", "seed"} <= set(run):
         return "files"
     described = f"{run['algo']} on {run['env']}, seed {run['seed']}"
