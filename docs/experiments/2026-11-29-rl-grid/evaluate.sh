@@ -17,11 +17,12 @@ case "$scenario/$world" in
   high_speed/highway-env) seeds=63496-63695 lockstep=50 ;;
   *) echo "world: batched or highway-env, got $world" >&2; exit 2 ;;
 esac
-agents() {  # kind algo: the finished runs' drivers, '|'-joined
-  local kind=$1 algo=$2 prefix list=()
+agents() {  # kind algo: the finished runs' drivers, '|'-joined (plain agents: cruise_task's, see queue.sh)
+  local kind=$1 algo=$2 prefix folder list=()
   prefix=$([ "$kind" = safe ] && echo "" || echo "plain_")
+  folder=$([ "$kind" = safe ] && echo "$recipe" || echo cruise_task)
   for seed in 0 1 2; do
-    model=runs/grid/$recipe/${prefix}${algo}_${seed}/model.zip
+    model=runs/grid/$folder/${prefix}${algo}_${seed}/model.zip
     [ -f "$model" ] && list+=("sb3:$model")
   done
   (IFS='|'; echo "${list[*]:-}")

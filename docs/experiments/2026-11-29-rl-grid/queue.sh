@@ -4,6 +4,9 @@
 #   bash docs/experiments/2026-11-29-rl-grid/queue.sh safe         # worker 2: safe runs
 # A finished run is skipped, a stopped one resumes from its latest checkpoint, one another worker
 # holds (its lock) is left to it. Runs land in runs/grid/<recipe>/<kind>_<algo>_<seed>.
+# The plain runs train under cruise_task only: without the layer the two recipes are one experiment
+# (the same world, traffic, car, observation, reward and meta-speeds; only the layer's expert differs),
+# so evaluate.sh gives both scenarios the cruise_task plain agents.
 set -u
 STEPS=${STEPS:-500000}
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
@@ -37,6 +40,7 @@ run() {  # kind algo recipe seed
 }
 for kind in "$@"; do
   for recipe in cruise_task high_speed_task; do
+    [ "$kind" = plain ] && [ "$recipe" != cruise_task ] && continue
     for algo in ppo dqn; do
       for seed in 0 1 2; do run "$kind" "$algo" "$recipe" "$seed"; done
     done
