@@ -104,13 +104,13 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
 
 def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, profiled: bool,
              log: Callable[[str], None]) -> list[dict]:
-    """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command
-    (``profiled``: and :func:`device_profile` of 3 more steps)."""
+    """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command, with
+    the GPU's fixed shapes on any device (``profiled``: and :func:`device_profile` of 3 more steps)."""
     from mmpc.sim import SimEpisodes
 
     rows = []
     for num_envs in envs:
-        sim = SimEpisodes(scenario.replace(duration=1e4), list(range(num_envs)), device=device)
+        sim = SimEpisodes(scenario.replace(duration=1e4), list(range(num_envs)), device=device, fixed_shapes=True)
         command = torch.tensor(CONSTANT_COMMAND, device=device).expand(num_envs, 2).contiguous()
         for _ in range(3):
             sim.step(command)

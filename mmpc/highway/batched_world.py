@@ -123,11 +123,20 @@ class BatchedWorld:
         return self.sim.num_envs
 
     def status(self) -> Status:
-        """The current states' :class:`Status`, read in one copy to the host after each step (when asked for)."""
+        """The current states' :class:`Status`, read in one copy to the host after each step (when asked for);
+        ``ValueError`` if an environment was given a non-finite command or overflowed the simulator's
+        buffers (:class:`mmpc.sim.SimEpisodes`, which checks both on the device)."""
         if self._status is None:
-            rewards = highway_reward(self.sim.state, self.sim.config)
-            flags = torch.stack([self.sim.done, self.sim.crashed, self.sim.on_road]).to(rewards.dtype)
-            ended, crashed, on_road, rewards = torch.cat([flags, rewards[None]]).tolist()  # one copy to the host
+            sim = self.sim
+            rewards = highway_reward(sim.state, sim.config)
+            flags = torch.stack([sim.done, sim.crashed, sim.on_road, sim.refused, sim.overflowed]).to(rewards.dtype)
+            ended, crashed, on_road, refused, overflowed, rewards = torch.cat([flags, rewards[None]]).tolist()  # one copy
+            for flags, what in ((refused, "were given a command that is not finite (NaN or inf)"),
+                                (overflowed, "overflowed the simulator's buffers (mmpc.sim.collision.PAIRS_PER_ENV, "
+                                             "mmpc.sim.idm.CHANGES_PER_ENV): their steps are not exact")):
+                if any(flags):
+                    rows = [row for row, flag in enumerate(flags) if flag == 1]
+                    raise ValueError(f"environments {rows[:8]} (seeds {[self.seeds[row] for row in rows[:8]]}) {what}")
             self._status = Status([flag == 1 for flag in ended], [flag == 1 for flag in crashed],
                                   [flag == 1 for flag in on_road], rewards)
         return self._status

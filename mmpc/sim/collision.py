@@ -21,7 +21,13 @@ from typing import NamedTuple
 
 import torch
 
+from mmpc.sim.compaction import capacity, compact
 from mmpc.sim.state import VehicleState
+
+#: The collision test's buffer: pairs past the bounding-circle pre-check per environment on average,
+#: and at least (a small batch may hold one pile-up). Traffic fills ~0.1-2.7 per environment.
+PAIRS_PER_ENV = 2.0
+PAIRS_FLOOR = 64
 
 
 class PolygonTest(NamedTuple):
@@ -88,40 +94,46 @@ def polygons_intersecting(
     return PolygonTest(intersecting, will_intersect, torch.where(will_intersect[..., None], translation, 0.0))
 
 
-def pair_collisions(state: VehicleState, dt: float) -> PolygonTest:
+def pair_collisions(state: VehicleState, dt: float, fixed_shapes: bool = False) -> tuple[PolygonTest, torch.Tensor]:
     """Every pair's test after a frame, (E, V, V) ([e, i, j], i < j; False elsewhere): pairs
     where either vehicle checks collisions, the bounding-circle pre-check, then
     :func:`polygons_intersecting` of i (as ``a``) and j, computed for the pairs that pass the
-    pre-check only (a few per environment in traffic; the host learns how many)."""
+    pre-check only (``fixed_shapes``: gathered in a buffer of :data:`PAIRS_PER_ENV` pairs per
+    environment, :mod:`mmpc.sim.compaction`; else as many as there are, counted on the host).
+
+    Returns:
+        The test, and (E,) bool: the environment had pairs past the buffer, left untested.
+    """
     dx = state.x[:, None, :] - state.x[:, :, None]
     dy = state.y[:, None, :] - state.y[:, :, None]
     diagonal = torch.sqrt(state.length ** 2 + state.width ** 2)
     reach = (diagonal[:, :, None] + diagonal[:, None, :]) / 2 + (state.speed * dt)[:, :, None]
-    num_vehicles = state.x.shape[1]
+    num_envs, num_vehicles = state.x.shape
     upper = torch.ones(num_vehicles, num_vehicles, dtype=torch.bool, device=state.x.device).triu(1)
     checking = state.check_collisions[:, :, None] | state.check_collisions[:, None, :]
     checked = upper & checking & state.alive[:, :, None] & state.alive[:, None, :] & ~(torch.sqrt(dx * dx + dy * dy) > reach)
-    env, first, second = checked.nonzero(as_tuple=True)
-    corners = rectangle_corners(state.x[env[:, None], torch.stack([first, second], dim=1)],
-                                state.y[env[:, None], torch.stack([first, second], dim=1)],
-                                state.heading[env[:, None], torch.stack([first, second], dim=1)],
-                                state.length[env[:, None], torch.stack([first, second], dim=1)],
-                                state.width[env[:, None], torch.stack([first, second], dim=1)])  # (P, 2, 4, 2)
-    speed, heading = state.speed[env[:, None], torch.stack([first, second], dim=1)], state.heading[env[:, None], torch.stack([first, second], dim=1)]
-    travel = (speed * dt)[..., None] * torch.stack([torch.cos(heading), torch.sin(heading)], dim=-1)  # (P, 2, 2)
+    every_pair = num_envs * num_vehicles * (num_vehicles - 1) // 2
+    pairs = compact(checked, capacity(fixed_shapes, num_envs, PAIRS_PER_ENV, PAIRS_FLOOR, every_pair))
+    env, first, second = pairs.index  # (K,) each; the padding points at (0, 0, 0), never a pair
+    both = (env[:, None], torch.stack([first, second], dim=1))
+    corners = rectangle_corners(state.x[both], state.y[both], state.heading[both], state.length[both],
+                                state.width[both])  # (K, 2, 4, 2)
+    speed, heading = state.speed[both], state.heading[both]
+    travel = (speed * dt)[..., None] * torch.stack([torch.cos(heading), torch.sin(heading)], dim=-1)  # (K, 2, 2)
     test = polygons_intersecting(corners[:, 0], corners[:, 1], travel[:, 0], travel[:, 1])
     intersecting = torch.zeros_like(checked)
     will_intersect = torch.zeros_like(checked)
     translation = state.x.new_zeros((*checked.shape, 2))
-    intersecting[env, first, second] = test.intersecting
-    will_intersect[env, first, second] = test.will_intersect
-    translation[env, first, second] = test.translation
-    return PolygonTest(intersecting, will_intersect, translation)
+    intersecting[env, first, second] = test.intersecting & pairs.valid
+    will_intersect[env, first, second] = test.will_intersect & pairs.valid
+    translation[env, first, second] = torch.where(pairs.valid[:, None], test.translation, 0.0)
+    return PolygonTest(intersecting, will_intersect, translation), pairs.dropped.flatten(1).any(dim=1)
 
 
-def handle_collisions(state: VehicleState, dt: float) -> VehicleState:
-    """Mark intersecting vehicles crashed and store the pushes of predicted collisions (see the module)."""
-    pairs = pair_collisions(state, dt)
+def handle_collisions(state: VehicleState, dt: float, fixed_shapes: bool = False) -> tuple[VehicleState, torch.Tensor]:
+    """Mark intersecting vehicles crashed and store the pushes of predicted collisions (see the
+    module); and (E,) bool, the environments with pairs left untested (:func:`pair_collisions`)."""
+    pairs, untested = pair_collisions(state, dt, fixed_shapes)
     crashed = state.crashed | pairs.intersecting.any(dim=2) | pairs.intersecting.any(dim=1)
     num_vehicles = state.x.shape[1]
     slots = torch.arange(num_vehicles, device=state.x.device)
@@ -137,4 +149,4 @@ def handle_collisions(state: VehicleState, dt: float) -> VehicleState:
         crashed=crashed,
         impact=torch.where(pushed[..., None], impact, state.impact),
         impact_pending=state.impact_pending | pushed,
-    )
+    ), untested

@@ -45,6 +45,9 @@ class SimConfig:
         ego_as_follower: MOBIL reads the ego (slot 0) as an IDM follower whose target speed is its
             present speed; ``False``: as highway-env reads a continuous-action ego, with none
             (:mod:`mmpc.sim.mobil`).
+        fixed_shapes: a frame's shapes do not depend on the traffic and it reads nothing on the host
+            (buffers of fixed size, :mod:`mmpc.sim.compaction`; the window in fixed rounds): what one
+            compiled graph or a GPU needs. ``False``: exact sizes read on the host, the CPU's fast eager path.
     """
 
     simulation_frequency: float = 10.0
@@ -70,6 +73,7 @@ class SimConfig:
     lane_change_max_braking_imposed: float = 2.0
     lane_change_delay: float = 1.0
     ego_as_follower: bool = False
+    fixed_shapes: bool = False
 
     def __post_init__(self) -> None:
         require_field_types(self)

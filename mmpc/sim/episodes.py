@@ -12,19 +12,24 @@ reached the scenario's duration.
 from __future__ import annotations
 
 import copy
+import dataclasses
+import functools
 import operator
 from collections.abc import Iterable
-from typing import Optional, Sequence, Union
+from typing import NamedTuple, Optional, Sequence, Union
 
 import torch
 
 from mmpc.problem import require_on_device, usable_device
 from mmpc.scenario import ScenarioConfig
+from mmpc.sim.config import SimConfig
 from mmpc.sim.ego import ego_action
 from mmpc.sim.simulator import HighwaySimulator, ThreatDraws, check_command
 from mmpc.sim.state import VehicleState, check_state, on_road
 from mmpc.sim.threats import Orders
 from mmpc.sim.traffic import check_supported, initial_state, keep_in_window, sim_config
+from mmpc.solver import execution
+from mmpc.traffic_config import Threats
 
 Seeds = Union[Sequence[int], torch.Tensor]
 
@@ -43,23 +48,39 @@ class SimEpisodes:
         dtype: float32 or float64 state.
         device: where the state lives (default: ``seeds``' device if a tensor, else torch's
             default device); a device this machine can hold data on (not ``meta``).
+        compile: run each step as one compiled graph (:func:`compiled_episode_step`; each E compiles
+            once, minutes on the CPU the first time, seconds from inductor's cache); ``None``: as
+            the environment variable ``MMPC_COMPILE`` says (1: compiled; unset or 0: eager).
+        fixed_shapes: :attr:`mmpc.sim.SimConfig.fixed_shapes` (a step reads nothing on the host);
+            default: when compiled or off the CPU.
 
     Example:
         >>> from mmpc.scenario import ScenarioConfig
+from mmpc.sim.config import SimConfig
         >>> episodes = SimEpisodes(ScenarioConfig(duration=1.0), seeds=[0, 1, 2])
         >>> episodes.step(torch.zeros(3, 2))
         >>> episodes.time.tolist(), episodes.done.tolist()
         ([0.1, 0.1, 0.1], [False, False, False])
     """
 
-    def __init__(self, scenario: ScenarioConfig, seeds: Seeds, *, dtype: torch.dtype = torch.float32, device=None) -> None:
+    def __init__(self, scenario: ScenarioConfig, seeds: Seeds, *, dtype: torch.dtype = torch.float32, device=None,
+                 compile: Optional[bool] = None, fixed_shapes: Optional[bool] = None) -> None:
         check_supported(scenario)
+        setting = execution.compile_setting() if compile is None else compile
+        if not isinstance(setting, (bool, type(None))):
+            raise ValueError(f"`compile` must be True, False or None; got {compile!r}")
+        #: Whether :meth:`step` runs compiled (:func:`compiled_episode_step`).
+        self.compile = bool(setting)
         self.scenario = scenario
-        self.config = sim_config(scenario)
-        self.simulator = HighwaySimulator(self.config, scenario.traffic.threats)
         if device is None:
             device = seeds.device if isinstance(seeds, torch.Tensor) else torch.get_default_device()
-        self.seeds = _int_tensor("seeds", seeds, usable_device(device), MAX_SEED)
+        device = usable_device(device)
+        fixed = (self.compile or device.type != "cpu") if fixed_shapes is None else fixed_shapes
+        if self.compile and not fixed:
+            raise ValueError("a compiled SimEpisodes needs `fixed_shapes` (one graph per step); got fixed_shapes=False")
+        self.config = dataclasses.replace(sim_config(scenario), fixed_shapes=bool(fixed))
+        self.simulator = HighwaySimulator(self.config, scenario.traffic.threats)
+        self.seeds = _int_tensor("seeds", seeds, device, MAX_SEED)
         if self.seeds.numel() == 0:
             raise ValueError("`seeds` must hold at least one seed (E >= 1)")
         self.state: VehicleState = initial_state(scenario, self.seeds, dtype=dtype)
@@ -69,6 +90,14 @@ class SimEpisodes:
         self.applied = torch.zeros(self.num_envs, 2, dtype=dtype, device=self.seeds.device)
         #: (E, V, 2) the collision pushes [m] the last step applied (:meth:`road_state` ``at_impact``).
         self.pushes = torch.zeros_like(self.state.impact)
+        #: (E,) bool, the environment was given a non-finite command: it stopped there and is
+        #: :attr:`done` (checked on the device, so that a step reads nothing on the host; a
+        #: caller that reads :attr:`done` reads this with it and says so, as
+        #: :meth:`mmpc.highway.batched_world.BatchedWorld.status` does).
+        self.refused = torch.zeros_like(self.seeds, dtype=torch.bool)
+        #: (E,) bool, a frame had more close pairs than the collision test's buffer and left some
+        #: untested (:func:`mmpc.sim.collision.pair_collisions`; never seen in traffic); read as :attr:`refused`.
+        self.overflowed = torch.zeros_like(self.refused)
 
     @property
     def device(self) -> torch.device:
@@ -96,15 +125,15 @@ class SimEpisodes:
 
     @property
     def done(self) -> torch.Tensor:
-        """(E,) bool, the ego crashed or the scenario's duration is over."""
-        return self.crashed | (self.time >= self.scenario.duration - 1e-9)
+        """(E,) bool, the ego crashed, the scenario's duration is over or the environment was :attr:`refused`."""
+        return self.crashed | (self.time >= self.scenario.duration - 1e-9) | self.refused
 
     def step(self, command: torch.Tensor, running: Optional[torch.Tensor] = None, orders: Optional[Orders] = None) -> None:
         """Apply one control step's commands.
 
         Args:
-            command: (E, 2) the egos' acceleration [m/s^2] and steering [rad]; checked as
-                :meth:`mmpc.sim.HighwaySimulator.step` checks it.
+            command: (E, 2) the egos' acceleration [m/s^2] and steering [rad], floating point on the
+                episodes' device; an environment whose command is not finite stops and is :attr:`refused`.
             running: (E,) bool tensor on the episodes' device, the environments that move; the
                 others keep their state (finished episodes in a lockstep batch). Default: all.
             orders: to single cars, (E, V) each, carried out where the rules allow
@@ -117,28 +146,23 @@ class SimEpisodes:
             if running.shape != (self.num_envs,):
                 raise ValueError(f"`running` must have shape ({self.num_envs},); got {tuple(running.shape)}")
             require_on_device(self.seeds.device, "the episodes' state", running=running)
-        before = self.state
-        check_command(command, before)  # the state is the simulator's own, checked when it was made
-        draws = ThreatDraws(self.seeds, self.steps, self.scenario.frequency)
-        if orders is not None and (orders.lane_change.shape != before.x.shape or orders.speed.shape != before.x.shape):
-            raise ValueError(f"`orders` must hold (E, V) = {tuple(before.x.shape)} lane changes and speeds; got "
+        check_command(command, self.state, finite=False)  # read on the device: see :attr:`refused`
+        if orders is not None and (orders.lane_change.shape != self.state.x.shape
+                                   or orders.speed.shape != self.state.x.shape):
+            raise ValueError(f"`orders` must hold (E, V) = {tuple(self.state.x.shape)} lane changes and speeds; got "
                              f"{tuple(orders.lane_change.shape)} and {tuple(orders.speed.shape)}")
-        after = self.simulator.advance(before, command.to(before.x.dtype), draws, orders)
-        window = self.scenario.traffic.window
-        if window is not None:
-            after = keep_in_window(after, window, self.seeds, self.steps, self.config)
-        command = command.to(before.x.dtype)
-        applied = torch.stack(ego_action(command[:, 0], command[:, 1], before.speed[:, 0], self.config), dim=1)
-        # The step's one frame applies the pushes pending before it (a scenario's frame is its control step).
-        pushes = torch.where((before.impact_pending & before.alive)[..., None], before.impact, 0.0)
         if running is None:
-            self.state, self.applied, self.steps, self.pushes = after, applied, self.steps + 1, pushes
-            return
-        self.state = VehicleState(*(torch.where(running.view(-1, *([1] * (new.dim() - 1))), new, old)
-                                    for new, old in zip(after, before)))
-        self.applied = torch.where(running[:, None], applied, self.applied)
-        self.steps = self.steps + running.to(self.steps.dtype)
-        self.pushes = torch.where(running[:, None, None], pushes, 0.0)
+            running = torch.ones_like(self.refused)
+        self.state, self.applied, self.steps, self.pushes, self.refused, self.overflowed = self._step(
+            self.state, command.to(self.state.x.dtype), running, self.seeds, self.steps, self.applied, self.refused,
+            self.overflowed, orders)
+
+    def _step(self, *arguments) -> "EpisodeStep":
+        window, frequency = self.scenario.traffic.window, self.scenario.frequency
+        if not self.compile:
+            return episode_step(self.simulator, window, frequency, *arguments)
+        with torch._dynamo.config.patch(recompile_limit=execution.RECOMPILE_LIMIT):
+            return compiled_episode_step(self.config, self.simulator.threats, window, frequency)(*arguments)
 
     def reset(self, envs: Union[Sequence[int], torch.Tensor], seeds: Seeds) -> None:
         """Start new episodes in some environments; the others keep running.
@@ -168,6 +192,8 @@ class SimEpisodes:
         self.steps = self.steps.index_fill(0, envs, 0)
         self.applied = self.applied.index_fill(0, envs, 0.0)
         self.pushes = self.pushes.index_fill(0, envs, 0.0)
+        self.refused = self.refused.index_fill(0, envs, False)
+        self.overflowed = self.overflowed.index_fill(0, envs, False)
 
     def take(self, rows: torch.Tensor) -> "SimEpisodes":
         """Clones of the episodes in ``rows`` that go on from where these are, as new episodes.
@@ -189,6 +215,7 @@ class SimEpisodes:
         clone.state = VehicleState(*(field.index_select(0, rows) for field in self.state))
         clone.seeds, clone.steps = self.seeds.index_select(0, rows), self.steps.index_select(0, rows)
         clone.applied, clone.pushes = self.applied.index_select(0, rows), self.pushes.index_select(0, rows)
+        clone.refused, clone.overflowed = self.refused.index_select(0, rows), self.overflowed.index_select(0, rows)
         return clone
 
     def road_state(self, *, at_impact: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -219,6 +246,60 @@ class SimEpisodes:
         vehicles = torch.stack([x[:, 1:], y[:, 1:], others_speed * torch.cos(heading),
                                 others_speed * torch.sin(heading)], dim=2)
         return ego, vehicles, state.alive[:, 1:]
+
+
+class EpisodeStep(NamedTuple):
+    """What one control step of :class:`SimEpisodes` changes: the state, the (E, 2) applied ego
+    command, the (E,) step counts, the (E, V, 2) pushes applied, the (E,) refused and overflowed flags."""
+
+    state: VehicleState
+    applied: torch.Tensor
+    steps: torch.Tensor
+    pushes: torch.Tensor
+    refused: torch.Tensor
+    overflowed: torch.Tensor
+
+
+def episode_step(simulator: HighwaySimulator, window: Optional[tuple[float, float]], frequency: float,
+                 state: VehicleState, command: torch.Tensor, running: torch.Tensor, seeds: torch.Tensor,
+                 steps: torch.Tensor, applied: torch.Tensor, refused: torch.Tensor, overflowed: torch.Tensor,
+                 orders: Optional[Orders] = None) -> EpisodeStep:
+    """One control step of E episodes at fixed shapes, no value read on the host: what
+    :meth:`SimEpisodes.step` runs (eager or compiled whole, ``fullgraph=True``).
+
+    Args:
+        simulator: the episodes' simulator; ``window``: the traffic's window (behind, ahead) [m] or
+            ``None``; ``frequency``: the control frequency [Hz] (names the threats' draws).
+        state: the vehicles; command: (E, 2) the egos' acceleration [m/s^2] and steering [rad], the
+            state's dtype; running: (E,) bool, the environments that move.
+        seeds, steps: (E,) int64; applied: (E, 2); refused, overflowed: (E,) bool (as :class:`SimEpisodes`'s).
+        orders: to single cars, or ``None``.
+
+    An environment given a non-finite command does not move and is marked refused.
+    """
+    finite = torch.isfinite(command).all(dim=1)
+    command = torch.where(finite[:, None], command, 0.0)
+    moving = running & finite & ~refused
+    after, untested = simulator.advance(state, command, ThreatDraws(seeds, steps, frequency), orders)
+    if window is not None:
+        after = keep_in_window(after, window, seeds, steps, simulator.config)
+    step_applied = torch.stack(ego_action(command[:, 0], command[:, 1], state.speed[:, 0], simulator.config), dim=1)
+    # The step's one frame applies the pushes pending before it (a scenario's frame is its control step).
+    pushes = torch.where((state.impact_pending & state.alive & moving[:, None])[..., None], state.impact, 0.0)
+    state = VehicleState(*(torch.where(moving.view(-1, *([1] * (new.dim() - 1))), new, old)
+                           for new, old in zip(after, state)))
+    return EpisodeStep(state, torch.where(moving[:, None], step_applied, applied), steps + moving.to(steps.dtype),
+                       pushes, refused | (running & ~finite), overflowed | (moving & untested))
+
+
+@functools.lru_cache(maxsize=None)
+def compiled_episode_step(config: SimConfig, threats: Optional[Threats], window: Optional[tuple[float, float]],
+                          frequency: float):
+    """:func:`episode_step` of one simulator through ``torch.compile(fullgraph=True)``, one per
+    set of constants (so that every :class:`SimEpisodes` alike shares its compiled graphs), each
+    E specialised (``dynamic=False``)."""
+    step = functools.partial(episode_step, HighwaySimulator(config, threats), window, frequency)
+    return torch.compile(step, fullgraph=True, dynamic=False)
 
 
 def _int_tensor(name: str, values: Union[Sequence[int], torch.Tensor], device: torch.device, high: int) -> torch.Tensor:

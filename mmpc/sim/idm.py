@@ -17,9 +17,12 @@ from typing import Optional
 
 import torch
 
+from mmpc.sim.compaction import capacity, compact
 from mmpc.sim.config import SimConfig
 from mmpc.sim.state import VehicleState
 
+#: The lane changers' buffer per environment on average (traffic holds ~1.7), at least one per vehicle.
+CHANGES_PER_ENV = 4.0
 #: highway-env's ``utils.not_zero`` threshold.
 NOT_ZERO = 1e-2
 
@@ -172,16 +175,25 @@ def steering_to_lane(y: torch.Tensor, heading: torch.Tensor, speed: torch.Tensor
     return steering.clamp(-bound, bound)
 
 
-def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every vehicle's IDM command (``IDMVehicle.act`` after the lane-change decision of
     :func:`mmpc.sim.mobil.change_lanes`, towards ``target_lane``): (acceleration
-    [m/s^2], steering [rad]), each (E, V). Slot 0 (the ego) is computed too; the caller replaces it."""
+    [m/s^2], steering [rad]), each (E, V). Slot 0 (the ego) is computed too; the caller replaces it.
+    A vehicle changing lane takes the smaller of its two lanes' accelerations; those vehicles are
+    asked, each with a copy of its environment (``config.fixed_shapes``: in a buffer of
+    :data:`CHANGES_PER_ENV` per environment, :mod:`mmpc.sim.compaction`); the third tensor, (E,)
+    bool, marks the environments with changes past it (left on their current lane's acceleration:
+    never seen in traffic)."""
     acceleration = idm_acceleration(state, state.lane, config)
+    num_envs, num_vehicles = state.x.shape
     changing = state.lane != state.target_lane
     changing[:, 0] = False
-    env, slot = changing.nonzero(as_tuple=True)  # the few vehicles changing lane, each with a copy of its environment
-    if env.numel():
-        copies = VehicleState(*(field[env] for field in state))
-        on_target = idm_acceleration(copies, state.target_lane[env, slot][:, None], config, slot[:, None])[:, 0]
-        acceleration[env, slot] = torch.minimum(acceleration[env, slot], on_target)
-    return acceleration.clamp(-config.acc_max, config.acc_max), lane_keeping_steering(state, config)
+    buffer = capacity(config.fixed_shapes, num_envs, CHANGES_PER_ENV, num_vehicles, num_envs * num_vehicles)
+    found = compact(changing, buffer)
+    env, slot = found.index  # the padding points at (0, 0), the ego, whose command the caller replaces
+    copies = VehicleState(*(field[env] for field in state))
+    on_target = idm_acceleration(copies, state.target_lane[env, slot][:, None], config, slot[:, None])[:, 0]
+    current = acceleration[env, slot]
+    acceleration[env, slot] = torch.where(found.valid, torch.minimum(current, on_target), current)
+    return (acceleration.clamp(-config.acc_max, config.acc_max), lane_keeping_steering(state, config),
+            found.dropped.any(dim=1))

@@ -39,9 +39,14 @@ from typing import Optional
 
 import torch
 
+from mmpc.sim.compaction import capacity, compact
 from mmpc.sim.config import SimConfig
 from mmpc.sim.idm import desired_gap, idm_between, vehicle_ahead, vehicle_behind
 from mmpc.sim.state import VehicleState
+
+#: MOBIL's buffer: evaluations per environment per frame on average (traffic asks ~1.9: each vehicle
+#: once a second), and at least one per vehicle of one environment.
+EVALUATIONS_PER_ENV = 3.0
 
 
 def mobil_accepts(state: VehicleState, candidate: torch.Tensor, config: SimConfig,
@@ -116,7 +121,7 @@ def change_lanes(state: VehicleState, config: SimConfig) -> VehicleState:
     deciding = state.alive & ~state.crashed & state.lane_change_enabled & (slots > 0)
     changing = state.lane != state.target_lane
     evaluating = deciding & ~changing & (state.lane_change_timer > config.lane_change_delay)
-    decided = _mobil_decisions(state, evaluating, config)
+    decided, evaluating = _mobil_decisions(state, evaluating, config)
     blockers = abort_blockers(state, config)
     aborting = deciding & changing
     target = state.target_lane.clone()
@@ -129,20 +134,23 @@ def change_lanes(state: VehicleState, config: SimConfig) -> VehicleState:
     return state._replace(target_lane=target, lane_change_timer=timer)
 
 
-def _mobil_decisions(state: VehicleState, evaluating: torch.Tensor, config: SimConfig) -> torch.Tensor:
+def _mobil_decisions(state: VehicleState, evaluating: torch.Tensor, config: SimConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """(E, V) the lane MOBIL picks (left, then right, the later accepted winning; else the
-    current lane) for the ``evaluating`` vehicles, the current lane elsewhere. Only the P
-    evaluating vehicles are asked, each with a copy of its environment (P x V work, not E x V^2)."""
-    env, slot = evaluating.nonzero(as_tuple=True)
-    decided = state.lane.clone()
-    if env.numel() == 0:
-        return decided
-    copies = VehicleState(*(torch.cat([field[env], field[env]]) for field in state))  # (2P, V): left, then right
+    current lane) for the ``evaluating`` vehicles, the current lane elsewhere; and (E, V) bool,
+    the vehicles evaluated. Only the evaluating vehicles are asked, each with a copy of its
+    environment (``config.fixed_shapes``: in a buffer of :data:`EVALUATIONS_PER_ENV` per environment,
+    :mod:`mmpc.sim.compaction`; those past it are evaluated at the next frame)."""
+    num_envs, num_vehicles = state.x.shape
+    buffer = capacity(config.fixed_shapes, num_envs, EVALUATIONS_PER_ENV, num_vehicles, num_envs * num_vehicles)
+    found = compact(evaluating, buffer)
+    env, slot = found.index  # the padding points at (0, 0), the ego, which never evaluates
+    copies = VehicleState(*(torch.cat([field[env], field[env]]) for field in state))  # (2K, V): left, then right
     lane = state.lane[env, slot]
     query = torch.cat([slot, slot])[:, None]
     left, right = mobil_accepts(copies, torch.cat([lane - 1, lane + 1])[:, None], config, query)[:, 0].chunk(2)
-    decided[env, slot] = torch.where(right, lane + 1, torch.where(left, lane - 1, lane))
-    return decided
+    decided = state.lane.clone()
+    decided[env, slot] = torch.where(found.valid & right, lane + 1, torch.where(found.valid & left, lane - 1, lane))
+    return decided, evaluating & ~found.dropped
 
 
 def advance_timers(state: VehicleState, config: SimConfig) -> VehicleState:

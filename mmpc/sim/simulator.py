@@ -72,32 +72,42 @@ class HighwaySimulator:
         """
         check_state(state, self.config)
         check_command(command, state)
-        return self.advance(state, command.to(state.x.dtype))
+        state, untested = self.advance(state, command.to(state.x.dtype))
+        if bool(untested.any()):
+            raise RuntimeError(f"environments {untested.nonzero()[:5, 0].tolist()} had more close pairs or lane changers "
+                               "than the simulator's buffers hold (mmpc.sim.collision.PAIRS_PER_ENV, "
+                               "mmpc.sim.idm.CHANGES_PER_ENV); the step is not exact")
+        return state
 
     def advance(self, state: VehicleState, command: torch.Tensor, draws: Optional[ThreatDraws] = None,
-                orders: Optional[Orders] = None) -> VehicleState:
-        """:meth:`step` without the checks (a frame still asks the host how many vehicles change lane
-        or meet); ``draws`` name the threats' draws (needed with ``threats``); ``orders`` to single
-        cars are carried out where the rules allow (:mod:`mmpc.sim.threats`)."""
+                orders: Optional[Orders] = None) -> tuple[VehicleState, torch.Tensor]:
+        """:meth:`step` without the checks, at fixed shapes and with nothing read on the host;
+        ``draws`` name the threats' draws (needed with ``threats``); ``orders`` to single cars are
+        carried out where the rules allow (:mod:`mmpc.sim.threats`). Returns the state and (E,)
+        bool: a frame overflowed a buffer that must hold everything (close pairs, lane changers:
+        :func:`mmpc.sim.collision.pair_collisions`, :func:`mmpc.sim.idm.traffic_command`)."""
         if self.threats is not None and draws is None:
             raise ValueError("a simulator with `threats` needs the step's ThreatDraws (seeds, step, frequency)")
         acceleration, steering = ego_action(command[:, 0], command[:, 1], state.speed[:, 0], self.config)
         moving_forward = state.speed[:, 0] >= 0
+        untested = torch.zeros_like(moving_forward)
         for _ in range(self.config.frames_per_command):
-            state = self.frame(state, acceleration, steering, draws, orders)
+            state, untested_now = self.frame(state, acceleration, steering, draws, orders)
+            untested = untested | untested_now
         ego_speed = torch.where(moving_forward & (state.speed[:, 0] < 0), 0.0, state.speed[:, 0])
-        return state._replace(speed=torch.cat([ego_speed[:, None], state.speed[:, 1:]], dim=1))
+        return state._replace(speed=torch.cat([ego_speed[:, None], state.speed[:, 1:]], dim=1)), untested
 
     def frame(self, state: VehicleState, ego_acceleration: torch.Tensor, ego_steering: torch.Tensor,
-              draws: Optional[ThreatDraws] = None, orders: Optional[Orders] = None) -> VehicleState:
-        """One simulation frame with the ego's applied (acceleration [m/s^2], steering [rad]), each (E,)."""
+              draws: Optional[ThreatDraws] = None, orders: Optional[Orders] = None) -> tuple[VehicleState, torch.Tensor]:
+        """One simulation frame with the ego's applied (acceleration [m/s^2], steering [rad]), each (E,);
+        returns the state and (E,) bool, a buffer overflowed (:meth:`advance`)."""
         state = change_lanes(state, self.config)
         threats = self.threats
         if threats is not None:
             state = threaten_lanes(state, threats, draws.seeds, draws.step, self.config)
         if orders is not None:
             state = obey_lanes(state, orders, self.config)
-        acceleration, steering = traffic_command(state, self.config)
+        acceleration, steering, unasked = traffic_command(state, self.config)
         if threats is not None:
             acceleration = threaten_speeds(state, acceleration, threats, draws.seeds, draws.step, draws.frequency,
                                            self.config)
@@ -106,12 +116,13 @@ class HighwaySimulator:
         acceleration = torch.cat([ego_acceleration[:, None], acceleration[:, 1:]], dim=1)
         steering = torch.cat([ego_steering[:, None], steering[:, 1:]], dim=1)
         state = advance_timers(bicycle_step(state, acceleration, steering, self.config), self.config)
-        return handle_collisions(state, self.config.dt)
+        state, untested = handle_collisions(state, self.config.dt, self.config.fixed_shapes)
+        return state, untested | unasked
 
 
-def check_command(command: torch.Tensor, state: VehicleState) -> None:
-    """Refuse (``ValueError`` saying what came) an ego command that is not a finite floating
-    (E, 2) tensor on the state's device, E as the state's."""
+def check_command(command: torch.Tensor, state: VehicleState, *, finite: bool = True) -> None:
+    """Refuse (``ValueError`` saying what came) an ego command that is not a floating (E, 2) tensor
+    on the state's device, E as the state's, and (``finite``: one value read on the host) finite."""
     num_envs = state.x.shape[0]
     if not isinstance(command, torch.Tensor) or not command.is_floating_point():
         got = command.dtype if isinstance(command, torch.Tensor) else type(command).__name__
@@ -122,6 +133,6 @@ def check_command(command: torch.Tensor, state: VehicleState) -> None:
         raise ValueError(f"`command` has {command.shape[0]} environments; the state has E = {num_envs}")
     if command.device != state.x.device:
         raise ValueError(f"`command` is on {command.device}; the state is on {state.x.device}")
-    if not bool(torch.isfinite(command).all()):
+    if finite and not bool(torch.isfinite(command).all()):
         bad = torch.nonzero(~torch.isfinite(command).all(dim=1))[:5, 0].tolist()
         raise ValueError(f"`command` must be finite; NaN or inf in environments {bad}")
