@@ -4,6 +4,7 @@ MPC in the loop, and the wall time of a full evaluation per scenario; a table pe
 it measured).
 
     python scripts/bench_gpu.py --out benchmarks            # on a machine with CUDA
+    python scripts/bench_gpu.py --all --profile --out runs/gpu   # a lent GPU: the -m gpu tests too
 
 Every timing synchronises the device before reading the clock. The solver rows use
 :func:`bench_solver.benchmark_problem` (one problem with B goals, 10 obstacles); the compiled
@@ -17,7 +18,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -35,6 +38,11 @@ from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario  # noqa: E402
 from mmpc.solver.optimizer import BatchOptimizer  # noqa: E402
 
 SECTIONS = ("solver", "sim", "mpc", "evaluate")
+#: ``--all``: the ``-m gpu`` tests first, then every section.
+ALL = ("tests",) + SECTIONS
+#: Where ``--all`` keeps inductor's compiled kernels (``TORCHINDUCTOR_CACHE_DIR``), under ``--out``:
+#: a second run on the same machine compiles from it in seconds.
+COMPILE_CACHE = "inductor_cache"
 
 
 def _sync(device: torch.device) -> None:
@@ -44,13 +52,37 @@ def _sync(device: torch.device) -> None:
 
 #: Profiler events that make the host wait for the device (a read of a device value, a blocking copy).
 HOST_WAITS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize")
+#: CPU operators that read device values on the host (on a GPU each waits for the device): a value
+#: read, a data-dependent size.
+HOST_READS = ("aten::_local_scalar_dense", "aten::nonzero")
+#: CPU operators that launch no kernel of their own (allocations and views).
+NO_KERNEL = frozenset(f"aten::{name}" for name in (
+    "empty", "empty_strided", "empty_like", "as_strided", "as_strided_", "view", "_unsafe_view", "reshape", "_reshape_alias",
+    "alias", "slice", "select", "narrow", "unsqueeze", "squeeze", "expand", "expand_as", "permute", "t", "transpose",
+    "detach", "lift_fresh", "resolve_conj", "resolve_neg", "unbind", "chunk", "split", "split_with_sizes", "set_",
+    "resize_", "view_as", "unflatten", "flatten", "contiguous", "_to_copy", "to", "result_type", "is_nonzero"))
+
+
+def kernel_calls(events) -> int:
+    """Kernels a CPU run launches, as a GPU would count them: a compiled graph's fused kernels
+    (inductor's ``cpp_fused`` calls, profiled with ``cpp.enable_kernel_profile``) and every
+    operator that does work and is not called by another operator (allocations and views left out)."""
+    count = 0
+    for event in events:
+        if "cpp_fused" in event.name:
+            count += 1
+        elif event.name.startswith("aten::") and event.name not in NO_KERNEL:
+            parent = event.cpu_parent
+            count += parent is None or not parent.name.startswith("aten::")
+    return count
 
 
 def device_profile(run: Callable[[], None], steps: int, device: torch.device) -> dict:
     """Per step of ``run`` (``steps`` steps), under torch's profiler: kernels launched, the
     device's busy time [ms] (the sum of its kernels and copies) and the host's waits for it;
     against the step's wall time these say whether it is bound by launches or by work. On
-    the CPU: the operators called and the host's reads of tensor values."""
+    the CPU: the kernels a GPU would launch (:func:`kernel_calls`) and the host's reads of
+    device values (:data:`HOST_READS`)."""
     from torch.profiler import ProfilerActivity, profile
 
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
@@ -59,26 +91,29 @@ def device_profile(run: Callable[[], None], steps: int, device: torch.device) ->
         _sync(device)
     events = profiler.key_averages()
     if device.type != "cuda":
-        return {"operators_per_step": sum(e.count for e in events if e.key.startswith("aten::")) / steps,
-                "value_reads_per_step": sum(e.count for e in events if e.key == "aten::_local_scalar_dense") / steps}
+        return {"ops_per_step": kernel_calls(profiler.events()) / steps,
+                "host_reads_per_step": sum(e.count for e in events if e.key in HOST_READS) / steps}
     on_device = [e for e in events if e.device_type == torch.autograd.DeviceType.CUDA]
     return {"kernels_per_step": sum(e.count for e in on_device) / steps,
             "device_busy_ms_per_step": sum(e.self_device_time_total for e in on_device) / 1e3 / steps,
             "host_waits_per_step": sum(e.count for e in events if e.key in HOST_WAITS) / steps}
 
 
-def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int, profiled: bool,
-                log: Callable[[str], None]) -> list[dict]:
+def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int, modes: Sequence[str],
+                profiled: bool, log: Callable[[str], None]) -> list[dict]:
     """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's
     replay); ``profiled``: and :func:`device_profile` of one compiled solve."""
-    eager = BatchOptimizer(device=device)
-    compiled = BatchOptimizer(device=device, compile=True)
+    optimizers = {"eager": BatchOptimizer(device=device)}
+    if "compiled" in modes:
+        optimizers["compiled"] = BatchOptimizer(device=device, compile=True)
     rows = []
     for batch in batches:
-        problem = benchmark_problem(batch, obstacles, eager.times.cpu())
+        problem = benchmark_problem(batch, obstacles, optimizers["eager"].times.cpu())
         problem = problem._replace(**{name: getattr(problem, name).to(device) for name in ("ego", "goals", "obstacles")})
         row = {"table": "solver", "batch": batch, "obstacles": obstacles}
-        for name, optimizer in (("eager", eager), ("compiled", compiled)):
+        for name, optimizer in optimizers.items():
+            if name not in modes:
+                continue
             try:
                 start = time.perf_counter()
                 optimizer(problem)
@@ -93,7 +128,7 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
         if "eager_ms" in row and "compiled_ms" in row:
             row["speedup"] = row["eager_ms"] / row["compiled_ms"]
         if profiled and "compiled_ms" in row:
-            row.update(device_profile(lambda: compiled(problem), 1, device))
+            row.update(device_profile(lambda: optimizers["compiled"](problem), 1, device))
         log(f"solver B={batch:>6}: eager {row.get('eager_ms', float('nan')):8.2f} ms, compiled "
             f"{row.get('compiled_ms', float('nan')):8.2f} ms (first call {row.get('compiled_first_s', float('nan')):.1f} s)"
             + _profile_text(row, "solve")
@@ -102,30 +137,43 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
     return rows
 
 
-def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, profiled: bool,
-             log: Callable[[str], None]) -> list[dict]:
+def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, modes: Sequence[str],
+             profiled: bool, log: Callable[[str], None]) -> list[dict]:
     """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command, with
-    the GPU's fixed shapes on any device (``profiled``: and :func:`device_profile` of 3 more steps)."""
+    the GPU's fixed shapes on any device, per mode of ``modes`` ("compiled": one graph per step,
+    its first call's compiling in ``compile_s`` and dynamo's graph breaks counted; "eager");
+    ``profiled``: and :func:`device_profile` of 3 more steps."""
+    from torch._dynamo.utils import counters
+
     from mmpc.sim import SimEpisodes
 
     rows = []
-    for num_envs in envs:
-        sim = SimEpisodes(scenario.replace(duration=1e4), list(range(num_envs)), device=device, fixed_shapes=True)
-        command = torch.tensor(CONSTANT_COMMAND, device=device).expand(num_envs, 2).contiguous()
-        for _ in range(3):
+    for mode in modes:
+        for num_envs in envs:
+            row = {"table": "sim", "mode": mode, "num_envs": num_envs}
+            breaks = sum(counters["graph_break"].values())
+            sim = SimEpisodes(scenario.replace(duration=1e4), list(range(num_envs)), device=device,
+                              compile=mode == "compiled", fixed_shapes=True)
+            command = torch.tensor(CONSTANT_COMMAND, device=device).expand(num_envs, 2).contiguous()
+            start = time.perf_counter()
             sim.step(command)
-        _sync(device)
-        start = time.perf_counter()
-        for _ in range(steps):
-            sim.step(command)
-        _sync(device)
-        seconds = (time.perf_counter() - start) / steps
-        row = {"table": "sim", "num_envs": num_envs, "step_ms": seconds * 1e3, "env_steps_per_s": num_envs / seconds}
-        if profiled:
-            row.update(device_profile(lambda: [sim.step(command) for _ in range(3)], 3, device))
-        rows.append(row)
-        log(f"sim E={num_envs:>6}: {seconds * 1e3:7.2f} ms per step, {num_envs / seconds:,.0f} env-steps/s"
-            + _profile_text(row))
+            _sync(device)
+            row["first_step_s"] = time.perf_counter() - start
+            for _ in range(2):
+                sim.step(command)
+            _sync(device)
+            start = time.perf_counter()
+            for _ in range(steps):
+                sim.step(command)
+            _sync(device)
+            seconds = (time.perf_counter() - start) / steps
+            row.update(step_ms=seconds * 1e3, env_steps_per_s=num_envs / seconds,
+                       graph_breaks=sum(counters["graph_break"].values()) - breaks)
+            if profiled:
+                row.update(device_profile(lambda: [sim.step(command) for _ in range(3)], 3, device))
+            rows.append(row)
+            log(f"sim {mode:>8} E={num_envs:>6}: {seconds * 1e3:7.2f} ms per step, {num_envs / seconds:,.0f} env-steps/s "
+                f"(first step {row['first_step_s']:.1f} s, {row['graph_breaks']} graph breaks)" + _profile_text(row))
     return rows
 
 
@@ -163,10 +211,27 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
 
 def _profile_text(row: dict, unit: str = "step") -> str:
     """The row's :func:`device_profile` figures per ``unit`` (what a row times), or nothing."""
-    if "kernels_per_step" not in row:
-        return ""
-    return (f"; per {unit} {row['kernels_per_step']:,.0f} kernels, device busy {row['device_busy_ms_per_step']:.1f} ms, "
-            f"{row['host_waits_per_step']:.0f} host waits")
+    if "kernels_per_step" in row:
+        return (f"; per {unit} {row['kernels_per_step']:,.0f} kernels, device busy {row['device_busy_ms_per_step']:.1f} ms, "
+                f"{row['host_waits_per_step']:.0f} host waits")
+    if "ops_per_step" in row:
+        return f"; per {unit} {row['ops_per_step']:,.0f} kernels (CPU count), {row['host_reads_per_step']:.0f} host reads"
+    return ""
+
+
+def test_rows(device: torch.device, paths: str, log: Callable[[str], None]) -> list[dict]:
+    """``pytest -m gpu`` on ``paths`` (space-separated) in a subprocess: passed, failed, skipped and the
+    last lines of its report (on the CPU every test skips)."""
+    command = [sys.executable, "-m", "pytest", "-m", "gpu", "-q", "-p", "no:cacheprovider", *paths.split()]
+    start = time.perf_counter()
+    done = subprocess.run(command, cwd=Path(__file__).resolve().parent.parent, capture_output=True, text=True)
+    counts = {kind: int(number) for number, kind in re.findall(r"(\d+) (passed|failed|skipped|error|deselected)", done.stdout)}
+    row = {"table": "tests", "device": str(device), "returncode": done.returncode, "wall_s": time.perf_counter() - start,
+           **{kind: counts.get(kind, 0) for kind in ("passed", "failed", "skipped", "error")},
+           "report": done.stdout.strip().splitlines()[-5:]}
+    log(f"tests -m gpu: {row['passed']} passed, {row['failed']} failed, {row['skipped']} skipped, {row['error']} errors "
+        f"in {row['wall_s']:.0f} s (exit {done.returncode})")
+    return [row]
 
 
 def evaluate_rows(scenarios: Sequence[ScenarioConfig], seeds: Sequence[int], out: Path, log: Callable[[str], None]) -> list[dict]:
@@ -200,14 +265,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="benchmarks", help="folder of bench_gpu.json (default benchmarks)")
     parser.add_argument("--device", default="cuda", help="cuda (default) or cpu (a dry run of the script at small sizes)")
-    parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated, of {', '.join(SECTIONS)}")
+    parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated, of {', '.join(ALL)}")
+    parser.add_argument("--all", action="store_true", help="the -m gpu tests and every section, with the compile "
+                        f"cache in OUT/{COMPILE_CACHE} (what a lent GPU runs)")
+    parser.add_argument("--tests", default="tests", help="the tests section's pytest paths (default: tests)")
     parser.add_argument("--batches", type=int_list, default=(1, 16, 256, 1024, 4096, 16384, 65536), help="solver B")
     parser.add_argument("--obstacles", type=int, default=10, help="solver rows: obstacles M per goal (the MPC's scenarios use 6)")
     parser.add_argument("--sim-envs", type=int_list, default=(1024, 4096, 16384, 65536), help="simulator E")
+    parser.add_argument("--solver-modes", default="eager,compiled", help="solver rows: eager and/or compiled")
+    parser.add_argument("--sim-modes", default="compiled,eager", help="simulator rows: compiled and/or eager")
     parser.add_argument("--mpc-envs", type=int_list, default=(256, 1024, 4096, 16384), help="MPC in the loop E")
-    parser.add_argument("--mpc-eager", action="store_true", help="also time the eager MPC in the loop")
+    parser.add_argument("--mpc-modes", default="compiled", help="MPC rows: compiled and/or eager")
     parser.add_argument("--profile", action="store_true", help="profile the rows: kernels, device busy time "
-                        "and host waits per solve / step")
+                        "and host waits per solve / step (on the CPU: kernels a GPU would launch, host reads)")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per simulator / MPC row")
     parser.add_argument("--repeats", type=int, default=20, help="timed solves per solver row")
     parser.add_argument("--scenarios", default="cruise,high_speed", help="scenarios of the MPC and evaluation rows")
@@ -215,10 +285,15 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--duration", type=float, default=None, help="evaluation episode length [s] (default the scenario's)")
     args = parser.parse_args(argv)
     compile_at_once()
-    sections = [s for s in args.sections.split(",") if s]
-    unknown = sorted(set(sections) - set(SECTIONS))
+    sections = list(ALL) if args.all else [s for s in args.sections.split(",") if s]
+    unknown = sorted(set(sections) - set(ALL))
     if unknown:
-        parser.error(f"--sections: unknown {unknown}; expected some of {list(SECTIONS)}")
+        parser.error(f"--sections: unknown {unknown}; expected some of {list(ALL)}")
+    modes = {}
+    for option in ("solver_modes", "sim_modes", "mpc_modes"):
+        modes[option] = [m for m in getattr(args, option).split(",") if m]
+        if not modes[option] or set(modes[option]) - {"compiled", "eager"}:
+            parser.error(f"--{option.replace('_', '-')}: expected compiled and/or eager; got {getattr(args, option)!r}")
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         print("bench_gpu: no CUDA device; nothing to measure (--device cpu runs the script on the CPU)", file=sys.stderr)
@@ -227,6 +302,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     torch.set_num_threads(1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.all:
+        os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str((out / COMPILE_CACHE).resolve()))
+    if args.profile and device.type == "cpu":
+        from torch._inductor import config as inductor
+
+        inductor.cpp.enable_kernel_profile = True  # each fused kernel a profiler event
     scenarios = [load_scenario(name, {"sim": "batched"}) for name in args.scenarios.split(",") if name]
     if args.duration is not None:
         scenarios = [s.replace(duration=args.duration) for s in scenarios]
@@ -242,14 +323,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     log(f"{report['device']}, torch {report['torch']}")
     for section in sections:
         start = time.perf_counter()
-        if section == "solver":
-            save(solver_rows(device, args.batches, args.obstacles, args.repeats, args.profile, log))
+        if section == "tests":
+            save(test_rows(device, args.tests, log))
+        elif section == "solver":
+            save(solver_rows(device, args.batches, args.obstacles, args.repeats, modes["solver_modes"], args.profile, log))
         elif section == "sim":
-            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, args.profile, log))
+            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, modes["sim_modes"], args.profile, log))
         elif section == "mpc":
             for scenario in scenarios:
-                save(mpc_rows(device, scenario, args.mpc_envs, args.steps, (True, False) if args.mpc_eager else (True,),
-                               args.profile, log))
+                save(mpc_rows(device, scenario, args.mpc_envs, args.steps,
+                              tuple(mode == "compiled" for mode in modes["mpc_modes"]), args.profile, log))
         else:
             for scenario in scenarios:
                 save(evaluate_rows([scenario], args.seeds, out, log))

@@ -361,22 +361,30 @@ def test_episodes_on_cuda_match_cpu():
         torch.testing.assert_close(a.cpu(), b, rtol=0, atol=1e-6, msg=name)
 
 
-def test_the_gpu_benchmark_runs_its_sections_on_the_cpu(tmp_path, capsys):
-    """scripts/bench_gpu.py with --device cpu: every section but the compiled solver (minutes of
-    compiling here) writes its rows; without CUDA the default device is refused."""
+def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, monkeypatch):
+    """scripts/bench_gpu.py --all with --device cpu at small sizes: the -m gpu tests (skipped here),
+    every section eager (compiling takes minutes here), one JSON; without CUDA the default device
+    is refused."""
     import bench_gpu
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
 
-    argv = ["--device", "cpu", "--sections", "sim,mpc,evaluate", "--sim-envs", "2", "--mpc-envs", "2", "--steps", "1",
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", cache_dir())  # --all keeps a cache already named (the suite's)
+    argv = ["--all", "--device", "cpu", "--tests", "tests/test_sim.py", "--solver-modes", "eager", "--batches", "4",
+            "--repeats", "1", "--sim-modes", "eager", "--sim-envs", "2", "--mpc-modes", "eager", "--mpc-envs", "2", "--steps", "1",
             "--scenarios", "high_speed", "--seeds", "0-1", "--duration", "0.3", "--profile", "--out", str(tmp_path)]
     assert bench_gpu.main(argv) == 0
     report = json.loads((tmp_path / "bench_gpu.json").read_text())
     assert report["device"] == "cpu" and report["args"] == " ".join(argv)
     rows = report["rows"]
-    assert [(r["table"], r["num_envs"]) for r in rows if r["table"] in ("sim", "mpc")] == [("sim", 2), ("mpc", 2)]
-    assert all(r["env_steps_per_s"] > 0 for r in rows if r["table"] in ("sim", "mpc"))
-    sim_row, mpc_row = (r for r in rows if r["table"] in ("sim", "mpc"))
-    assert sim_row["operators_per_step"] > 100 and sim_row["value_reads_per_step"] == 0  # the step is one graph
-    assert mpc_row["operators_per_step"] > 100 and mpc_row["value_reads_per_step"] >= 1  # the decision is not yet
+    assert [row["table"] for row in rows] == ["tests", "solver", "sim", "mpc", "evaluate"]
+    tests = rows[0]
+    assert tests["returncode"] == 0 and tests["failed"] == tests["error"] == 0 and tests["skipped"] >= 1
+    assert rows[1]["batch"] == 4 and rows[1]["eager_ms"] > 0 and "compiled_ms" not in rows[1]
+    sim_row, mpc_row = rows[2], rows[3]
+    assert (sim_row["mode"], sim_row["num_envs"], mpc_row["num_envs"]) == ("eager", 2, 2)
+    assert sim_row["env_steps_per_s"] > 0 and mpc_row["env_steps_per_s"] > 0
+    assert sim_row["ops_per_step"] > 100 and sim_row["host_reads_per_step"] == 0 and sim_row["graph_breaks"] == 0
+    assert mpc_row["ops_per_step"] > 100 and mpc_row["host_reads_per_step"] >= 1  # the decision is not one graph yet
     (evaluation,) = [r for r in rows if r["table"] == "evaluate"]
     assert evaluation["episodes"] == 2 and evaluation["errors"] == 0 and evaluation["collisions"] == 0
     assert evaluation["mean_speed"] > 0 and evaluation["wall_s"] > 0
