@@ -27,7 +27,8 @@ def compact(mask: torch.Tensor, capacity: Optional[int], fill: int = 0) -> Compa
     the padding's indices ``fill``; ``None``: exactly as many as are set (the host reads how many)."""
     if capacity is None:
         found = torch.nonzero(mask)
-        return Compacted(tuple(found.unbind(dim=1)), torch.ones_like(found[:, 0], dtype=torch.bool), torch.zeros_like(mask))
+        nothing_dropped = mask.new_zeros(()).expand(mask.shape)  # no allocation
+        return Compacted(tuple(found.unbind(dim=1)), torch.ones_like(found[:, 0], dtype=torch.bool), nothing_dropped)
     if capacity < 1:
         raise ValueError(f"`capacity` must be >= 1; got {capacity}")
     found = torch.nonzero_static(mask, size=capacity, fill_value=fill)  # (K, mask.dim())

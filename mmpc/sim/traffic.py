@@ -170,14 +170,15 @@ def relocate(
     draw = tuple(part[picked] if isinstance(part, torch.Tensor) and part.dim() > 0 else part for part in draw)
     part, moved_part = _relocate_rows(VehicleState(*(field[picked] for field in state)), slot[picked], low[picked],
                                       high[picked], seeds[picked], draw, config)
-    moved_part = moved_part & rows.valid
 
-    def scatter(field: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+    def scatter(field: torch.Tensor, new: torch.Tensor) -> torch.Tensor:  # the searched rows back in place
+        if buffer is None:
+            return field.index_copy(0, index, new)
         return torch.cat([field, field[:1]]).index_copy(0, index, new)[:num_envs]
 
-    moved = scatter(torch.zeros_like(moving), moved_part)
-    return VehicleState(*(torch.where(moved.view(-1, *([1] * (field.dim() - 1))), scatter(field, new), field)
-                          for field, new in zip(state, part))), moved
+    # A searched row that found no spot is its old self (:func:`_relocate_rows`).
+    return VehicleState(*(scatter(field, new) for field, new in zip(state, part))), scatter(torch.zeros_like(moving),
+                                                                                             moved_part & rows.valid)
 
 
 def _relocate_rows(state: VehicleState, slot: torch.Tensor, low: torch.Tensor, high: torch.Tensor, seeds: torch.Tensor,
