@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import statistics
@@ -43,6 +44,29 @@ ALL = ("tests",) + SECTIONS
 #: Where ``--all`` keeps inductor's compiled kernels (``TORCHINDUCTOR_CACHE_DIR``), under ``--out``:
 #: a second run on the same machine compiles from it in seconds.
 COMPILE_CACHE = "inductor_cache"
+#: ``--all``'s default budget [s]: a lent GPU's 10-minute call, less the start and the copies back.
+ALL_BUDGET_S = 540.0
+#: The share of the budget the ``-m gpu`` tests may take at most.
+TESTS_SHARE = 0.35
+
+
+class Budget:
+    """A run's time limit: rows not started before it are skipped (and logged), so that a run
+    stopped by its caller's limit never loses the JSON of what it measured."""
+
+    def __init__(self, seconds: Optional[float]) -> None:
+        self.deadline = None if seconds is None else time.perf_counter() + seconds
+
+    def left(self) -> float:
+        """Seconds left (inf without a limit)."""
+        return math.inf if self.deadline is None else self.deadline - time.perf_counter()
+
+    def over(self, what: str, log: Callable[[str], None]) -> bool:
+        """Whether the budget is spent; if so, ``what`` is logged as skipped."""
+        if self.left() > 0:
+            return False
+        log(f"{what}: skipped (the --budget is spent)")
+        return True
 
 
 def _sync(device: torch.device) -> None:
@@ -100,7 +124,7 @@ def device_profile(run: Callable[[], None], steps: int, device: torch.device) ->
 
 
 def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, repeats: int, modes: Sequence[str],
-                profiled: bool, log: Callable[[str], None]) -> list[dict]:
+                profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's
     replay); ``profiled``: and :func:`device_profile` of one compiled solve."""
     optimizers = {"eager": BatchOptimizer(device=device)}
@@ -108,6 +132,8 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
         optimizers["compiled"] = BatchOptimizer(device=device, compile=True)
     rows = []
     for batch in batches:
+        if budget.over(f"solver B={batch}", log):
+            break
         problem = benchmark_problem(batch, obstacles, optimizers["eager"].times.cpu())
         problem = problem._replace(**{name: getattr(problem, name).to(device) for name in ("ego", "goals", "obstacles")})
         row = {"table": "solver", "batch": batch, "obstacles": obstacles}
@@ -138,7 +164,7 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
 
 
 def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, modes: Sequence[str],
-             profiled: bool, log: Callable[[str], None]) -> list[dict]:
+             profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command, with
     the GPU's fixed shapes on any device, per mode of ``modes`` ("compiled": one graph per step,
     its first call's compiling in ``compile_s`` and dynamo's graph breaks counted; "eager");
@@ -150,6 +176,8 @@ def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
     rows = []
     for mode in modes:
         for num_envs in envs:
+            if budget.over(f"sim {mode} E={num_envs}", log):
+                return rows
             row = {"table": "sim", "mode": mode, "num_envs": num_envs}
             breaks = sum(counters["graph_break"].values())
             sim = SimEpisodes(scenario.replace(duration=1e4), list(range(num_envs)), device=device,
@@ -178,7 +206,7 @@ def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
 
 
 def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, compile_modes: Sequence[bool],
-             profiled: bool, log: Callable[[str], None]) -> list[dict]:
+             profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as
     bench_sim; ``profiled``: and :func:`device_profile` of 3 more steps)."""
     from mmpc.drivers.mpc_driver import MPCDriver
@@ -188,6 +216,8 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
     for compiled in compile_modes:
         driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device), period=scenario.period)
         for num_envs in envs:
+            if budget.over(f"mpc {scenario.name} E={num_envs}", log):
+                return rows
             row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "num_envs": num_envs}
             try:
                 world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
@@ -219,12 +249,17 @@ def _profile_text(row: dict, unit: str = "step") -> str:
     return ""
 
 
-def test_rows(device: torch.device, paths: str, log: Callable[[str], None]) -> list[dict]:
-    """``pytest -m gpu`` on ``paths`` (space-separated) in a subprocess: passed, failed, skipped and the
-    last lines of its report (on the CPU every test skips)."""
+def test_rows(device: torch.device, paths: str, timeout: float, log: Callable[[str], None]) -> list[dict]:
+    """``pytest -m gpu`` on ``paths`` (space-separated) in a subprocess of at most ``timeout`` seconds:
+    passed, failed, skipped and the last lines of its report (on the CPU every test skips)."""
     command = [sys.executable, "-m", "pytest", "-m", "gpu", "-q", "-p", "no:cacheprovider", *paths.split()]
     start = time.perf_counter()
-    done = subprocess.run(command, cwd=Path(__file__).resolve().parent.parent, capture_output=True, text=True)
+    try:
+        done = subprocess.run(command, cwd=Path(__file__).resolve().parent.parent, capture_output=True, text=True,
+                              timeout=None if math.isinf(timeout) else max(timeout, 1.0))
+    except subprocess.TimeoutExpired as expired:
+        output = expired.stdout.decode() if isinstance(expired.stdout, bytes) else (expired.stdout or "")
+        done = subprocess.CompletedProcess(command, returncode=124, stdout=output + f"\ntimed out after {timeout:.0f} s")
     counts = {kind: int(number) for number, kind in re.findall(r"(\d+) (passed|failed|skipped|error|deselected)", done.stdout)}
     row = {"table": "tests", "device": str(device), "returncode": done.returncode, "wall_s": time.perf_counter() - start,
            **{kind: counts.get(kind, 0) for kind in ("passed", "failed", "skipped", "error")},
@@ -234,7 +269,8 @@ def test_rows(device: torch.device, paths: str, log: Callable[[str], None]) -> l
     return [row]
 
 
-def evaluate_rows(scenarios: Sequence[ScenarioConfig], seeds: Sequence[int], out: Path, log: Callable[[str], None]) -> list[dict]:
+def evaluate_rows(scenarios: Sequence[ScenarioConfig], seeds: Sequence[int], out: Path, budget: Budget,
+                  log: Callable[[str], None]) -> list[dict]:
     """Wall time of ``mmpc evaluate --sim batched`` on the run's device over ``seeds`` per scenario, one
     lockstep group, and the episodes' summary (collisions, mean speed, meta cost with intervals)."""
     from mmpc.evaluate import EvaluationConfig, evaluate
@@ -244,6 +280,8 @@ def evaluate_rows(scenarios: Sequence[ScenarioConfig], seeds: Sequence[int], out
         lockstep *= 2
     rows = []
     for scenario in scenarios:
+        if budget.over(f"evaluate {scenario.name}", log):
+            break
         folder = out / f"evaluate_{scenario.name}"
         start = time.perf_counter()
         evaluation = evaluate([scenario], folder, EvaluationConfig(drivers=("mpc",), seeds=tuple(seeds), workers=1,
@@ -269,6 +307,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--all", action="store_true", help="the -m gpu tests and every section, with the compile "
                         f"cache in OUT/{COMPILE_CACHE} (what a lent GPU runs)")
     parser.add_argument("--tests", default="tests", help="the tests section's pytest paths (default: tests)")
+    parser.add_argument("--budget", type=float, default=None, help="seconds for the whole run: rows not started "
+                        f"by then are skipped (default: none; {ALL_BUDGET_S:.0f} with --all)")
     parser.add_argument("--batches", type=int_list, default=(1, 16, 256, 1024, 4096, 16384, 65536), help="solver B")
     parser.add_argument("--obstacles", type=int, default=10, help="solver rows: obstacles M per goal (the MPC's scenarios use 6)")
     parser.add_argument("--sim-envs", type=int_list, default=(1024, 4096, 16384, 65536), help="simulator E")
@@ -320,22 +360,24 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         path.write_text(json.dumps(report, indent=2) + "\n")
 
     log = lambda line: print(line, flush=True)  # noqa: E731
+    budget = Budget(ALL_BUDGET_S if args.all and args.budget is None else args.budget)
     log(f"{report['device']}, torch {report['torch']}")
     for section in sections:
         start = time.perf_counter()
         if section == "tests":
-            save(test_rows(device, args.tests, log))
+            save(test_rows(device, args.tests, budget.left() * TESTS_SHARE, log))
         elif section == "solver":
-            save(solver_rows(device, args.batches, args.obstacles, args.repeats, modes["solver_modes"], args.profile, log))
+            save(solver_rows(device, args.batches, args.obstacles, args.repeats, modes["solver_modes"], args.profile, budget,
+                             log))
         elif section == "sim":
-            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, modes["sim_modes"], args.profile, log))
+            save(sim_rows(device, scenarios[-1], args.sim_envs, args.steps, modes["sim_modes"], args.profile, budget, log))
         elif section == "mpc":
             for scenario in scenarios:
                 save(mpc_rows(device, scenario, args.mpc_envs, args.steps,
-                              tuple(mode == "compiled" for mode in modes["mpc_modes"]), args.profile, log))
+                              tuple(mode == "compiled" for mode in modes["mpc_modes"]), args.profile, budget, log))
         else:
             for scenario in scenarios:
-                save(evaluate_rows([scenario], args.seeds, out, log))
+                save(evaluate_rows([scenario], args.seeds, out, budget, log))
         log(f"-- {section}: {time.perf_counter() - start:.0f} s")
     log(f"wrote {path}")
     return 0

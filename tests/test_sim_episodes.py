@@ -395,6 +395,16 @@ def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, mo
         bench_gpu.main(["--device", "cpu", "--sections", "solver,gpu", "--out", str(tmp_path)])
 
 
+def test_the_gpu_benchmark_skips_the_rows_past_its_budget(tmp_path, capsys):
+    import bench_gpu
+
+    assert bench_gpu.main(["--device", "cpu", "--sections", "sim,evaluate", "--sim-modes", "eager", "--sim-envs", "2",
+                           "--scenarios", "high_speed", "--budget", "0", "--out", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "bench_gpu.json").read_text())["rows"] == []
+    logged = capsys.readouterr().out
+    assert "sim eager E=2: skipped (the --budget is spent)" in logged and "evaluate high_speed: skipped" in logged
+
+
 def test_the_goal_usage_script_counts_every_labelled_goal(tmp_path, capsys):
     import goal_usage
 
