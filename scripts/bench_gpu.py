@@ -127,19 +127,16 @@ def solver_rows(device: torch.device, batches: Sequence[int], obstacles: int, re
                 profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """ms per solve of one problem with B goals: eager and compiled (on CUDA the captured graph's
     replay); ``profiled``: and :func:`device_profile` of one compiled solve."""
-    optimizers = {"eager": BatchOptimizer(device=device)}
-    if "compiled" in modes:
-        optimizers["compiled"] = BatchOptimizer(device=device, compile=True)
+    optimizers = {mode: BatchOptimizer(device=device, compile=mode == "compiled") for mode in modes}
+    times = next(iter(optimizers.values())).times.cpu()
     rows = []
     for batch in batches:
         if budget.over(f"solver B={batch}", log):
             break
-        problem = benchmark_problem(batch, obstacles, optimizers["eager"].times.cpu())
+        problem = benchmark_problem(batch, obstacles, times)
         problem = problem._replace(**{name: getattr(problem, name).to(device) for name in ("ego", "goals", "obstacles")})
         row = {"table": "solver", "batch": batch, "obstacles": obstacles}
         for name, optimizer in optimizers.items():
-            if name not in modes:
-                continue
             try:
                 start = time.perf_counter()
                 optimizer(problem)
@@ -167,7 +164,7 @@ def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
              profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """The batched simulator alone: env-steps/s of ``SimEpisodes.step`` under a constant command, with
     the GPU's fixed shapes on any device, per mode of ``modes`` ("compiled": one graph per step,
-    its first call's compiling in ``compile_s`` and dynamo's graph breaks counted; "eager");
+    its first call's compiling in ``first_step_s`` and dynamo's graph breaks counted; "eager");
     ``profiled``: and :func:`device_profile` of 3 more steps."""
     from torch._dynamo.utils import counters
 

@@ -13,6 +13,7 @@ from mmpc.highway.ego_terms import EgoTerms
 from mmpc.scenario import ScenarioConfig
 from mmpc.sim import SimEpisodes, kinematics_observation
 from mmpc.sim.reward import highway_reward
+from mmpc.sim.simulator import OVERFLOW
 from mmpc.sim.state import on_road
 
 
@@ -132,8 +133,7 @@ class BatchedWorld:
             flags = torch.stack([sim.done, sim.crashed, sim.on_road, sim.refused, sim.overflowed]).to(rewards.dtype)
             ended, crashed, on_road, refused, overflowed, rewards = torch.cat([flags, rewards[None]]).tolist()  # one copy
             for flags, what in ((refused, "were given a command that is not finite (NaN or inf)"),
-                                (overflowed, "overflowed the simulator's buffers (mmpc.sim.collision.PAIRS_PER_ENV, "
-                                             "mmpc.sim.idm.CHANGES_PER_ENV): their steps are not exact")):
+                                (overflowed, OVERFLOW)):
                 if any(flags):
                     rows = [row for row, flag in enumerate(flags) if flag == 1]
                     raise ValueError(f"environments {rows[:8]} (seeds {[self.seeds[row] for row in rows[:8]]}) {what}")

@@ -32,9 +32,9 @@ def compact(mask: torch.Tensor, capacity: Optional[int], fill: int = 0) -> Compa
     if capacity < 1:
         raise ValueError(f"`capacity` must be >= 1; got {capacity}")
     found = torch.nonzero_static(mask, size=capacity, fill_value=fill)  # (K, mask.dim())
-    rank = torch.cumsum(mask.flatten().to(torch.int64), dim=0).view(mask.shape) - 1  # each set entry's place
-    valid = torch.arange(capacity, device=mask.device) < mask.sum()
-    return Compacted(tuple(found.unbind(dim=1)), valid, mask & (rank >= capacity))
+    running = torch.cumsum(mask.flatten().to(torch.int64), dim=0)  # set entries up to each one
+    valid = torch.arange(capacity, device=mask.device) < running[-1]
+    return Compacted(tuple(found.unbind(dim=1)), valid, mask & (running.view(mask.shape) > capacity))
 
 
 def capacity(fixed: bool, num_envs: int, per_env: float, floor: int, most: int) -> Optional[int]:

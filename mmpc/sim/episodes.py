@@ -56,7 +56,6 @@ class SimEpisodes:
 
     Example:
         >>> from mmpc.scenario import ScenarioConfig
-from mmpc.sim.config import SimConfig
         >>> episodes = SimEpisodes(ScenarioConfig(duration=1.0), seeds=[0, 1, 2])
         >>> episodes.step(torch.zeros(3, 2))
         >>> episodes.time.tolist(), episodes.done.tolist()
@@ -94,8 +93,8 @@ from mmpc.sim.config import SimConfig
         #: caller that reads :attr:`done` reads this with it and says so, as
         #: :meth:`mmpc.highway.batched_world.BatchedWorld.status` does).
         self.refused = torch.zeros_like(self.seeds, dtype=torch.bool)
-        #: (E,) bool, a frame had more close pairs than the collision test's buffer and left some
-        #: untested (:func:`mmpc.sim.collision.pair_collisions`; never seen in traffic); read as :attr:`refused`.
+        #: (E,) bool, a frame had more close pairs or lane changers than the simulator's buffers hold
+        #: (:meth:`mmpc.sim.HighwaySimulator.advance`; never seen in traffic); read as :attr:`refused`.
         self.overflowed = torch.zeros_like(self.refused)
 
     @property
@@ -263,8 +262,9 @@ def episode_step(simulator: HighwaySimulator, window: Optional[tuple[float, floa
                  state: VehicleState, command: torch.Tensor, running: torch.Tensor, seeds: torch.Tensor,
                  steps: torch.Tensor, applied: torch.Tensor, refused: torch.Tensor, overflowed: torch.Tensor,
                  orders: Optional[Orders] = None) -> EpisodeStep:
-    """One control step of E episodes at fixed shapes, no value read on the host: what
-    :meth:`SimEpisodes.step` runs (eager or compiled whole, ``fullgraph=True``).
+    """One control step of E episodes: what :meth:`SimEpisodes.step` runs (eager, or compiled whole
+    with ``fullgraph=True``); with ``simulator.config.fixed_shapes`` its shapes are fixed and it reads
+    no value on the host.
 
     Args:
         simulator: the episodes' simulator; ``window``: the traffic's window (behind, ahead) [m] or

@@ -17,6 +17,11 @@ from mmpc.sim.threats import Orders, obey_lanes, obey_speeds, threaten_lanes, th
 from mmpc.traffic_config import Threats
 
 
+#: What an overflow of the simulator's buffers means (:meth:`HighwaySimulator.advance`), for the errors that report it.
+OVERFLOW = ("had more close pairs or lane changers than the simulator's buffers hold (mmpc.sim.collision.PAIRS_PER_ENV, "
+            "mmpc.sim.idm.CHANGES_PER_ENV): the step is not exact")
+
+
 class ThreatDraws(NamedTuple):
     """What names a step's draws of threatening traffic: (E,) int64 episode ``seeds`` and
     control ``step`` counts, and the scenario's control ``frequency`` [Hz]."""
@@ -74,15 +79,13 @@ class HighwaySimulator:
         check_command(command, state)
         state, untested = self.advance(state, command.to(state.x.dtype))
         if bool(untested.any()):
-            raise RuntimeError(f"environments {untested.nonzero()[:5, 0].tolist()} had more close pairs or lane changers "
-                               "than the simulator's buffers hold (mmpc.sim.collision.PAIRS_PER_ENV, "
-                               "mmpc.sim.idm.CHANGES_PER_ENV); the step is not exact")
+            raise RuntimeError(f"environments {untested.nonzero()[:5, 0].tolist()} {OVERFLOW}")
         return state
 
     def advance(self, state: VehicleState, command: torch.Tensor, draws: Optional[ThreatDraws] = None,
                 orders: Optional[Orders] = None) -> tuple[VehicleState, torch.Tensor]:
-        """:meth:`step` without the checks, at fixed shapes and with nothing read on the host;
-        ``draws`` name the threats' draws (needed with ``threats``); ``orders`` to single cars are
+        """:meth:`step` without the checks (with ``config.fixed_shapes``: at fixed shapes, nothing read
+        on the host); ``draws`` name the threats' draws (needed with ``threats``); ``orders`` to single cars are
         carried out where the rules allow (:mod:`mmpc.sim.threats`). Returns the state and (E,)
         bool: a frame overflowed a buffer that must hold everything (close pairs, lane changers:
         :func:`mmpc.sim.collision.pair_collisions`, :func:`mmpc.sim.idm.traffic_command`)."""
