@@ -28,7 +28,10 @@ from mmpc.config import require, require_int, require_positive
 from mmpc.obstacles.prediction import predict_constant_velocity
 from mmpc.obstacles.shape import covering_semi_axes
 from mmpc.plotting import plot_scaling
+from mmpc.drivers.mpc_driver import MPCDriver
+from mmpc.highway.batched_world import BatchedWorld
 from mmpc.problem import ProblemBatch, ego_state
+from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario
 from mmpc.solver.config import OptimizerConfig
 from mmpc.solver.optimizer import BatchOptimizer
 
@@ -54,6 +57,11 @@ class SolverBenchmark:
         max_seconds_per_row: stop timing a row early after this long (at least 3 solves).
         environments: E for the vectorized comparison (E problems x 11 goals in one call vs E
             calls of one problem); 0 skips it.
+        in_loop: a scenario whose MPC's solves in its closed loop are compared, per goal-iteration,
+            with the benchmark problem of the same B and M (:func:`in_loop_comparison`), for each
+            plain variant ("eager", "compiled"); ``None`` skips it.
+        in_loop_environments: E of that loop (its batched simulator's episodes, seeds 0 ... E - 1).
+        in_loop_steps: control steps recorded after :data:`IN_LOOP_WARMUP_STEPS`.
     """
 
     batches: tuple[int, ...] = (1, 11, 64, 256, 1024, 4096)
@@ -65,6 +73,9 @@ class SolverBenchmark:
     warmup: int = 3
     max_seconds_per_row: float = 20.0
     environments: int = 64
+    in_loop: Optional[str] = None
+    in_loop_environments: int = 64
+    in_loop_steps: int = 10
     config: OptimizerConfig = field(default_factory=OptimizerConfig)
 
     def __post_init__(self) -> None:
@@ -81,6 +92,7 @@ class SolverBenchmark:
             replace(self.config, exit_checks=exit_checks(variant))  # checks fit the schedule
         require_int("", low=1, threads=self.threads, repeats=self.repeats)
         require_int("", low=0, warmup=self.warmup, environments=self.environments)
+        require_int("", low=1, in_loop_environments=self.in_loop_environments, in_loop_steps=self.in_loop_steps)
         require_positive("", max_seconds_per_row=self.max_seconds_per_row)
 
 
@@ -207,6 +219,10 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
         torch.set_num_threads(previous_threads)
     _log_speedups(rows, log)
     vectorized = _vectorized_comparison(spec, log) if spec.environments else None
+    in_loop = []
+    if spec.in_loop is not None:
+        for variant in (v for v in spec.variants if v in ("eager", "compiled")):
+            in_loop.append(in_loop_comparison(spec, variant == "compiled", log))
     device_text = torch.cuda.get_device_name() if torch.cuda.is_available() and "cuda" in spec.devices else platform.processor() or platform.machine()
     report = {
         "device": device_text,
@@ -215,6 +231,7 @@ def run(spec: SolverBenchmark, out: Path, log: Callable[[str], None] = print) ->
         "bandwidth_bytes_per_s": bandwidths,
         "rows": rows,
         "vectorized": vectorized,
+        "in_loop": in_loop,
     }
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench_solver.json").write_text(json.dumps(report, indent=2))
@@ -373,6 +390,112 @@ def _vectorized_comparison(spec: SolverBenchmark, log: Callable[[str], None]) ->
     return result
 
 
+#: Control steps of the in-loop comparison's episodes before its solves are recorded: the first
+#: steps solve cold and compile the warm and cold rows' layouts.
+IN_LOOP_WARMUP_STEPS = 3
+
+
+def record_loop_solves(scenario: ScenarioConfig, optimizer_compile: bool, environments: int, steps: int) -> tuple:
+    """The optimizer calls of ``scenario``'s MPC driving ``environments`` batched-simulator episodes
+    (seeds 0 ... E - 1) for :data:`IN_LOOP_WARMUP_STEPS` + ``steps`` control steps: its optimizer
+    and the (problem, keyword arguments) of the calls of the last ``steps`` steps, as the loop made them."""
+    mpc = build_mpc(scenario, compile=optimizer_compile)
+    driver = MPCDriver(mpc, period=scenario.period)
+    world = BatchedWorld.start(scenario, list(range(environments)))
+    calls: list[tuple[ProblemBatch, dict]] = []
+    recording = False
+
+    def record(module, args, kwargs):
+        if recording:
+            problem = args[0] if args else kwargs["problem"]
+            rest = {name: _copied(value) for name, value in kwargs.items() if name != "problem"}
+            calls.append((_copied(problem), rest))
+
+    hook = mpc.optimizer.register_forward_pre_hook(record, with_kwargs=True)
+    try:
+        driver.reset(environments)
+        for step in range(IN_LOOP_WARMUP_STEPS + steps):
+            recording = step >= IN_LOOP_WARMUP_STEPS
+            running = [e for e, ended in enumerate(world.done().tolist()) if not ended]
+            if not running:
+                break
+            observation, _ = world.observe(running)
+            decision = driver.decide(observation)
+            world.apply(running, decision.acceleration, decision.steering)
+    finally:
+        hook.remove()
+        world.close()
+    return mpc.optimizer, calls
+
+
+def _copied(value):
+    """A copy of a tensor or of a named tuple of tensors (``None`` fields kept); other values as they are."""
+    if isinstance(value, torch.Tensor):
+        return value.clone()
+    if isinstance(value, tuple) and hasattr(value, "_fields"):
+        return type(value)(*(None if field is None else field.clone() for field in value))
+    return value
+
+
+def in_loop_comparison(spec: SolverBenchmark, optimizer_compile: bool, log: Callable[[str], None] = print) -> dict:
+    """ns per goal-iteration of the MPC's solves in its closed loop (recorded, then replayed: warm
+    starts, the rows that solve cold, tiles and padding as the loop has them) against the solver
+    benchmark's problem with the loop's B (problems x goals) and M (each obstacle its own ellipse,
+    :func:`turned_axes`, where the loop's problems have theirs), one cold solve of the whole
+    schedule, in the same interleaved rounds on the CPU (``spec.threads``). Goal-iterations:
+    the iterations each (problem, goal) element ran, summed (a warm start runs the schedule's last few)."""
+    scenario = load_scenario(spec.in_loop, {"sim": "batched"})
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(spec.threads)
+    try:
+        with torch.inference_mode():
+            optimizer, calls = record_loop_solves(scenario, optimizer_compile, spec.in_loop_environments,
+                                                  spec.in_loop_steps)
+            if not calls:
+                raise RuntimeError(f"in-loop comparison: the {spec.in_loop!r} loop made no solve in "
+                                   f"{spec.in_loop_steps} steps")
+            batch = max(problem.goals.shape[0] * problem.goals.shape[1] for problem, _ in calls)
+            obstacles = max(problem.obstacles.shape[1] for problem, _ in calls)
+            benchmark = BatchOptimizer(optimizer.config, compile=optimizer_compile)
+            problem = benchmark_problem(batch, obstacles, benchmark.times)
+            turned = calls[0][0].obstacle_axes is not None
+            if turned:
+                problem = problem._replace(obstacle_axes=turned_axes(obstacles, optimizer.config))
+
+            def replay() -> int:
+                return sum(int(optimizer(p, **kwargs).iterations.sum()) for p, kwargs in calls)
+
+            goal_iterations = {"loop": replay(), "benchmark": int(benchmark(problem).iterations.sum())}
+            solves = {"loop": replay, "benchmark": lambda: benchmark(problem)}
+            times = time_interleaved(solves, torch.device("cpu"), spec.repeats, spec.warmup, 2 * spec.max_seconds_per_row)
+    finally:
+        torch.set_num_threads(previous_threads)
+    ns = {name: statistics.median(wall) * 1e6 / goal_iterations[name] for name, (wall, _) in times.items()}
+    steps = spec.in_loop_steps
+    result = {
+        "scenario": spec.in_loop,
+        "variant": "compiled" if optimizer_compile else "eager",
+        "environments": spec.in_loop_environments,
+        "steps": steps,
+        "batch": batch,
+        "obstacles": obstacles,
+        "obstacle_axes": "per obstacle" if turned else "shared",
+        "solves_per_step": len(calls) / steps,
+        "loop_ms_per_step": statistics.median(times["loop"][0]) / steps,
+        "loop_iterations_per_goal": goal_iterations["loop"] / (batch * steps),
+        "loop_ns_per_goal_iteration": ns["loop"],
+        "benchmark_ms": statistics.median(times["benchmark"][0]),
+        "benchmark_ns_per_goal_iteration": ns["benchmark"],
+        "ratio": ns["loop"] / ns["benchmark"],
+        "rounds": len(times["loop"][0]),
+    }
+    log(f"in loop ({spec.in_loop}, {result['variant']}, E={spec.in_loop_environments}, B={batch}, M={obstacles}): "
+        f"{result['loop_ns_per_goal_iteration']:.0f} ns per goal-iteration ({result['loop_iterations_per_goal']:.1f} "
+        f"iterations per goal) vs the benchmark's {result['benchmark_ns_per_goal_iteration']:.0f}: "
+        f"{result['ratio']:.2f}x ({result['rounds']} rounds)")
+    return result
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     bench = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     bench.add_argument("--batches", type=int_list, default=(1, 11, 64, 256, 1024, 4096), help="comma-separated batch sizes")
@@ -387,13 +510,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     bench.add_argument("--max-seconds-per-row", type=float, default=20.0, help="time budget per row")
     bench.add_argument("--environments", type=int, default=64,
                        help="E for the one-call-vs-one-call-per-environment comparison (0 skips)")
+    bench.add_argument("--in-loop", default=None, metavar="SCENARIO",
+                       help="compare the solves of this scenario's MPC in its closed loop with the benchmark problem of "
+                            "the same B and M, per goal-iteration (e.g. high_speed)")
+    bench.add_argument("--in-loop-environments", type=int, default=64, help="E of the in-loop comparison")
+    bench.add_argument("--in-loop-steps", type=int, default=10, help="control steps the in-loop comparison records")
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     args = bench.parse_args(argv)
     try:  # every value checked before any work
         spec = SolverBenchmark(
             batches=args.batches, obstacles=args.obstacles, devices=tuple(args.devices.split(",")),
             variants=tuple(args.variants.split(",")), threads=args.threads, repeats=args.repeats,
-            max_seconds_per_row=args.max_seconds_per_row, environments=args.environments,
+            max_seconds_per_row=args.max_seconds_per_row, environments=args.environments, in_loop=args.in_loop,
+            in_loop_environments=args.in_loop_environments, in_loop_steps=args.in_loop_steps,
         )
     except ValueError as error:  # a ConfigError too
         bench.error(str(error))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import os
 from typing import Callable, NamedTuple, Optional
 
@@ -120,18 +121,33 @@ def kernel_compiler_found(on_cpu: bool) -> bool:
 def tiling(num_problems: int, num_goals: int, tile_size: Optional[int]) -> Optional[tuple[int, int]]:
     """(problems, goals) per tile for an E x G batch, or None when it fits one tile.
 
-    Whole problems per tile when a problem's goals fit in one: as many as fit, or fewer where
-    the batch fills its tiles less, rounded up to a power of two (so that batches of varying E,
-    e.g. the cold and the warm rows of warm-started steps, share a few compiled layouts); else
-    one problem per tile with its goals split evenly.
+    Whole problems per tile when a problem's goals fit in one: a power of two of them, the one
+    whose tile is nearest ``tile_size`` (within a factor of sqrt(2)), at most E rounded up to a
+    power of two, so that batches of varying E (the warm and the cold rows of warm-started steps)
+    share a few compiled layouts and a power-of-two E fills whole tiles; the problems left over
+    take one smaller tile (:func:`problem_tiles`). Else one problem per tile with its goals split evenly.
     """
     if tile_size is None or num_problems * num_goals <= tile_size:
         return None
     if num_goals <= tile_size:
-        fit = tile_size // num_goals
-        balanced = ceil_div(num_problems, ceil_div(num_problems, fit))
-        return min(1 << (balanced - 1).bit_length(), fit), num_goals
+        nearest = 1 << max(0, round(math.log2(tile_size / num_goals)))
+        return min(nearest, power_of_two_at_least(num_problems)), num_goals
     return 1, ceil_div(num_goals, ceil_div(num_goals, tile_size))
+
+
+def problem_tiles(num_problems: int, tile_problems: int) -> list[tuple[int, int]]:
+    """(first problem, problems) of each tile of E problems in tiles of ``tile_problems``: whole
+    tiles, then the rest in one tile of the next power of two (padded with copies of the last
+    problem: less than half of it, where whole tiles would pad up to a tile)."""
+    whole = num_problems - num_problems % tile_problems
+    tiles = [(first, tile_problems) for first in range(0, whole, tile_problems)]
+    if whole < num_problems:
+        tiles.append((whole, min(power_of_two_at_least(num_problems - whole), tile_problems)))
+    return tiles
+
+
+def power_of_two_at_least(count: int) -> int:
+    return 1 << (count - 1).bit_length()
 
 
 def problem_bucket(num_problems: int, num_goals: int, tile_size: Optional[int]) -> int:
@@ -140,7 +156,7 @@ def problem_bucket(num_problems: int, num_goals: int, tile_size: Optional[int]) 
     share a few compiled layouts instead of compiling one each. Without tiles: E."""
     if tile_size is None:
         return num_problems
-    return max(num_problems, min(1 << (num_problems - 1).bit_length(), tile_size // num_goals))
+    return max(num_problems, min(power_of_two_at_least(num_problems), tile_size // num_goals))
 
 
 def graph_bucket(num_problems: int) -> int:

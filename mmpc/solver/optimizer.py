@@ -71,9 +71,10 @@ class BatchOptimizer(nn.Module):
             same or mixed obstacle counts; per tile) runs twice: once to compile, once timed as
             a solve; :attr:`last_compile_ms` reports the first.
         tile_size: solve a batch of more than this many (problem, goal) elements as tiles of
-            at most this many, one call each: whole problems per tile when a problem's goals
-            fit, else each problem's goals split evenly. The last tile is padded with copies
-            (dropped from the result) so that every tile has one shape, compiled once.
+            about this many, one call each: a power of two of whole problems per tile when a
+            problem's goals fit (:func:`~mmpc.solver.execution.tiling`), else each problem's goals
+            split evenly. The problems left over take one tile of the next power of two, padded
+            with copies (dropped from the result), so that a few tile shapes are compiled.
             ``None``: 256 on the compiled CPU path, where it keeps a tile's working set in
             the L2 cache (~7 % faster at B = 1024), and no tiling elsewhere.
         compile_after: compiled, the estimated seconds of eager solving of a call layout (counted
@@ -237,15 +238,10 @@ class BatchOptimizer(nn.Module):
         for first, last in zip(bounds[:-1], bounds[1:]):
             if running.numel() == 0:
                 break
-            # Whole tiles, then the rest (padded to a power of two): the tiler would pad every tile.
-            parts = []
-            for piece in torch.arange(running.numel(), device=running.device).split(self.tile_size or running.numel()):
-                rows, columns = running[piece] // num_goals, running[piece] % num_goals
-                elements = (ego[rows], goals[rows, columns].unsqueeze(1), obstacles[rows], mask[rows],
-                            None if axes is None else axes[rows])
-                parts.append(self._solve_compiled(*elements, WarmStart(*(field[piece] for field in warm)), first, last,
-                                                  history, compiled))
-            stretch = SolveResult.concatenate(parts, dim=0)
+            rows, columns = running // num_goals, running % num_goals
+            elements = (ego[rows], goals[rows, columns].unsqueeze(1), obstacles[rows], mask[rows],
+                        None if axes is None else axes[rows])
+            stretch = self._solve_compiled(*elements, warm, first, last, history, compiled)
             stretches.append((stretch._replace(iterations=stretch.iterations + first), running))
             going_on = ~self._settled(stretch)[:, 0]
             running, warm = running[going_on], WarmStart(*(field[going_on] for field in stretch.warm))
@@ -272,35 +268,22 @@ class BatchOptimizer(nn.Module):
         cold = ~torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
         again = torch.zeros_like(cold)  # warm-started, no feasible goal: solved again cold
         parts, solved = [], []
-        unit = self._layout_unit(*goals.shape[:2]) if compiled else 1
         warm_rows = (~cold).nonzero().squeeze(1)
         if warm_rows.numel():
-            rows = _padded_rows(warm_rows, unit)
-            part = self._solve_compiled(*_take_rows(inputs, rows), warm.take(rows), first_iteration,
-                                        self.config.iterations, history, compiled).head(warm_rows.numel(), goals.shape[1])
+            part = self._solve_compiled(*_take_rows(inputs, warm_rows), warm.take(warm_rows), first_iteration,
+                                        self.config.iterations, history, compiled)
             parts.append(part)
             solved.append(warm_rows)
             again[warm_rows] = ~part.feasible.any(dim=1)
         cold_rows = (cold | again).nonzero().squeeze(1)
         if cold_rows.numel():
-            rows = _padded_rows(cold_rows, unit)
-            part = self._solve_cold(*_take_rows(inputs, rows), history, compiled).head(cold_rows.numel(), goals.shape[1])
+            part = self._solve_cold(*_take_rows(inputs, cold_rows), history, compiled)
             warm_run = again[cold_rows, None].int() * (self.config.iterations - first_iteration)
             parts.append(part._replace(iterations=part.iterations + warm_run))  # replaces the warm answer of those
             solved.append(cold_rows)
         if len(parts) == 1 and solved[0].numel() == ego.shape[0]:
             return parts[0]
         return SolveResult.interleave(parts, solved, ego.shape[0])
-
-    def _layout_unit(self, num_problems: int, num_goals: int) -> int:
-        """Problems per compiled call of an E x G batch on the CPU (a tile's, or the bucket of a batch
-        that fits one): the warm and the cold rows of a warm-started step are each padded to whole
-        units of it, so that the step compiles the layouts a cold step does and no smaller ones
-        (a few rows solving cold between the scheduled cold steps compiled a layout per count)."""
-        if self.device.type != "cpu":
-            return 1
-        tiling = execution.tiling(num_problems, num_goals, self.tile_size)
-        return tiling[0] if tiling is not None else execution.problem_bucket(num_problems, num_goals, self.tile_size)
 
     def _solve_compiled(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                         axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int,
@@ -346,18 +329,19 @@ class BatchOptimizer(nn.Module):
             result = self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
             return result.head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
-        # Pad both axes to whole tiles with copies of the last problem / goal.
-        padded_problems = execution.ceil_div(num_problems, tile_problems) * tile_problems
+        tiles = execution.problem_tiles(num_problems, tile_problems)
+        # Pad both axes to the tiles with copies of the last problem / goal.
+        padded_problems = tiles[-1][0] + tiles[-1][1]
         inputs = (ego, goals, obstacles, mask, axes)
         ego, goals, obstacles, mask, axes = (execution.repeat_last(t, 0, padded_problems) for t in inputs)
         padded_goals = execution.ceil_div(num_goals, tile_goals) * tile_goals
         goals = execution.repeat_last(goals, 1, padded_goals)
         warm = execution.repeat_warm(execution.repeat_warm(warm, 0, padded_problems), 1, padded_goals)
         bands = []
-        for row in range(0, padded_problems, tile_problems):
-            problems = slice(row, row + tile_problems)
+        for first, count in tiles:
+            problems = slice(first, first + count)
             tile_axes = None if axes is None else axes[problems]
-            tiles = [
+            band = [
                 self._solve(
                     ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], tile_axes,
                     None if warm is None else WarmStart(*(field[problems, g : g + tile_goals] for field in warm)),
@@ -365,7 +349,7 @@ class BatchOptimizer(nn.Module):
                 )
                 for g in range(0, goals.shape[1], tile_goals)
             ]
-            bands.append(SolveResult.concatenate(tiles, dim=1))
+            bands.append(SolveResult.concatenate(band, dim=1))
         return SolveResult.concatenate(bands, dim=0).head(num_problems, num_goals)
 
     def _solve(
@@ -549,12 +533,6 @@ class BatchOptimizer(nn.Module):
             first_iteration=span[0],
             last_iteration=span[1],
         )
-
-
-def _padded_rows(rows: torch.Tensor, unit: int) -> torch.Tensor:
-    """``rows`` (R,) followed by copies of the last up to a whole number of ``unit``."""
-    missing = -rows.numel() % unit
-    return torch.cat([rows, rows[-1:].expand(missing)]) if missing else rows
 
 
 def _take_rows(tensors: tuple[Optional[torch.Tensor], ...], rows: torch.Tensor) -> tuple[Optional[torch.Tensor], ...]:
