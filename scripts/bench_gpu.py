@@ -36,11 +36,16 @@ from bench_solver import benchmark_problem, time_solver  # noqa: E402
 from mmpc.cli.arguments import compile_at_once, int_list, seed_list  # noqa: E402
 from mmpc.device import DEVICE_ENV  # noqa: E402
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario  # noqa: E402
+from mmpc.solver.execution import COMPILE_ENV  # noqa: E402
 from mmpc.solver.optimizer import BatchOptimizer  # noqa: E402
 
 SECTIONS = ("solver", "sim", "mpc", "evaluate")
 #: ``--all``: the ``-m gpu`` tests first, then every section.
 ALL = ("tests",) + SECTIONS
+#: Sections only ``--sections`` names: what needs no GPU (dynamo's tracing of the decision).
+EXTRA = ("decision",)
+#: The driver whose decision the "decision" section traces: the MPC behind the check.
+DECISION_DRIVER = "verified:mpc"
 #: Where ``--all`` keeps inductor's compiled kernels (``TORCHINDUCTOR_CACHE_DIR``), under ``--out``:
 #: a second run on the same machine compiles from it in seconds.
 COMPILE_CACHE = "inductor_cache"
@@ -236,6 +241,46 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
     return rows
 
 
+def decision_rows(device: torch.device, scenario: ScenarioConfig, num_envs: int, budget: Budget,
+                  log: Callable[[str], None]) -> list[dict]:
+    """The expert's whole decision (:data:`DECISION_DRIVER`: problem building, solve, ranking,
+    selection, fallback and the check) traced by dynamo as one function after 3 steps of a
+    batched episode, its optimizer eager (what a graph of it would hold): graphs, graph breaks
+    and the places that break it, most frequent first (``break_sites``: "file:line reason" -> count,
+    of the reasons dynamo records: most of the breaks)."""
+    from mmpc.drivers import make_driver
+    from mmpc.highway.batched_world import BatchedWorld
+
+    if budget.over(f"decision {scenario.name}", log):
+        return []
+    previous = os.environ.get(COMPILE_ENV)
+    os.environ[COMPILE_ENV] = "0"
+    try:
+        driver = make_driver(DECISION_DRIVER, scenario)
+    finally:
+        if previous is None:
+            del os.environ[COMPILE_ENV]
+        else:
+            os.environ[COMPILE_ENV] = previous
+    world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
+    _closed_loop(world, driver, num_envs, 2)
+    running = [e for e, ended in enumerate(world.done().tolist()) if not ended]
+    observation, _ = world.observe(running)
+    explained = torch._dynamo.explain(driver.decide)(observation)
+    sites: dict[str, int] = {}
+    for reason in explained.break_reasons:
+        frame = reason.user_stack[-1] if reason.user_stack else None
+        where = f"{Path(frame.filename).name}:{frame.lineno}" if frame is not None else "?"
+        key = f"{where} {reason.reason.splitlines()[0][:80]}"
+        sites[key] = sites.get(key, 0) + 1
+    row = {"table": "decision", "scenario": scenario.name, "driver": DECISION_DRIVER, "num_envs": len(running),
+           "graphs": explained.graph_count, "graph_breaks": explained.graph_break_count,
+           "break_sites": dict(sorted(sites.items(), key=lambda item: -item[1]))}
+    log(f"decision {scenario.name} ({DECISION_DRIVER}, E={len(running)}): {row['graphs']} graphs, "
+        f"{row['graph_breaks']} graph breaks at {len(sites)} places")
+    return [row]
+
+
 def _profile_text(row: dict, unit: str = "step") -> str:
     """The row's :func:`device_profile` figures per ``unit`` (what a row times), or nothing."""
     if "kernels_per_step" in row:
@@ -300,7 +345,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default="benchmarks", help="folder of bench_gpu.json (default benchmarks)")
     parser.add_argument("--device", default="cuda", help="cuda (default) or cpu (a dry run of the script at small sizes)")
-    parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated, of {', '.join(ALL)}")
+    parser.add_argument("--sections", default=",".join(SECTIONS),
+                        help=f"comma-separated, of {', '.join(ALL + EXTRA)} (decision: the expert's graph breaks)")
     parser.add_argument("--all", action="store_true", help="the -m gpu tests and every section, with the compile "
                         f"cache in OUT/{COMPILE_CACHE} (what a lent GPU runs)")
     parser.add_argument("--tests", default="tests", help="the tests section's pytest paths (default: tests)")
@@ -323,9 +369,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = parser.parse_args(argv)
     compile_at_once()
     sections = list(ALL) if args.all else [s for s in args.sections.split(",") if s]
-    unknown = sorted(set(sections) - set(ALL))
+    unknown = sorted(set(sections) - set(ALL + EXTRA))
     if unknown:
-        parser.error(f"--sections: unknown {unknown}; expected some of {list(ALL)}")
+        parser.error(f"--sections: unknown {unknown}; expected some of {list(ALL + EXTRA)}")
     modes = {}
     for option in ("solver_modes", "sim_modes", "mpc_modes"):
         modes[option] = [m for m in getattr(args, option).split(",") if m]
@@ -372,6 +418,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             for scenario in scenarios:
                 save(mpc_rows(device, scenario, args.mpc_envs, args.steps,
                               tuple(mode == "compiled" for mode in modes["mpc_modes"]), args.profile, budget, log))
+        elif section == "decision":
+            for scenario in scenarios:
+                save(decision_rows(device, scenario, min(args.mpc_envs), budget, log))
         else:
             for scenario in scenarios:
                 save(evaluate_rows([scenario], args.seeds, out, budget, log))

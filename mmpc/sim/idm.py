@@ -191,9 +191,10 @@ def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tenso
     buffer = capacity(config.fixed_shapes, num_envs, CHANGES_PER_ENV, num_vehicles, num_envs * num_vehicles)
     found = compact(changing, buffer)
     env, slot = found.index  # the padding points at (0, 0), the ego, whose command the caller replaces
-    copies = VehicleState(*(field[env] for field in state))
-    on_target = idm_acceleration(copies, state.target_lane[env, slot][:, None], config, slot[:, None])[:, 0]
-    current = acceleration[env, slot]
-    acceleration[env, slot] = torch.where(found.valid, torch.minimum(current, on_target), current)
+    if buffer is not None or env.numel():  # exact sizes: nothing to do without changers (a frame in most)
+        copies = VehicleState(*(field[env] for field in state))
+        on_target = idm_acceleration(copies, state.target_lane[env, slot][:, None], config, slot[:, None])[:, 0]
+        current = acceleration[env, slot]
+        acceleration[env, slot] = torch.where(found.valid, torch.minimum(current, on_target), current)
     return (acceleration.clamp(-config.acc_max, config.acc_max), lane_keeping_steering(state, config),
             found.dropped.any(dim=1))

@@ -144,6 +144,8 @@ def _mobil_decisions(state: VehicleState, evaluating: torch.Tensor, config: SimC
     buffer = capacity(config.fixed_shapes, num_envs, EVALUATIONS_PER_ENV, num_vehicles, num_envs * num_vehicles)
     found = compact(evaluating, buffer)
     env, slot = found.index  # the padding points at (0, 0), the ego, which never evaluates
+    if buffer is None and env.numel() == 0:  # exact sizes: nobody asks this frame
+        return state.lane.clone(), evaluating
     copies = VehicleState(*(torch.cat([field[env], field[env]]) for field in state))  # (2K, V): left, then right
     lane = state.lane[env, slot]
     query = torch.cat([slot, slot])[:, None]

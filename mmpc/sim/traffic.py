@@ -166,6 +166,8 @@ def relocate(
     num_envs = moving.shape[0]
     rows = compact(moving, buffer, fill=num_envs)
     (index,) = rows.index  # the padding points one past the last environment: a scratch row
+    if buffer is None and index.numel() == 0:  # exact sizes: no environment moves a vehicle (most steps)
+        return state, torch.zeros_like(moving)
     picked = index.clamp(max=num_envs - 1)
     draw = tuple(part[picked] if isinstance(part, torch.Tensor) and part.dim() > 0 else part for part in draw)
     part, moved_part = _relocate_rows(VehicleState(*(field[picked] for field in state)), slot[picked], low[picked],
