@@ -173,6 +173,17 @@ class SolveResult(NamedTuple):
 
         return SolveResult._combine([self, part], join)
 
+    def replace_rows(self, part: "SolveResult", rows: torch.Tensor) -> "SolveResult":
+        """A copy whose problems ``rows`` (R,) long, distinct, are ``part``'s R problems, in order;
+        an index of E (one past the last problem) drops that problem of ``part`` (a fixed-size
+        buffer's padding), without a host synchronisation."""
+        def join(tensors: list[torch.Tensor], offset: int) -> torch.Tensor:
+            base, new = tensors
+            scratch = torch.cat([base, base.narrow(offset, 0, 1)], dim=offset)
+            return scratch.index_copy(offset, rows, new).narrow(offset, 0, base.shape[offset])
+
+        return SolveResult._combine([self, part], join)
+
     def take_goals(self, index: torch.Tensor) -> "SolveResult":
         """The goals ``index`` (E, K) long of each problem, in that order (a goal may repeat)."""
         def gather(tensors: list[torch.Tensor], offset: int) -> torch.Tensor:

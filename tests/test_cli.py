@@ -51,6 +51,21 @@ def test_bench_solver_writes_json_rows(tmp_path):
     assert (tmp_path / "bench_solver.png").exists()
 
 
+def test_bench_solver_compares_the_in_loop_solves_with_the_benchmark_per_goal_iteration(tmp_path):
+    assert bench_solver.main(["--batches", "1", "--obstacles", "0", "--repeats", "2", "--devices", "cpu",
+                              "--variants", "eager", "--environments", "0", "--in-loop", "high_speed",
+                              "--in-loop-environments", "2", "--in-loop-steps", "2", "--out", str(tmp_path)]) == 0
+    (row,) = json.loads((tmp_path / "bench_solver.json").read_text())["in_loop"]
+    goals = 35  # the high-speed MPC's goals per problem
+    assert (row["variant"], row["batch"], row["obstacles"], row["obstacle_axes"]) == ("eager", 2 * goals, 6, "per obstacle")
+    assert row["solves_per_step"] >= 1 and row["rounds"] >= 2
+    # warm-started steps: the schedule's last 10 iterations, more where a problem solves cold again
+    warm = bench_solver.load_scenario("high_speed").mpc.warm_iterations
+    assert warm <= row["loop_iterations_per_goal"] <= 100
+    assert row["ratio"] == pytest.approx(row["loop_ns_per_goal_iteration"] / row["benchmark_ns_per_goal_iteration"])
+    assert row["loop_ms_per_step"] > 0 and row["benchmark_ms"] > 0
+
+
 def test_bad_arguments_exit_with_usage_error():
     with pytest.raises(SystemExit):
         bench_solver.main(["--batches", "a,b"])

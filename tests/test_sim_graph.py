@@ -11,7 +11,7 @@ import torch
 from mmpc.scenario import load_scenario
 from mmpc.sim import HighwaySimulator, SimConfig, SimEpisodes, vehicle_state
 from mmpc.sim import collision
-from mmpc.sim.compaction import capacity, compact
+from mmpc.compaction import capacity, compact
 from mmpc.sim.episodes import episode_step
 from mmpc.sim.threats import Orders
 

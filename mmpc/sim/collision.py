@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import torch
 
-from mmpc.sim.compaction import capacity, compact
+from mmpc.compaction import capacity, compact
 from mmpc.sim.state import VehicleState
 
 #: The collision test's buffer: pairs past the bounding-circle pre-check per environment on average,
@@ -99,7 +99,7 @@ def pair_collisions(state: VehicleState, dt: float, fixed_shapes: bool = False) 
     where either vehicle checks collisions, the bounding-circle pre-check, then
     :func:`polygons_intersecting` of i (as ``a``) and j, computed for the pairs that pass the
     pre-check only (``fixed_shapes``: gathered in a buffer of :data:`PAIRS_PER_ENV` pairs per
-    environment, :mod:`mmpc.sim.compaction`; else as many as there are, counted on the host).
+    environment, :mod:`mmpc.compaction`; else as many as there are, counted on the host).
 
     Returns:
         The test, and (E,) bool: the environment had pairs past the buffer, left untested.

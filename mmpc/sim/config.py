@@ -46,7 +46,7 @@ class SimConfig:
             present speed; ``False``: as highway-env reads a continuous-action ego, with none
             (:mod:`mmpc.sim.mobil`).
         fixed_shapes: a frame's shapes do not depend on the traffic and it reads nothing on the host
-            (buffers of fixed size, :mod:`mmpc.sim.compaction`; the window in fixed rounds): what one
+            (buffers of fixed size, :mod:`mmpc.compaction`; the window in fixed rounds): what one
             compiled graph or a GPU needs. ``False``: exact sizes read on the host, the CPU's fast eager path.
     """
 

@@ -17,7 +17,7 @@ from typing import Optional
 
 import torch
 
-from mmpc.sim.compaction import capacity, compact
+from mmpc.compaction import capacity, compact
 from mmpc.sim.config import SimConfig
 from mmpc.sim.state import VehicleState
 
@@ -181,7 +181,7 @@ def traffic_command(state: VehicleState, config: SimConfig) -> tuple[torch.Tenso
     [m/s^2], steering [rad]), each (E, V). Slot 0 (the ego) is computed too; the caller replaces it.
     A vehicle changing lane takes the smaller of its two lanes' accelerations; those vehicles are
     asked, each with a copy of its environment (``config.fixed_shapes``: in a buffer of
-    :data:`CHANGES_PER_ENV` per environment, :mod:`mmpc.sim.compaction`); the third tensor, (E,)
+    :data:`CHANGES_PER_ENV` per environment, :mod:`mmpc.compaction`); the third tensor, (E,)
     bool, marks the environments with changes past it (left on their current lane's acceleration:
     never seen in traffic)."""
     acceleration = idm_acceleration(state, state.lane, config)

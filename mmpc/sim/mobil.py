@@ -39,7 +39,7 @@ from typing import Optional
 
 import torch
 
-from mmpc.sim.compaction import capacity, compact
+from mmpc.compaction import capacity, compact
 from mmpc.sim.config import SimConfig
 from mmpc.sim.idm import desired_gap, idm_between, vehicle_ahead, vehicle_behind
 from mmpc.sim.state import VehicleState
@@ -139,7 +139,7 @@ def _mobil_decisions(state: VehicleState, evaluating: torch.Tensor, config: SimC
     current lane) for the ``evaluating`` vehicles, the current lane elsewhere; and (E, V) bool,
     the vehicles evaluated. Only the evaluating vehicles are asked, each with a copy of its
     environment (``config.fixed_shapes``: in a buffer of :data:`EVALUATIONS_PER_ENV` per environment,
-    :mod:`mmpc.sim.compaction`; those past it are evaluated at the next frame)."""
+    :mod:`mmpc.compaction`; those past it are evaluated at the next frame)."""
     num_envs, num_vehicles = state.x.shape
     buffer = capacity(config.fixed_shapes, num_envs, EVALUATIONS_PER_ENV, num_vehicles, num_envs * num_vehicles)
     found = compact(evaluating, buffer)

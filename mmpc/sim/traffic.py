@@ -24,7 +24,7 @@ import torch
 
 from mmpc.scenario import ScenarioConfig, batched_unsupported
 from mmpc.traffic_config import IDMTraffic
-from mmpc.sim.compaction import capacity, compact
+from mmpc.compaction import capacity, compact
 from mmpc.sim.config import SimConfig
 from mmpc.sim.random import integers, uniform
 from mmpc.sim.state import VehicleState, vehicle_state
@@ -156,7 +156,7 @@ def relocate(
         moving: (E,) bool, the environments whose vehicle moves.
         low, high: (E,) the range of positions along the road [m].
         seeds: (E,) the environments' seeds; ``draw`` (ints or tensors) names the draws.
-        buffer: the moving environments searched at most (:mod:`mmpc.sim.compaction`); those past it
+        buffer: the moving environments searched at most (:mod:`mmpc.compaction`); those past it
             do not move. ``None``: as many as move (the host reads how many).
 
     Returns:

@@ -21,9 +21,10 @@ def _check_tensor(name: str, value: object, ndim: int, shape_doc: str) -> torch.
 
 
 def validate_problem(
-    problem: ProblemBatch, config: OptimizerConfig, dtype: torch.dtype, device: torch.device
+    problem: ProblemBatch, config: OptimizerConfig, dtype: torch.dtype, device: torch.device, values: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, Optional[torch.Tensor]]:
-    """Check shapes, dtypes, devices and values; return (ego, goals, obstacles, mask, axes) cast to ``dtype``."""
+    """Check shapes, dtypes, devices and (``values``: a host synchronisation) values; return (ego,
+    goals, obstacles, mask, axes) cast to ``dtype``."""
     if not isinstance(problem, ProblemBatch):
         raise TypeError(f"`problem` must be a mmpc.ProblemBatch; got {type(problem).__name__}")
     n = config.num_steps
@@ -73,12 +74,22 @@ def validate_problem(
             raise ValueError(f"`{name}` is on {tensor.device} but the optimizer is on {device}; move it with .to()")
     if axes is not None:
         axes = axes.to(dtype)
+    ego, goals, obstacles = (t.to(dtype) for t in (ego, goals, obstacles))
+    if values:
+        _check_values(ego, goals, obstacles, mask, axes)
+    return ego, goals, obstacles, mask, axes
+
+
+def _check_values(ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                  axes: Optional[torch.Tensor]) -> None:
+    """``ValueError`` naming the first kind of bad value found and where: non-finite or non-positive
+    semi-axes of a present obstacle, NaN or inf in the ego state, the goals or a present obstacle, a
+    negative ego speed."""
+    if axes is not None:
         bad_axes = mask & ~((axes > 0) & axes.isfinite()).all(dim=2)
         if bool(bad_axes.any()):
             raise ValueError(f"`obstacle_axes` must be finite and > 0 m for present obstacles; got "
                              f"{axes[bad_axes][:4].tolist()} at (problem, slot) {bad_axes.nonzero()[:4].tolist()}")
-
-    ego, goals, obstacles = (t.to(dtype) for t in (ego, goals, obstacles))
     ego_finite = ego.isfinite().all(dim=1)
     goals_finite = goals.isfinite().all(dim=2)
     obstacles_finite = obstacles.isfinite().all(dim=3).all(dim=2) | ~mask
@@ -102,7 +113,6 @@ def validate_problem(
         rows = negative_speed.nonzero().flatten().tolist()
         speeds = ego[negative_speed, EGO_V].tolist()
         raise ValueError(f"ego speed `v` must be >= 0 m/s; got {speeds} in problem(s) {rows}")
-    return ego, goals, obstacles, mask, axes
 
 
 def validate_warm(warm: Optional[WarmStart], iterations: Optional[int], config: OptimizerConfig, batch: tuple[int, int],

@@ -15,6 +15,7 @@ from typing import Optional
 import torch
 from torch import nn
 
+from mmpc.compaction import compact
 from mmpc.solver.basis import bernstein_basis, bernstein_shift
 from mmpc.solver.operators import build_operators
 from mmpc.problem import ProblemBatch
@@ -184,7 +185,8 @@ class BatchOptimizer(nn.Module):
         return WarmStart(position, warm.multipliers @ shift, warm.heading_multipliers @ shift)
 
     def forward(self, problem: ProblemBatch, *, history: bool = False, warm: Optional[WarmStart] = None,
-                warm_iterations: Optional[int] = None) -> SolveResult:
+                warm_iterations: Optional[int] = None, fixed_shapes: bool = False,
+                cold_capacity: Optional[int] = None) -> SolveResult:
         """Solve every (problem, goal) element of ``problem``.
 
         Args:
@@ -197,6 +199,14 @@ class BatchOptimizer(nn.Module):
                 a diverged solve), and one whose warm solve finds no feasible goal, solves from
                 the cold start with the whole schedule, in a call of its own.
             warm_iterations: with ``warm``: iterations to run, 1 ... ``config.iterations``.
+            fixed_shapes: solve without reading a value on the host, every shape known from the
+                input shapes (what one graph of a whole decision needs, :meth:`_solve_fixed`): the
+                values are not checked (a problem with NaN or inf comes out NUMERICAL, the others
+                as they would), every problem takes its own obstacle-count operator, and a warm
+                start runs on every problem, after which at most ``cold_capacity`` of them solve
+                again cold. Needs ``config.exit_checks`` empty (an early exit is data-dependent).
+            cold_capacity: with ``fixed_shapes`` and ``warm``: the problems solved again cold at
+                most, 0 ... E (default E).
 
         Returns:
             A :class:`mmpc.SolveResult` with leading dims (E, G); with ``history`` and a warm
@@ -209,7 +219,16 @@ class BatchOptimizer(nn.Module):
                 start of other shapes or devices, or without ``warm_iterations`` in range.
         """
         self.last_compile_ms = 0.0
-        ego, goals, obstacles, mask, axes = checks.validate_problem(problem, self.config, self.dtype, self.device)
+        if not isinstance(fixed_shapes, bool):
+            raise TypeError(f"`fixed_shapes` must be True or False; got {fixed_shapes!r}")
+        if fixed_shapes and self.config.exit_checks:
+            raise ValueError(f"`fixed_shapes` needs an optimizer without early exits (a data-dependent batch); got "
+                             f"exit_checks={self.config.exit_checks}")
+        if cold_capacity is not None and (not fixed_shapes or warm is None):
+            raise ValueError("`cold_capacity` applies to a warm start with `fixed_shapes=True`; got "
+                             f"cold_capacity={cold_capacity!r}, fixed_shapes={fixed_shapes}, warm={'given' if warm is not None else None}")
+        ego, goals, obstacles, mask, axes = checks.validate_problem(problem, self.config, self.dtype, self.device,
+                                                                    values=not fixed_shapes)
         warm, first_iteration = checks.validate_warm(warm, warm_iterations, self.config, goals.shape[:2], self.dtype,
                                                      self.device)
         compiled = self.compiled
@@ -218,9 +237,44 @@ class BatchOptimizer(nn.Module):
             if not self._fallback_logged:
                 logger.info("BatchOptimizer: inputs require grad; solving eagerly, not compiled")
                 self._fallback_logged = True
+        if fixed_shapes:
+            uniform = mask.shape[1] if problem.obstacle_mask is None else None
+            return self._solve_fixed(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled,
+                                     uniform, cold_capacity)
         if warm is not None:
             return self._solve_warm(ego, goals, obstacles, mask, axes, warm, first_iteration, history, compiled)
         return self._solve_cold(ego, goals, obstacles, mask, axes, history, compiled)
+
+    def _solve_fixed(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
+                     axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int, history: bool,
+                     compiled: bool, uniform: Optional[int], cold_capacity: Optional[int]) -> SolveResult:
+        """``forward(fixed_shapes=True)``: no host synchronisation. A warm start runs on every problem,
+        those without finite iterates from a standstill (every iterate 0); then the problems that
+        had no finite iterates or found no feasible goal, the first ``cold_capacity`` of them in
+        row order (:func:`mmpc.compaction.compact`), solve again cold with the whole schedule. The
+        others keep their warm answer (no feasible goal) and their iterates, so that they are in
+        the next call's set again."""
+        last = self.config.iterations
+        if warm is None:
+            return self._solve_compiled(ego, goals, obstacles, mask, axes, None, 0, last, history, compiled, uniform)
+        num_problems = ego.shape[0]
+        capacity = num_problems if cold_capacity is None else cold_capacity
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or not 0 <= capacity <= num_problems:
+            raise ValueError(f"`cold_capacity` must be an int in [0, {num_problems}] (the problems); got {cold_capacity!r}")
+        finite = torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
+        start = WarmStart(*(torch.where(finite.view(-1, *(1,) * (field.dim() - 1)), field, 0.0) for field in warm))
+        result = self._solve_compiled(ego, goals, obstacles, mask, axes, start, first_iteration, last, history, compiled,
+                                      uniform)
+        if capacity == 0:
+            return result
+        again = ~finite | ~result.feasible.any(dim=1)
+        found = compact(again, capacity, fill=num_problems)
+        (rows,) = found.index  # the padding: one past the last problem, a scratch row
+        picked = rows.clamp(max=num_problems - 1)
+        cold = self._solve_compiled(*_take_rows((ego, goals, obstacles, mask, axes), picked), None, 0, last, history,
+                                    compiled, uniform)
+        cold = cold._replace(iterations=cold.iterations + (last - first_iteration))  # and the warm run before
+        return result.replace_rows(cold, rows)
 
     def _solve_cold(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                     axes: Optional[torch.Tensor], history: bool, compiled: bool) -> SolveResult:
@@ -287,32 +341,33 @@ class BatchOptimizer(nn.Module):
 
     def _solve_compiled(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                         axes: Optional[torch.Tensor], warm: Optional[WarmStart], first_iteration: int,
-                        last_iteration: int, history: bool, compiled: bool) -> SolveResult:
+                        last_iteration: int, history: bool, compiled: bool,
+                        uniform: Optional[int] | str = "find") -> SolveResult:
         """:meth:`_solve_batch` of the schedule's iterations ``first_iteration`` up to ``last_iteration``
         within the compiled path's recompile limit (eager past it)."""
         span = (first_iteration, last_iteration)
         if not compiled:
-            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, compiled, uniform)
         # Every call layout (problems x goals per tile, obstacle slots) is a recompile of the same
         # functions, shared by every optimizer of the process: one driver mixing goal counts (a
         # proposer and its escalations) or several scenarios in one worker pass torch's default
         # limit of 8, where a fullgraph compile fails hard.
         try:
             with torch._dynamo.config.patch(recompile_limit=execution.RECOMPILE_LIMIT):
-                return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
+                return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, compiled, uniform)
         except torch._dynamo.exc.FailOnRecompileLimitHit:
             if not self._limit_logged:
                 logger.warning("BatchOptimizer: %d compiled call layouts in this process (the limit); new layouts "
                                "solve eagerly", execution.RECOMPILE_LIMIT)
                 self._limit_logged = True
             self.last_compile_ms = 0.0
-            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, False)
+            return self._solve_batch(ego, goals, obstacles, mask, axes, warm, span, history, False, uniform)
 
     def _solve_batch(self, ego: torch.Tensor, goals: torch.Tensor, obstacles: torch.Tensor, mask: torch.Tensor,
                      axes: Optional[torch.Tensor], warm: Optional[WarmStart], span: tuple[int, int], history: bool,
-                     compiled: bool) -> SolveResult:
+                     compiled: bool, uniform: Optional[int] | str = "find") -> SolveResult:
         """:meth:`forward` on validated inputs: one call, or tiles of :attr:`tile_size` elements; ``span``:
-        the schedule's iterations run, (first, end)."""
+        the schedule's iterations run, (first, end); ``uniform``: as :meth:`_prepare`'s."""
         num_problems, num_goals = goals.shape[:2]
         tiling = execution.tiling(num_problems, num_goals, self.tile_size)
         if tiling is None:
@@ -322,11 +377,11 @@ class BatchOptimizer(nn.Module):
                 bucket = (execution.problem_bucket(num_problems, num_goals, self.tile_size) if on_cpu
                           else execution.graph_bucket(num_problems))
             if bucket == num_problems:
-                return self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
+                return self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled, uniform)
             inputs = (ego, goals, obstacles, mask, axes)
             ego, goals, obstacles, mask, axes = (execution.repeat_last(t, 0, bucket) for t in inputs)
             warm = execution.repeat_warm(warm, 0, bucket)
-            result = self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled)
+            result = self._solve(ego, goals, obstacles, mask, axes, warm, span, history, compiled, uniform)
             return result.head(num_problems, num_goals)
         tile_problems, tile_goals = tiling
         tiles = execution.problem_tiles(num_problems, tile_problems)
@@ -345,7 +400,7 @@ class BatchOptimizer(nn.Module):
                 self._solve(
                     ego[problems], goals[problems, g : g + tile_goals], obstacles[problems], mask[problems], tile_axes,
                     None if warm is None else WarmStart(*(field[problems, g : g + tile_goals] for field in warm)),
-                    span, history, compiled,
+                    span, history, compiled, uniform,
                 )
                 for g in range(0, goals.shape[1], tile_goals)
             ]
@@ -363,14 +418,16 @@ class BatchOptimizer(nn.Module):
         span: tuple[int, int],
         history: bool,
         compiled: bool,
+        uniform: Optional[int] | str = "find",
     ) -> SolveResult:
         """One call of the iterations on validated inputs (shapes as in :class:`mmpc.ProblemBatch`);
         compiled, a call layout solves eagerly until :attr:`compile_after` is spent on it, and a
-        new one is then run once untimed first (see :attr:`last_compile_ms`)."""
-        uniform: Optional[int] | str = "find"
-        if compiled:
+        new one is then run once untimed first (see :attr:`last_compile_ms`); ``uniform``: as
+        :meth:`_prepare`'s."""
+        if compiled and uniform == "find":
             counts = mask.sum(dim=1).unique()  # a host synchronisation: the operators differ per obstacle count
             uniform = int(counts[0]) if counts.numel() == 1 else None
+        if compiled:
             # A cold and a warm solve of one shape share every compiled function (the cold start is
             # resumed from its iterates), so a layout is the shape and the chunk lengths the span runs.
             chunks = tuple(sorted({min(self.chunk, span[1] - first) for first in range(*span, self.chunk)}))
@@ -379,14 +436,13 @@ class BatchOptimizer(nn.Module):
             compiled = not self._deferred(layout, goals.shape[0] * goals.shape[1] * share)
         if compiled and self.device.type == "cuda":
             return self._replay(ego, goals, obstacles, mask, axes, warm, span, history, uniform)
-        start = time.perf_counter()
+        start = time.perf_counter() if compiled else 0.0
         # compiles the input layout too
         prepared = self._prepare(ego, goals, obstacles, mask, axes, compiled, uniform=uniform, warm=warm, span=span)
-        if compiled:
-            if layout not in self._compiled_layouts:
-                self._run(prepared, history)
-                self.last_compile_ms += (time.perf_counter() - start) * 1e3
-                self._compiled_layouts.add(layout)
+        if compiled and layout not in self._compiled_layouts:
+            self._run(prepared, history)
+            self.last_compile_ms += (time.perf_counter() - start) * 1e3
+            self._compiled_layouts.add(layout)
         return self._run(prepared, history)
 
     def _deferred(self, layout: tuple, elements: float) -> bool:
