@@ -47,6 +47,12 @@ UNDRIVABLE = Status.NONHOLONOMIC | Status.HEADING | Status.SPEED | Status.NUMERI
 #: 2 m cars lie at 0.91 of the high-speed scenario's 8 m x 3 m ellipse.
 ESCAPE_DEPTH = 0.05
 
+#: With ``fixed_shapes``: the share of a warm-started step's problems that may solve again cold.
+#: All of them: a lockstep batch's scheduled restarts (``MPCConfig.warm_cold_every``) coincide, and a
+#: problem past a smaller buffer would drive a few warm iterations from a standstill (the high-speed
+#: loop re-solves ~22 % of its problems per step on average, 5 of 8 at once in a lockstep batch).
+COLD_SHARE = 1.0
+
 #: MPCConfig keys retired on 2026-11-28 (:meth:`MPCConfig.upgrade`): each switch with its off value,
 #: and (None) the settings that only mattered while their switch was on.
 RETIRED_OPTIONS = {
@@ -224,13 +230,15 @@ class Scored(NamedTuple):
     compile_ms: float = 0.0
 
 
-def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor]) -> None:
+def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optional[torch.Tensor],
+                values: bool = True) -> None:
     """Refuse what :meth:`MPC.build_problem` cannot plan from, naming what came.
 
     Args:
         ego: must be a finite (E, 6) float tensor.
         vehicles: must be a (E, V, 4) float tensor, finite in every row ``vehicle_mask`` marks real.
         vehicle_mask: ``None`` or a (E, V) bool tensor on ``vehicles``' device.
+        values: check the values too (a host synchronisation); else types, shapes and devices only.
     """
     for name, value in (("ego", ego), ("vehicles", vehicles), ("vehicle_mask", vehicle_mask)):
         if value is not None and not isinstance(value, torch.Tensor):
@@ -239,7 +247,7 @@ def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optiona
         raise ValueError(f"`ego` must be a float tensor of shape (E, {len(EGO_FIELDS)}); got {ego.dtype} {tuple(ego.shape)}")
     if vehicles.ndim != 3 or vehicles.shape[0] != ego.shape[0] or vehicles.shape[2] != 4 or not vehicles.is_floating_point():
         raise ValueError(f"`vehicles` must be a float tensor of shape ({ego.shape[0]}, V, 4); got {vehicles.dtype} {tuple(vehicles.shape)}")
-    if not bool(torch.isfinite(ego).all()):
+    if values and not bool(torch.isfinite(ego).all()):
         rows = (~torch.isfinite(ego)).any(dim=1).nonzero().flatten().tolist()
         raise ValueError(f"`ego` must be finite; non-finite values in rows {rows}")
     real = torch.ones(vehicles.shape[:2], dtype=torch.bool, device=vehicles.device)
@@ -252,6 +260,8 @@ def check_state(ego: torch.Tensor, vehicles: torch.Tensor, vehicle_mask: Optiona
         if vehicle_mask.device != vehicles.device:
             raise ValueError(f"`vehicle_mask` must be on {vehicles.device}; got {vehicle_mask.device}")
         real = vehicle_mask
+    if not values:
+        return
     broken = real & ~torch.isfinite(vehicles).all(dim=-1)
     if bool(broken.any()):
         where = broken.nonzero().tolist()
@@ -273,6 +283,12 @@ class MPC:
             vehicle length the fallback keeps to the vehicle ahead.
         vehicle_width: every vehicle's width [m]; with ``wheelbase`` as the length, the footprint
             that :attr:`MPCConfig.obstacle_shape` ``"heading"`` covers.
+        fixed_shapes: plan without reading a value on the host, every shape known from the input
+            shapes (a decision that traces as one graph, what a CUDA graph needs): the optimizer's
+            fixed-shape solve (``BatchOptimizer.forward(fixed_shapes=True)``), a warm-started
+            step re-solving at most :data:`COLD_SHARE` of its problems cold; the state's values
+            unchecked (a non-finite ego state gives a non-finite command, which the simulator
+            refuses); no solve timing (:attr:`Scored.solve_ms` NaN: time the call from outside).
 
     Example:
         >>> import torch, mmpc
@@ -296,8 +312,16 @@ class MPC:
         wheelbase: float = HIGHWAY_VEHICLE[0],
         vehicle_width: float = HIGHWAY_VEHICLE[1],
         control_period: Optional[float] = None,
+        fixed_shapes: bool = False,
     ) -> None:
         require_positive("MPC", wheelbase=wheelbase, vehicle_width=vehicle_width)
+        if not isinstance(fixed_shapes, bool):
+            raise TypeError(f"`fixed_shapes` must be True or False; got {fixed_shapes!r}")
+        if fixed_shapes and optimizer.config.exit_checks:
+            raise ValueError(f"`fixed_shapes` needs an optimizer without early exits; got "
+                             f"exit_checks={optimizer.config.exit_checks}")
+        #: Whether a step reads nothing on the host (see the class's ``fixed_shapes``).
+        self.fixed_shapes = fixed_shapes
         if control_period is not None:
             require_positive("MPC", control_period=control_period)
         #: time between two of its steps [s] (a scenario's 1 / frequency), by which a warm start moves
@@ -332,7 +356,7 @@ class MPC:
         """
         opt = self.optimizer
         require_on_device(opt.device, "the MPC's optimizer", ego=ego, vehicles=vehicles, vehicle_mask=vehicle_mask)
-        check_state(ego, vehicles, vehicle_mask)
+        check_state(ego, vehicles, vehicle_mask, values=not self.fixed_shapes)
         ego = ego.to(dtype=opt.dtype)
         vehicles = vehicles.to(dtype=opt.dtype)
         if vehicle_mask is None:
@@ -440,15 +464,20 @@ class MPC:
         (:attr:`mmpc.SolveResult.warm`, :meth:`mmpc.BatchOptimizer.shifted` to this step) to
         start from with :attr:`MPCConfig.warm_iterations` iterations; ignored when that is 0 or
         its shapes are not this batch's (another goal count)."""
-        start = time.perf_counter()
+        start = None if self.fixed_shapes else time.perf_counter()
+        fixed = {"fixed_shapes": True} if self.fixed_shapes else {}
         if warm is None or self.config.warm_iterations == 0 or warm.position.shape[:2] != problem.goals.shape[:2]:
-            result = self.optimizer(problem)
+            result = self.optimizer(problem, **fixed)
         else:
-            result = self.optimizer(problem, warm=warm, warm_iterations=self.config.warm_iterations)
-        if result.status.is_cuda:
-            torch.cuda.synchronize(result.status.device)
+            if self.fixed_shapes:
+                fixed["cold_capacity"] = max(1, math.ceil(COLD_SHARE * problem.ego.shape[0]))
+            result = self.optimizer(problem, warm=warm, warm_iterations=self.config.warm_iterations, **fixed)
         compile_ms = self.optimizer.last_compile_ms
-        solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
+        solve_ms = float("nan")
+        if start is not None:
+            if result.status.is_cuda:
+                torch.cuda.synchronize(result.status.device)
+            solve_ms = (time.perf_counter() - start) * 1e3 - compile_ms
         result, road_excess = self._keep_on_road(result, problem.ego)
         result = self._allow_escape(result, problem)
         cost = self.meta_cost(result.trajectories, self.road)
@@ -580,7 +609,7 @@ class MPC:
         path along the ellipse's contour can reach the corners of the cars' rectangles.
         """
         inside = (result.status & int(Status.START_IN_COLLISION)) != 0
-        if not bool(inside.any()):
+        if not self.fixed_shapes and not bool(inside.any()):  # most steps: nobody starts inside
             return result
         obstacles = problem.obstacles.to(result.trajectories.x.dtype)
         axes = self._axes(problem, obstacles.dtype)
@@ -612,6 +641,9 @@ class MPC:
         window[:2] = True  # at least two samples
         speed = torch.hypot(trajectory.xdot, trajectory.ydot).clamp_min(1e-3)
         tangential = (trajectory.xdot * trajectory.xddot + trajectory.ydot * trajectory.yddot) / speed
+        if self.fixed_shapes:  # the window's samples by weight, not by index: no shape read from the times
+            weights = window.to(tangential.dtype) / window.sum()
+            return tangential @ weights, trajectory.psidot @ weights
         return tangential[:, window].mean(dim=1), trajectory.psidot[:, window].mean(dim=1)
 
     def _fallback(

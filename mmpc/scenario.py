@@ -443,7 +443,8 @@ class ScenarioConfig:
         return dataclasses.replace(self, **changes)
 
 
-def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device: torch.device | str | None = None) -> MPC:
+def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device: torch.device | str | None = None,
+              fixed_shapes: bool = False) -> MPC:
     """The scenario's MPC (float32): its optimizer, goals, meta cost and loop settings, the
     vehicle length as wheelbase and the scenario's period as its control period.
 
@@ -456,12 +457,13 @@ def build_mpc(scenario: ScenarioConfig, *, compile: bool | str = "auto", device:
             :class:`mmpc.BatchOptimizer`.
         device: where it computes; ``None``: the run's device (:func:`mmpc.device.run_device`,
             the CPU unless ``--device`` / ``MMPC_DEVICE`` says otherwise).
+        fixed_shapes: a step that reads nothing on the host (:class:`mmpc.mpc.MPC`'s ``fixed_shapes``).
     """
     road = scenario.road
     optimizer = BatchOptimizer(scenario.optimizer, device=run_device() if device is None else device, compile=compile)
     goals = scenario.objective.goal_sampler(road, optimizer.config.horizon)
     return MPC(optimizer, goals, scenario.objective.meta_cost(), road, scenario.mpc, wheelbase=scenario.vehicle[0],
-               vehicle_width=scenario.vehicle[1], control_period=scenario.period)
+               vehicle_width=scenario.vehicle[1], control_period=scenario.period, fixed_shapes=fixed_shapes)
 
 
 def load_scenario(name_or_path: str | Path, overrides: Optional[Mapping[str, Any]] = None) -> ScenarioConfig:

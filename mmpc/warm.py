@@ -122,7 +122,7 @@ class WarmStarts:
                 *where.shape, *field.shape[2:])) for field in warm))
         steps = torch.where(cold, 0, steps)
         cold_feasible_goals = torch.where(cold, 0, kept.cold_feasible_goals[rows])
-        if bool(cold.all()):
+        if not self.mpc.fixed_shapes and bool(cold.all()):  # a host read: skipped where a step must not
             return WarmRound(None, steps, cold_feasible_goals)
         warm = self.mpc.optimizer.shifted(warm, self.period, ego[:, :2] - kept.starts[rows])
         restart = torch.full((), float("nan"), dtype=warm.position.dtype, device=warm.position.device)
