@@ -44,7 +44,7 @@ SECTIONS = ("solver", "sim", "mpc", "evaluate")
 ALL = ("tests",) + SECTIONS
 #: Sections only ``--sections`` names: what needs no GPU (dynamo's tracing of the decision).
 EXTRA = ("decision",)
-#: The driver whose decision the "decision" section traces: the MPC behind the check.
+#: The expert, whose decision the "decision" section traces beside the MPC's: the MPC behind the check.
 DECISION_DRIVER = "verified:mpc"
 #: Where ``--all`` keeps inductor's compiled kernels (``TORCHINDUCTOR_CACHE_DIR``), under ``--out``:
 #: a second run on the same machine compiles from it in seconds.
@@ -243,42 +243,56 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
 
 def decision_rows(device: torch.device, scenario: ScenarioConfig, num_envs: int, budget: Budget,
                   log: Callable[[str], None]) -> list[dict]:
-    """The expert's whole decision (:data:`DECISION_DRIVER`: problem building, solve, ranking,
-    selection, fallback and the check) traced by dynamo as one function after 3 steps of a
-    batched episode, its optimizer eager (what a graph of it would hold): graphs, graph breaks
-    and the places that break it, most frequent first (``break_sites``: "file:line reason" -> count,
-    of the reasons dynamo records: most of the breaks)."""
+    """Each decision traced by dynamo as one function after 2 steps of a batched episode, eager
+    (what a graph of it would hold): the MPC's with fixed shapes (``mpc:fixed``: problem building,
+    solve, ranking, selection, fallback) and the expert's (:data:`DECISION_DRIVER`, the MPC behind
+    the check). Per driver: graphs, graph breaks and the places that break it, most frequent first
+    (``break_sites``: "file:line reason" -> count, of the reasons dynamo records: most of the breaks)."""
     from mmpc.drivers import make_driver
+    from mmpc.drivers.mpc_driver import MPCDriver
     from mmpc.highway.batched_world import BatchedWorld
 
-    if budget.over(f"decision {scenario.name}", log):
-        return []
+    builders = {
+        "mpc:fixed": lambda: MPCDriver(build_mpc(scenario, compile=False, device=device, fixed_shapes=True),
+                                       period=scenario.period),
+        DECISION_DRIVER: lambda: _eager_driver(lambda: make_driver(DECISION_DRIVER, scenario)),
+    }
+    rows = []
+    for name, build in builders.items():
+        if budget.over(f"decision {scenario.name} {name}", log):
+            return rows
+        driver = build()
+        world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
+        _closed_loop(world, driver, num_envs, 1)
+        running = [e for e, ended in enumerate(world.done().tolist()) if not ended]
+        observation, _ = world.observe(running)
+        explained = torch._dynamo.explain(driver.decide)(observation)
+        sites: dict[str, int] = {}
+        for reason in explained.break_reasons:
+            frame = reason.user_stack[-1] if reason.user_stack else None
+            where = f"{Path(frame.filename).name}:{frame.lineno}" if frame is not None else "?"
+            key = f"{where} {reason.reason.splitlines()[0][:80]}"
+            sites[key] = sites.get(key, 0) + 1
+        row = {"table": "decision", "scenario": scenario.name, "driver": name, "num_envs": len(running),
+               "graphs": explained.graph_count, "graph_breaks": explained.graph_break_count,
+               "break_sites": dict(sorted(sites.items(), key=lambda item: -item[1]))}
+        log(f"decision {scenario.name} ({name}, E={len(running)}): {row['graphs']} graphs, "
+            f"{row['graph_breaks']} graph breaks at {len(sites)} places")
+        rows.append(row)
+    return rows
+
+
+def _eager_driver(build: Callable[[], object]):
+    """``build()`` with the solver eager (``MMPC_COMPILE=0`` while it builds)."""
     previous = os.environ.get(COMPILE_ENV)
     os.environ[COMPILE_ENV] = "0"
     try:
-        driver = make_driver(DECISION_DRIVER, scenario)
+        return build()
     finally:
         if previous is None:
             del os.environ[COMPILE_ENV]
         else:
             os.environ[COMPILE_ENV] = previous
-    world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
-    _closed_loop(world, driver, num_envs, 2)
-    running = [e for e, ended in enumerate(world.done().tolist()) if not ended]
-    observation, _ = world.observe(running)
-    explained = torch._dynamo.explain(driver.decide)(observation)
-    sites: dict[str, int] = {}
-    for reason in explained.break_reasons:
-        frame = reason.user_stack[-1] if reason.user_stack else None
-        where = f"{Path(frame.filename).name}:{frame.lineno}" if frame is not None else "?"
-        key = f"{where} {reason.reason.splitlines()[0][:80]}"
-        sites[key] = sites.get(key, 0) + 1
-    row = {"table": "decision", "scenario": scenario.name, "driver": DECISION_DRIVER, "num_envs": len(running),
-           "graphs": explained.graph_count, "graph_breaks": explained.graph_break_count,
-           "break_sites": dict(sorted(sites.items(), key=lambda item: -item[1]))}
-    log(f"decision {scenario.name} ({DECISION_DRIVER}, E={len(running)}): {row['graphs']} graphs, "
-        f"{row['graph_breaks']} graph breaks at {len(sites)} places")
-    return [row]
 
 
 def _profile_text(row: dict, unit: str = "step") -> str:

@@ -395,17 +395,18 @@ def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, mo
         bench_gpu.main(["--device", "cpu", "--sections", "solver,gpu", "--out", str(tmp_path)])
 
 
-def test_the_gpu_benchmark_counts_the_graph_breaks_of_the_experts_decision(tmp_path):
+def test_the_gpu_benchmark_counts_the_graph_breaks_of_the_decisions(tmp_path):
     import bench_gpu
 
     argv = ["--device", "cpu", "--sections", "decision", "--scenarios", "cruise", "--mpc-envs", "2", "--out", str(tmp_path)]
     assert bench_gpu.main(argv) == 0
-    (row,) = json.loads((tmp_path / "bench_gpu.json").read_text())["rows"]
-    assert (row["table"], row["driver"], row["num_envs"]) == ("decision", "verified:mpc", 2)
-    assert row["graph_breaks"] == row["graphs"] - 1 >= 1  # the decision is not one graph yet (issue 68)
-    assert 1 <= sum(row["break_sites"].values()) <= row["graph_breaks"]  # dynamo keeps the reasons of most
-    assert any(site.startswith("verifier.py:") for site in row["break_sites"])  # the check is traced too
-    assert any(site.startswith("optimizer.py:") for site in row["break_sites"])
+    mpc, expert = json.loads((tmp_path / "bench_gpu.json").read_text())["rows"]
+    assert (mpc["table"], mpc["driver"], mpc["num_envs"]) == ("decision", "mpc:fixed", 2)
+    assert (mpc["graphs"], mpc["graph_breaks"], mpc["break_sites"]) == (1, 0, {})
+    assert expert["driver"] == "verified:mpc"
+    assert expert["graph_breaks"] == expert["graphs"] - 1 >= 1  # the check is not one graph yet (issue 68)
+    assert 1 <= sum(expert["break_sites"].values()) <= expert["graph_breaks"]  # dynamo keeps the reasons of most
+    assert any(site.startswith("verifier.py:") for site in expert["break_sites"])
 
 
 def test_the_gpu_benchmark_skips_the_rows_past_its_budget(tmp_path, capsys):
