@@ -44,6 +44,10 @@ SECTIONS = ("solver", "sim", "mpc", "evaluate")
 ALL = ("tests",) + SECTIONS
 #: Sections only ``--sections`` names: what needs no GPU (dynamo's tracing of the decision).
 EXTRA = ("decision",)
+#: Modes of the solver and simulator rows.
+MODES = ("compiled", "eager")
+#: Modes of the MPC rows: the solver compiled or eager; "-fixed": ``build_mpc(fixed_shapes=True)``.
+MPC_MODES = ("compiled", "eager", "compiled-fixed", "eager-fixed")
 #: The expert, whose decision the "decision" section traces beside the MPC's: the MPC behind the check.
 DECISION_DRIVER = "verified:mpc"
 #: Where ``--all`` keeps inductor's compiled kernels (``TORCHINDUCTOR_CACHE_DIR``), under ``--out``:
@@ -207,20 +211,23 @@ def sim_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
     return rows
 
 
-def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, compile_modes: Sequence[bool],
+def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int], steps: int, modes: Sequence[str],
              profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as
-    bench_sim; ``profiled``: and :func:`device_profile` of 3 more steps)."""
+    bench_sim; ``profiled``: and :func:`device_profile` of 3 more steps), per mode of ``modes``
+    (:data:`MPC_MODES`: the solver compiled or eager, "-fixed": the MPC's fixed-shape decision)."""
     from mmpc.drivers.mpc_driver import MPCDriver
     from mmpc.highway.batched_world import BatchedWorld
 
     rows = []
-    for compiled in compile_modes:
-        driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device), period=scenario.period)
+    for mode in modes:
+        compiled, fixed = mode.startswith("compiled"), mode.endswith("-fixed")
+        driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device, fixed_shapes=fixed), period=scenario.period)
         for num_envs in envs:
             if budget.over(f"mpc {scenario.name} E={num_envs}", log):
                 return rows
-            row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "num_envs": num_envs}
+            row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "fixed_shapes": fixed,
+                   "num_envs": num_envs}
             try:
                 world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
                 _closed_loop(world, driver, num_envs, 1)  # compiles (and on CUDA captures) this E
@@ -230,7 +237,7 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
                            iterations_per_step=iterations)
                 if profiled:
                     row.update(device_profile(lambda: _closed_loop(world, driver, num_envs, 2), 3, device))
-                log(f"mpc {scenario.name} {'compiled' if compiled else 'eager':>8} E={num_envs:>6}: {step_s * 1e3:8.2f} ms per "
+                log(f"mpc {scenario.name} {mode:>14} E={num_envs:>6}: {step_s * 1e3:8.2f} ms per "
                     f"step, {num_envs / step_s:,.0f} env-steps/s (solve {solve_s / step_s:.0%})" + _profile_text(row))
             except RuntimeError as error:
                 row["error"] = f"{type(error).__name__}: {str(error)[:200]}"
@@ -372,7 +379,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--solver-modes", default="eager,compiled", help="solver rows: eager and/or compiled")
     parser.add_argument("--sim-modes", default="compiled,eager", help="simulator rows: compiled and/or eager")
     parser.add_argument("--mpc-envs", type=int_list, default=(256, 1024, 4096, 16384), help="MPC in the loop E")
-    parser.add_argument("--mpc-modes", default="compiled", help="MPC rows: compiled and/or eager")
+    parser.add_argument("--mpc-modes", default="compiled,compiled-fixed",
+                        help=f"MPC rows, some of {', '.join(MPC_MODES)} (-fixed: the decision at fixed shapes)")
     parser.add_argument("--profile", action="store_true", help="profile the rows: kernels, device busy time "
                         "and host waits per solve / step (on the CPU: kernels a GPU would launch, host reads)")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per simulator / MPC row")
@@ -387,10 +395,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if unknown:
         parser.error(f"--sections: unknown {unknown}; expected some of {list(ALL + EXTRA)}")
     modes = {}
-    for option in ("solver_modes", "sim_modes", "mpc_modes"):
+    for option, known in (("solver_modes", MODES), ("sim_modes", MODES), ("mpc_modes", MPC_MODES)):
         modes[option] = [m for m in getattr(args, option).split(",") if m]
-        if not modes[option] or set(modes[option]) - {"compiled", "eager"}:
-            parser.error(f"--{option.replace('_', '-')}: expected compiled and/or eager; got {getattr(args, option)!r}")
+        if not modes[option] or set(modes[option]) - set(known):
+            parser.error(f"--{option.replace('_', '-')}: expected some of {', '.join(known)}; got {getattr(args, option)!r}")
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         print("bench_gpu: no CUDA device; nothing to measure (--device cpu runs the script on the CPU)", file=sys.stderr)
@@ -431,7 +439,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         elif section == "mpc":
             for scenario in scenarios:
                 save(mpc_rows(device, scenario, args.mpc_envs, args.steps,
-                              tuple(mode == "compiled" for mode in modes["mpc_modes"]), args.profile, budget, log))
+                              modes["mpc_modes"], args.profile, budget, log))
         elif section == "decision":
             for scenario in scenarios:
                 save(decision_rows(device, scenario, min(args.mpc_envs), budget, log))

@@ -370,13 +370,14 @@ def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, mo
 
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", cache_dir())  # --all keeps a cache already named (the suite's)
     argv = ["--all", "--device", "cpu", "--tests", "tests/test_sim.py", "--solver-modes", "eager", "--batches", "4",
-            "--repeats", "1", "--sim-modes", "eager", "--sim-envs", "2", "--mpc-modes", "eager", "--mpc-envs", "2", "--steps", "1",
+            "--repeats", "1", "--sim-modes", "eager", "--sim-envs", "2", "--mpc-modes", "eager,eager-fixed", "--mpc-envs", "2",
+            "--steps", "1",
             "--scenarios", "high_speed", "--seeds", "0-1", "--duration", "0.3", "--profile", "--out", str(tmp_path)]
     assert bench_gpu.main(argv) == 0
     report = json.loads((tmp_path / "bench_gpu.json").read_text())
     assert report["device"] == "cpu" and report["args"] == " ".join(argv)
     rows = report["rows"]
-    assert [row["table"] for row in rows] == ["tests", "solver", "sim", "mpc", "evaluate"]
+    assert [row["table"] for row in rows] == ["tests", "solver", "sim", "mpc", "mpc", "evaluate"]
     tests = rows[0]
     assert tests["returncode"] == 0 and tests["failed"] == tests["error"] == 0 and tests["skipped"] >= 1
     assert rows[1]["batch"] == 4 and rows[1]["eager_ms"] > 0 and "compiled_ms" not in rows[1]
@@ -384,7 +385,11 @@ def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, mo
     assert (sim_row["mode"], sim_row["num_envs"], mpc_row["num_envs"]) == ("eager", 2, 2)
     assert sim_row["env_steps_per_s"] > 0 and mpc_row["env_steps_per_s"] > 0
     assert sim_row["ops_per_step"] > 100 and sim_row["host_reads_per_step"] == 0 and sim_row["graph_breaks"] == 0
-    assert mpc_row["ops_per_step"] > 100 and mpc_row["host_reads_per_step"] >= 1  # the decision is not one graph yet
+    assert mpc_row["ops_per_step"] > 100 and mpc_row["host_reads_per_step"] >= 1  # the checked decision
+    fixed_row = rows[4]
+    assert (fixed_row["fixed_shapes"], mpc_row["fixed_shapes"]) == (True, False) and fixed_row["env_steps_per_s"] > 0
+    # The loop body (the world's observation and apply too) still reads; the decision itself no more.
+    assert fixed_row["host_reads_per_step"] < mpc_row["host_reads_per_step"]
     (evaluation,) = [r for r in rows if r["table"] == "evaluate"]
     assert evaluation["episodes"] == 2 and evaluation["errors"] == 0 and evaluation["collisions"] == 0
     assert evaluation["mean_speed"] > 0 and evaluation["wall_s"] > 0
