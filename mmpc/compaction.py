@@ -37,6 +37,14 @@ def compact(mask: torch.Tensor, capacity: Optional[int], fill: int = 0) -> Compa
     return Compacted(tuple(found.unbind(dim=1)), valid, mask & (running.view(mask.shape) > capacity))
 
 
+def scatter(target: torch.Tensor, dim: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``target.index_copy(dim, index, values)`` where an index of ``target.shape[dim]`` (one past the
+    last: a buffer's padding, :func:`compact` with that ``fill``) writes nowhere: a scratch slice."""
+    size = target.shape[dim]
+    scratch = torch.cat([target, target.narrow(dim, 0, 1)], dim=dim)
+    return scratch.index_copy(dim, index, values).narrow(dim, 0, size)
+
+
 def capacity(fixed: bool, num_envs: int, per_env: float, floor: int, most: int) -> Optional[int]:
     """A buffer for ``num_envs`` environments: ``per_env`` entries each on average, at least
     ``floor`` (a small batch may hold one busy environment), at most ``most`` (every entry);

@@ -7,6 +7,8 @@ from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 
+from mmpc.compaction import scatter
+
 
 class Status(enum.IntFlag):
     """Why an element is not feasible; ``OK`` (0) means feasible. Bits combine."""
@@ -78,6 +80,10 @@ class WarmStart(NamedTuple):
     def take(self, rows: torch.Tensor) -> "WarmStart":
         """The problems ``rows`` (long or bool over E)."""
         return WarmStart(*(field[rows] for field in self))
+
+    def finite(self) -> torch.Tensor:
+        """(E,) bool, every iterate of the problem is finite (NaN marks a problem to restart)."""
+        return torch.stack([field.isfinite().flatten(1).all(dim=1) for field in self]).all(dim=0)
 
 
 class SolveResult(NamedTuple):
@@ -177,12 +183,7 @@ class SolveResult(NamedTuple):
         """A copy whose problems ``rows`` (R,) long, distinct, are ``part``'s R problems, in order;
         an index of E (one past the last problem) drops that problem of ``part`` (a fixed-size
         buffer's padding), without a host synchronisation."""
-        def join(tensors: list[torch.Tensor], offset: int) -> torch.Tensor:
-            base, new = tensors
-            scratch = torch.cat([base, base.narrow(offset, 0, 1)], dim=offset)
-            return scratch.index_copy(offset, rows, new).narrow(offset, 0, base.shape[offset])
-
-        return SolveResult._combine([self, part], join)
+        return SolveResult._combine([self, part], lambda tensors, offset: scatter(tensors[0], offset, rows, tensors[1]))
 
     def take_goals(self, index: torch.Tensor) -> "SolveResult":
         """The goals ``index`` (E, K) long of each problem, in that order (a goal may repeat)."""

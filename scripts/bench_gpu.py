@@ -26,6 +26,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from unittest import mock
 from typing import Callable, Optional, Sequence
 
 import torch
@@ -256,14 +257,13 @@ def decision_rows(device: torch.device, scenario: ScenarioConfig, num_envs: int,
     solve, ranking, selection, fallback) and the expert's (:data:`DECISION_DRIVER`, the MPC behind
     the check). Per driver: graphs, graph breaks and the places that break it, most frequent first
     (``break_sites``: "file:line reason" -> count, of the reasons dynamo records: most of the breaks)."""
-    from mmpc.drivers import make_driver
     from mmpc.drivers.mpc_driver import MPCDriver
     from mmpc.highway.batched_world import BatchedWorld
 
     builders = {
         "mpc:fixed": lambda: MPCDriver(build_mpc(scenario, compile=False, device=device, fixed_shapes=True),
                                        period=scenario.period),
-        DECISION_DRIVER: lambda: _eager_driver(lambda: make_driver(DECISION_DRIVER, scenario)),
+        DECISION_DRIVER: lambda: _built_eager(DECISION_DRIVER, scenario),
     }
     rows = []
     for name, build in builders.items():
@@ -290,17 +290,12 @@ def decision_rows(device: torch.device, scenario: ScenarioConfig, num_envs: int,
     return rows
 
 
-def _eager_driver(build: Callable[[], object]):
-    """``build()`` with the solver eager (``MMPC_COMPILE=0`` while it builds)."""
-    previous = os.environ.get(COMPILE_ENV)
-    os.environ[COMPILE_ENV] = "0"
-    try:
-        return build()
-    finally:
-        if previous is None:
-            del os.environ[COMPILE_ENV]
-        else:
-            os.environ[COMPILE_ENV] = previous
+def _built_eager(spec: str, scenario: ScenarioConfig):
+    """The driver of ``spec`` with its solver eager (``MMPC_COMPILE=0`` while it is built)."""
+    from mmpc.drivers import make_driver
+
+    with mock.patch.dict(os.environ, {COMPILE_ENV: "0"}):
+        return make_driver(spec, scenario)
 
 
 def _profile_text(row: dict, unit: str = "step") -> str:

@@ -24,7 +24,7 @@ import torch
 
 from mmpc.scenario import ScenarioConfig, batched_unsupported
 from mmpc.traffic_config import IDMTraffic
-from mmpc.compaction import capacity, compact
+from mmpc.compaction import capacity, compact, scatter
 from mmpc.sim.config import SimConfig
 from mmpc.sim.random import integers, uniform
 from mmpc.sim.state import VehicleState, vehicle_state
@@ -173,14 +173,12 @@ def relocate(
     part, moved_part = _relocate_rows(VehicleState(*(field[picked] for field in state)), slot[picked], low[picked],
                                       high[picked], seeds[picked], draw, config)
 
-    def scatter(field: torch.Tensor, new: torch.Tensor) -> torch.Tensor:  # the searched rows back in place
-        if buffer is None:
-            return field.index_copy(0, index, new)
-        return torch.cat([field, field[:1]]).index_copy(0, index, new)[:num_envs]
+    def back(field: torch.Tensor, new: torch.Tensor) -> torch.Tensor:  # the searched rows back in place
+        return field.index_copy(0, index, new) if buffer is None else scatter(field, 0, index, new)
 
     # A searched row that found no spot is its old self (:func:`_relocate_rows`).
-    return VehicleState(*(scatter(field, new) for field, new in zip(state, part))), scatter(torch.zeros_like(moving),
-                                                                                             moved_part & rows.valid)
+    return VehicleState(*(back(field, new) for field, new in zip(state, part))), back(torch.zeros_like(moving),
+                                                                                       moved_part & rows.valid)
 
 
 def _relocate_rows(state: VehicleState, slot: torch.Tensor, low: torch.Tensor, high: torch.Tensor, seeds: torch.Tensor,

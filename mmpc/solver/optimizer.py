@@ -261,7 +261,7 @@ class BatchOptimizer(nn.Module):
         capacity = num_problems if cold_capacity is None else cold_capacity
         if isinstance(capacity, bool) or not isinstance(capacity, int) or not 0 <= capacity <= num_problems:
             raise ValueError(f"`cold_capacity` must be an int in [0, {num_problems}] (the problems); got {cold_capacity!r}")
-        finite = torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
+        finite = warm.finite()
         start = WarmStart(*(torch.where(finite.view(-1, *(1,) * (field.dim() - 1)), field, 0.0) for field in warm))
         result = self._solve_compiled(ego, goals, obstacles, mask, axes, start, first_iteration, last, history, compiled,
                                       uniform)
@@ -319,7 +319,7 @@ class BatchOptimizer(nn.Module):
         those whose warm solve found no feasible goal (what a cold start may still find), from the
         cold start with the whole schedule; joined in the input order (host synchronisations)."""
         inputs = (ego, goals, obstacles, mask, axes)
-        cold = ~torch.stack([field.isfinite().flatten(1).all(dim=1) for field in warm]).all(dim=0)  # (E,)
+        cold = ~warm.finite()
         again = torch.zeros_like(cold)  # warm-started, no feasible goal: solved again cold
         parts, solved = [], []
         warm_rows = (~cold).nonzero().squeeze(1)
