@@ -60,7 +60,8 @@ class SolverBenchmark:
         in_loop: a scenario whose MPC's solves in its closed loop are compared, per goal-iteration,
             with the benchmark problem of the same B and M (:func:`in_loop_comparison`), for each
             plain variant ("eager", "compiled"); ``None`` skips it.
-        in_loop_environments: E of that loop (its batched simulator's episodes, seeds 0 ... E - 1).
+        in_loop_environments: E of that loop (its batched simulator's episodes).
+        in_loop_first_seed: the first of their seeds (then one each, in order).
         in_loop_steps: control steps recorded after :data:`IN_LOOP_WARMUP_STEPS`.
     """
 
@@ -75,6 +76,7 @@ class SolverBenchmark:
     environments: int = 64
     in_loop: Optional[str] = None
     in_loop_environments: int = 64
+    in_loop_first_seed: int = 0
     in_loop_steps: int = 10
     config: OptimizerConfig = field(default_factory=OptimizerConfig)
 
@@ -93,6 +95,7 @@ class SolverBenchmark:
         require_int("", low=1, threads=self.threads, repeats=self.repeats)
         require_int("", low=0, warmup=self.warmup, environments=self.environments)
         require_int("", low=1, in_loop_environments=self.in_loop_environments, in_loop_steps=self.in_loop_steps)
+        require_int("", low=0, in_loop_first_seed=self.in_loop_first_seed)
         require_positive("", max_seconds_per_row=self.max_seconds_per_row)
 
 
@@ -395,13 +398,14 @@ def _vectorized_comparison(spec: SolverBenchmark, log: Callable[[str], None]) ->
 IN_LOOP_WARMUP_STEPS = 3
 
 
-def record_loop_solves(scenario: ScenarioConfig, optimizer_compile: bool, environments: int, steps: int) -> tuple:
+def record_loop_solves(scenario: ScenarioConfig, optimizer_compile: bool, environments: int, steps: int,
+                       first_seed: int = 0) -> tuple:
     """The optimizer calls of ``scenario``'s MPC driving ``environments`` batched-simulator episodes
-    (seeds 0 ... E - 1) for :data:`IN_LOOP_WARMUP_STEPS` + ``steps`` control steps: its optimizer
+    (seeds ``first_seed`` on) for :data:`IN_LOOP_WARMUP_STEPS` + ``steps`` control steps: its optimizer
     and the (problem, keyword arguments) of the calls of the last ``steps`` steps, as the loop made them."""
     mpc = build_mpc(scenario, compile=optimizer_compile)
     driver = MPCDriver(mpc, period=scenario.period)
-    world = BatchedWorld.start(scenario, list(range(environments)))
+    world = BatchedWorld.start(scenario, list(range(first_seed, first_seed + environments)))
     calls: list[tuple[ProblemBatch, dict]] = []
     recording = False
 
@@ -450,7 +454,7 @@ def in_loop_comparison(spec: SolverBenchmark, optimizer_compile: bool, log: Call
     try:
         with torch.inference_mode():
             optimizer, calls = record_loop_solves(scenario, optimizer_compile, spec.in_loop_environments,
-                                                  spec.in_loop_steps)
+                                                  spec.in_loop_steps, spec.in_loop_first_seed)
             if not calls:
                 raise RuntimeError(f"in-loop comparison: the {spec.in_loop!r} loop made no solve in "
                                    f"{spec.in_loop_steps} steps")
@@ -476,6 +480,7 @@ def in_loop_comparison(spec: SolverBenchmark, optimizer_compile: bool, log: Call
         "scenario": spec.in_loop,
         "variant": "compiled" if optimizer_compile else "eager",
         "environments": spec.in_loop_environments,
+        "first_seed": spec.in_loop_first_seed,
         "steps": steps,
         "batch": batch,
         "obstacles": obstacles,
@@ -515,6 +520,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                             "the same B and M, per goal-iteration (e.g. high_speed)")
     bench.add_argument("--in-loop-environments", type=int, default=64, help="E of the in-loop comparison")
     bench.add_argument("--in-loop-steps", type=int, default=10, help="control steps the in-loop comparison records")
+    bench.add_argument("--in-loop-seed", type=int, default=0, help="first seed of the in-loop comparison's episodes")
     bench.add_argument("--out", default="runs/bench_solver", help="output folder")
     args = bench.parse_args(argv)
     try:  # every value checked before any work
@@ -523,6 +529,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             variants=tuple(args.variants.split(",")), threads=args.threads, repeats=args.repeats,
             max_seconds_per_row=args.max_seconds_per_row, environments=args.environments, in_loop=args.in_loop,
             in_loop_environments=args.in_loop_environments, in_loop_steps=args.in_loop_steps,
+            in_loop_first_seed=args.in_loop_seed,
         )
     except ValueError as error:  # a ConfigError too
         bench.error(str(error))

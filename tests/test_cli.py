@@ -54,8 +54,10 @@ def test_bench_solver_writes_json_rows(tmp_path):
 def test_bench_solver_compares_the_in_loop_solves_with_the_benchmark_per_goal_iteration(tmp_path):
     assert bench_solver.main(["--batches", "1", "--obstacles", "0", "--repeats", "2", "--devices", "cpu",
                               "--variants", "eager", "--environments", "0", "--in-loop", "high_speed",
-                              "--in-loop-environments", "2", "--in-loop-steps", "2", "--out", str(tmp_path)]) == 0
+                              "--in-loop-environments", "2", "--in-loop-steps", "2", "--in-loop-seed", "90100",
+                              "--out", str(tmp_path)]) == 0
     (row,) = json.loads((tmp_path / "bench_solver.json").read_text())["in_loop"]
+    assert row["first_seed"] == 90100
     goals = 35  # the high-speed MPC's goals per problem
     assert (row["variant"], row["batch"], row["obstacles"], row["obstacle_axes"]) == ("eager", 2 * goals, 6, "per obstacle")
     assert row["solves_per_step"] >= 1 and row["rounds"] >= 2
