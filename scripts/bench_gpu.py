@@ -26,7 +26,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from unittest import mock
 from typing import Callable, Optional, Sequence
 
 import torch
@@ -38,7 +37,6 @@ from bench_solver import benchmark_problem, time_solver  # noqa: E402
 from mmpc.cli.arguments import compile_at_once, int_list, seed_list  # noqa: E402
 from mmpc.device import DEVICE_ENV  # noqa: E402
 from mmpc.scenario import ScenarioConfig, build_mpc, load_scenario  # noqa: E402
-from mmpc.solver.execution import COMPILE_ENV  # noqa: E402
 from mmpc.solver.optimizer import BatchOptimizer  # noqa: E402
 
 SECTIONS = ("solver", "sim", "mpc", "evaluate")
@@ -48,10 +46,10 @@ ALL = ("tests",) + SECTIONS
 EXTRA = ("decision",)
 #: Modes of the solver and simulator rows.
 MODES = ("compiled", "eager")
-#: Modes of the MPC rows: the solver compiled or eager; "-fixed": ``build_mpc(fixed_shapes=True)``.
-MPC_MODES = ("compiled", "eager", "compiled-fixed", "eager-fixed")
-#: The expert, whose decision the "decision" section traces beside the MPC's: the MPC behind the check.
-DECISION_DRIVER = "verified:mpc"
+#: Modes of the MPC rows: the solver compiled or eager; "-fixed": ``build_mpc(fixed_shapes=True)``;
+#: "-verified": behind the check (the expert, ``verified:mpc``; with "-fixed", a fixed-shape check too).
+MPC_MODES = tuple(f"{solver}{fixed}{verified}" for verified in ("", "-verified") for solver in ("compiled", "eager")
+                  for fixed in ("", "-fixed"))
 #: Where ``--all`` keeps inductor's compiled kernels (``TORCHINDUCTOR_CACHE_DIR``), under ``--out``:
 #: a second run on the same machine compiles from it in seconds.
 COMPILE_CACHE = "inductor_cache"
@@ -217,19 +215,19 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
              profiled: bool, budget: Budget, log: Callable[[str], None]) -> list[dict]:
     """The MPC in the loop on the batched world, both on ``device`` (the runner's loop body, as
     bench_sim; ``profiled``: and :func:`device_profile` of 3 more steps), per mode of ``modes``
-    (:data:`MPC_MODES`: the solver compiled or eager, "-fixed": the MPC's fixed-shape decision)."""
-    from mmpc.drivers.mpc_driver import MPCDriver
+    (:data:`MPC_MODES`: the solver compiled or eager, "-fixed": the MPC's fixed-shape decision,
+    "-verified": behind the check)."""
     from mmpc.highway.batched_world import BatchedWorld
 
     rows = []
     for mode in modes:
-        compiled, fixed = mode.startswith("compiled"), mode.endswith("-fixed")
-        driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device, fixed_shapes=fixed), period=scenario.period)
+        compiled, fixed, verified = mode.startswith("compiled"), "-fixed" in mode, mode.endswith("-verified")
+        driver = _mpc_driver(scenario, device, compiled, fixed, verified)
         for num_envs in envs:
             if budget.over(f"mpc {scenario.name} E={num_envs}", log):
                 return rows
             row = {"table": "mpc", "scenario": scenario.name, "compiled": compiled, "fixed_shapes": fixed,
-                   "num_envs": num_envs}
+                   "verified": verified, "num_envs": num_envs}
             try:
                 world = BatchedWorld.start(scenario, list(range(num_envs)), device=device)
                 _closed_loop(world, driver, num_envs, 1)  # compiles (and on CUDA captures) this E
@@ -253,17 +251,16 @@ def mpc_rows(device: torch.device, scenario: ScenarioConfig, envs: Sequence[int]
 def decision_rows(device: torch.device, scenario: ScenarioConfig, num_envs: int, budget: Budget,
                   log: Callable[[str], None]) -> list[dict]:
     """Each decision traced by dynamo as one function after 2 steps of a batched episode, eager
-    (what a graph of it would hold): the MPC's with fixed shapes (``mpc:fixed``: problem building,
-    solve, ranking, selection, fallback) and the expert's (:data:`DECISION_DRIVER`, the MPC behind
-    the check). Per driver: graphs, graph breaks and the places that break it, most frequent first
-    (``break_sites``: "file:line reason" -> count, of the reasons dynamo records: most of the breaks)."""
-    from mmpc.drivers.mpc_driver import MPCDriver
+    (what a graph of it would hold): the expert's as shipped (``verified:mpc``, the MPC behind the
+    check) and at fixed shapes (``verified:mpc:fixed``: the MPC's problem building, solve, ranking,
+    selection and fallback, the check and the guard). Per driver:
+    graphs, graph breaks and the places that break it, most frequent first (``break_sites``:
+    "file:line reason" -> count, of the reasons dynamo records: most of the breaks)."""
     from mmpc.highway.batched_world import BatchedWorld
 
     builders = {
-        "mpc:fixed": lambda: MPCDriver(build_mpc(scenario, compile=False, device=device, fixed_shapes=True),
-                                       period=scenario.period),
-        DECISION_DRIVER: lambda: _built_eager(DECISION_DRIVER, scenario),
+        "verified:mpc": lambda: _mpc_driver(scenario, device, compiled=False, fixed=False, verified=True),
+        "verified:mpc:fixed": lambda: _mpc_driver(scenario, device, compiled=False, fixed=True, verified=True),
     }
     rows = []
     for name, build in builders.items():
@@ -290,12 +287,15 @@ def decision_rows(device: torch.device, scenario: ScenarioConfig, num_envs: int,
     return rows
 
 
-def _built_eager(spec: str, scenario: ScenarioConfig):
-    """The driver of ``spec`` with its solver eager (``MMPC_COMPILE=0`` while it is built)."""
-    from mmpc.drivers import make_driver
+def _mpc_driver(scenario: ScenarioConfig, device: torch.device, compiled: bool, fixed: bool, verified: bool):
+    """The scenario's MPC driver on ``device``: its solver ``compiled`` or eager, its decision at
+    ``fixed`` shapes or checked, behind the check (``verified``; at fixed shapes too with ``fixed``)."""
+    from mmpc.drivers.mpc_driver import MPCDriver
+    from mmpc.drivers.verified import VerifiedDriver
+    from mmpc.verify import Verifier
 
-    with mock.patch.dict(os.environ, {COMPILE_ENV: "0"}):
-        return make_driver(spec, scenario)
+    driver = MPCDriver(build_mpc(scenario, compile=compiled, device=device, fixed_shapes=fixed), period=scenario.period)
+    return VerifiedDriver(driver, Verifier.for_scenario(scenario, compile=compiled, fixed_shapes=fixed)) if verified else driver
 
 
 def _profile_text(row: dict, unit: str = "step") -> str:

@@ -1,5 +1,6 @@
-"""The MPC's decision with ``fixed_shapes``: it reads nothing on the host, traces as one graph and
-decides as the checked MPC does (issue 68, the decision as one graph)."""
+"""The decision with ``fixed_shapes``: the MPC's reads nothing on the host and decides as the
+checked MPC does; behind the check (tests/test_fixed_check.py) the whole decision traces as one
+graph (issue 68, the decision as one graph)."""
 
 import dataclasses
 
@@ -7,9 +8,11 @@ import pytest
 import torch
 
 from mmpc.drivers.mpc_driver import MPCDriver
+from mmpc.drivers.verified import VerifiedDriver
 from mmpc.highway.batched_world import BatchedWorld
 from mmpc.mpc import MPC
 from mmpc.scenario import build_mpc, load_scenario
+from mmpc.verify import Verifier
 
 SEEDS = list(range(90100, 90108))  # tuning seeds
 
@@ -45,12 +48,14 @@ def test_fixed_shapes_decide_as_the_checked_mpc(scenario, one_thread):
     assert restarts >= 4
 
 
-def test_the_mpc_decision_traces_as_one_graph(scenario, one_thread):
-    driver = MPCDriver(build_mpc(scenario, compile=False, fixed_shapes=True), period=scenario.period)
+def test_the_checked_decision_traces_as_one_graph(scenario, one_thread):
+    """``verified:mpc`` with fixed shapes: the MPC's decision, the check and the guard in one graph."""
+    driver = VerifiedDriver(MPCDriver(build_mpc(scenario, compile=False, fixed_shapes=True), period=scenario.period),
+                            Verifier.for_scenario(scenario, compile=False, fixed_shapes=True))
     world = BatchedWorld.start(scenario, SEEDS[:4])
     envs = list(range(4))
     driver.reset(4)
-    for _ in range(2):  # the first step solves cold; the next ones warm-started
+    for _ in range(2):  # the first step solves cold; the next ones warm-started, with a fail-safe stored
         observation, _ = world.observe(envs)
         decision = driver.decide(observation)
         world.apply(envs, decision.acceleration, decision.steering)

@@ -53,7 +53,7 @@ def test_highway_env_training_envs_verify_each_under_its_own_id(smoke, one_threa
         _, _, _, infos = venv.step(np.array([fastest, 0]))
         for info in infos:
             assert info["verified_frames"] + info["failsafe_frames"] == info["frames"] >= 1
-    assert set(venv.layer.guard._stored) == {0, 1}
+    assert set(venv.layer.guard.stored_ids()) == {0, 1}
     # single environments that share a layer keep their fail-safes apart too, and a reset drops its own
     first = SafeHighwayEnv(smoke.scenario, smoke.env, smoke.reward)
     second = SafeHighwayEnv(smoke.scenario, smoke.env, smoke.reward, layer=first.layer)
@@ -62,9 +62,9 @@ def test_highway_env_training_envs_verify_each_under_its_own_id(smoke, one_threa
     second.reset(seed=2)
     first.step(fastest)
     second.step(fastest)
-    assert set(first.layer.guard._stored) == {0, 1}
+    assert set(first.layer.guard.stored_ids()) == {0, 1}
     first.reset(seed=3)
-    assert set(first.layer.guard._stored) == {1}
+    assert set(first.layer.guard.stored_ids()) == {1}
     # without the check the infos say nothing of it
     plain = SafeHighwayEnv(smoke.scenario, dataclasses.replace(smoke.env, verify=False), smoke.reward)
     plain.reset(seed=3)

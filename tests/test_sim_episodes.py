@@ -370,14 +370,15 @@ def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, mo
 
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", cache_dir())  # --all keeps a cache already named (the suite's)
     argv = ["--all", "--device", "cpu", "--tests", "tests/test_sim.py", "--solver-modes", "eager", "--batches", "4",
-            "--repeats", "1", "--sim-modes", "eager", "--sim-envs", "2", "--mpc-modes", "eager,eager-fixed", "--mpc-envs", "2",
+            "--repeats", "1", "--sim-modes", "eager", "--sim-envs", "2", "--mpc-modes", "eager,eager-fixed,eager-fixed-verified",
+            "--mpc-envs", "2",
             "--steps", "1",
             "--scenarios", "high_speed", "--seeds", "0-1", "--duration", "0.3", "--profile", "--out", str(tmp_path)]
     assert bench_gpu.main(argv) == 0
     report = json.loads((tmp_path / "bench_gpu.json").read_text())
     assert report["device"] == "cpu" and report["args"] == " ".join(argv)
     rows = report["rows"]
-    assert [row["table"] for row in rows] == ["tests", "solver", "sim", "mpc", "mpc", "evaluate"]
+    assert [row["table"] for row in rows] == ["tests", "solver", "sim", "mpc", "mpc", "mpc", "evaluate"]
     tests = rows[0]
     assert tests["returncode"] == 0 and tests["failed"] == tests["error"] == 0 and tests["skipped"] >= 1
     assert rows[1]["batch"] == 4 and rows[1]["eager_ms"] > 0 and "compiled_ms" not in rows[1]
@@ -390,6 +391,10 @@ def test_the_gpu_benchmark_runs_all_its_sections_on_the_cpu(tmp_path, capsys, mo
     assert (fixed_row["fixed_shapes"], mpc_row["fixed_shapes"]) == (True, False) and fixed_row["env_steps_per_s"] > 0
     # The loop body (the world's observation and apply too) still reads; the decision itself no more.
     assert fixed_row["host_reads_per_step"] < mpc_row["host_reads_per_step"]
+    expert_row = rows[5]  # behind the check at fixed shapes: the check reads nothing more
+    assert (expert_row["fixed_shapes"], expert_row["verified"], fixed_row["verified"]) == (True, True, False)
+    assert expert_row["host_reads_per_step"] == fixed_row["host_reads_per_step"]
+    assert expert_row["ops_per_step"] > fixed_row["ops_per_step"]
     (evaluation,) = [r for r in rows if r["table"] == "evaluate"]
     assert evaluation["episodes"] == 2 and evaluation["errors"] == 0 and evaluation["collisions"] == 0
     assert evaluation["mean_speed"] > 0 and evaluation["wall_s"] > 0
@@ -405,13 +410,13 @@ def test_the_gpu_benchmark_counts_the_graph_breaks_of_the_decisions(tmp_path):
 
     argv = ["--device", "cpu", "--sections", "decision", "--scenarios", "cruise", "--mpc-envs", "2", "--out", str(tmp_path)]
     assert bench_gpu.main(argv) == 0
-    mpc, expert = json.loads((tmp_path / "bench_gpu.json").read_text())["rows"]
-    assert (mpc["table"], mpc["driver"], mpc["num_envs"]) == ("decision", "mpc:fixed", 2)
-    assert (mpc["graphs"], mpc["graph_breaks"], mpc["break_sites"]) == (1, 0, {})
-    assert expert["driver"] == "verified:mpc"
-    assert expert["graph_breaks"] == expert["graphs"] - 1 >= 1  # the check is not one graph yet (issue 68)
+    expert, fixed = json.loads((tmp_path / "bench_gpu.json").read_text())["rows"]
+    assert (expert["table"], expert["driver"], expert["num_envs"]) == ("decision", "verified:mpc", 2)
+    assert expert["graph_breaks"] == expert["graphs"] - 1 >= 1  # the check as shipped runs on the host
     assert 1 <= sum(expert["break_sites"].values()) <= expert["graph_breaks"]  # dynamo keeps the reasons of most
     assert any(site.startswith("verifier.py:") for site in expert["break_sites"])
+    assert fixed["driver"] == "verified:mpc:fixed"
+    assert (fixed["graphs"], fixed["graph_breaks"], fixed["break_sites"]) == (1, 0, {})
 
 
 def test_the_gpu_benchmark_skips_the_rows_past_its_budget(tmp_path, capsys):

@@ -48,7 +48,8 @@ class GuardedCommand(NamedTuple):
 def guarded_command(guard: Guard, observation: Observation, acceleration: torch.Tensor, steering: torch.Tensor,
                     plan=None, mpc=None, alternatives: int = ALTERNATIVES) -> GuardedCommand:
     """The command asked for where it keeps a verified way out; else braking, the plan's other
-    feasible candidates, a fail-safe (:class:`mmpc.verify.Guard`). The check runs on the CPU.
+    feasible candidates, a fail-safe (:class:`mmpc.verify.Guard`). The check runs on the CPU, or
+    on the observation's device where the verifier has fixed shapes (nothing read on the host).
 
     Args:
         guard: the check and the fail-safes it stored per environment id (``observation``'s ids).
@@ -57,12 +58,13 @@ def guarded_command(guard: Guard, observation: Observation, acceleration: torch.
         plan: the :class:`mmpc.mpc.Plan` of ``mpc`` that made them, whose cheapest other feasible
             candidates (at most ``alternatives``) are tried before the fail-safes; ``None``: none.
     """
-    host = observation.to("cpu")
-    asked = acceleration.cpu(), steering.cpu()
+    where = observation.ego.device if guard.verifier.fixed_shapes else torch.device("cpu")
+    host = observation.to(where)
+    asked = acceleration.to(where), steering.to(where)
     others = None
     if plan is not None and mpc is not None and alternatives:
         others = lambda rows: cheapest_goals(plan, mpc, rows, alternatives)  # noqa: E731
-    chosen = guard.choose(host.ego, host.vehicles, host.vehicle_mask, host.ids().tolist(), *asked, others)
+    chosen = guard.choose(host.ego, host.vehicles, host.vehicle_mask, host.ids(), *asked, others)
     driven = chosen.acceleration.to(asked[0].dtype), chosen.steering.to(asked[1].dtype)
     changed = (driven[0] != asked[0]) | (driven[1] != asked[1])
     device = acceleration.device
@@ -107,22 +109,23 @@ class VerifiedDriver(Driver):
 
     def decide(self, observation: Observation) -> Decision:
         decision = self.driver.decide(observation)
-        start = time.perf_counter()
-        decision = decision.commands_to("cpu")
+        fixed = self.verifier.fixed_shapes  # a graph's step: nothing moved to the host, nothing timed
+        start = None if fixed else time.perf_counter()
+        decision = decision if fixed else decision.commands_to("cpu")
         guarded = guarded_command(self.guard, observation, decision.acceleration, decision.steering, decision.plan,
                                   getattr(self.driver, "mpc", None), self.alternatives)
+        solve_ms = decision.solve_ms + (float("nan") if fixed else (time.perf_counter() - start) * 1e3)
         return decision._replace(
             acceleration=guarded.acceleration, steering=guarded.steering, verified=guarded.verified,
-            failsafe=guarded.failsafe, solve_ms=decision.solve_ms + (time.perf_counter() - start) * 1e3,
-            goal_index=torch.where(guarded.changed, -1, decision.goal_index),
+            failsafe=guarded.failsafe, solve_ms=solve_ms, goal_index=torch.where(guarded.changed, -1, decision.goal_index),
         )
 
 
 def cheapest_goals(plan, mpc, rows: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The first commands of the ``count`` cheapest feasible candidates of ``plan`` (an
     :class:`mmpc.mpc.Plan` of ``mpc``) in its ``rows`` (R,): (R, count) accelerations and
-    steerings on the CPU, NaN where fewer are feasible."""
-    result, device = plan.result, plan.cost.device
+    steerings on the rows' device, NaN where fewer are feasible."""
+    result, device, asked_on = plan.result, plan.cost.device, rows.device
     rows = rows.to(device)
     cost = torch.where(result.feasible, plan.cost, torch.full_like(plan.cost, float("inf")))[rows]
     cheapest = cost.topk(min(count, cost.shape[1]), dim=1, largest=False)
@@ -131,7 +134,7 @@ def cheapest_goals(plan, mpc, rows: torch.Tensor, count: int) -> tuple[torch.Ten
     acceleration, steering = mpc.candidate_commands(plan.problem.ego[rows], picked)
     missing = ~cheapest.values.isfinite()
     nan = torch.full_like(acceleration, float("nan"))
-    return torch.where(missing, nan, acceleration).cpu(), torch.where(missing, nan, steering).cpu()
+    return torch.where(missing, nan, acceleration).to(asked_on), torch.where(missing, nan, steering).to(asked_on)
 
 
 def behind_check(driver: Driver, scenario: ScenarioConfig, verify: bool = True) -> Driver:

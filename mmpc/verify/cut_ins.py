@@ -24,6 +24,7 @@ simulator's traffic only.
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 
@@ -92,7 +93,7 @@ def may_have_decided(ego: torch.Tensor, vehicles: torch.Tensor, assumptions: Tra
 
 
 def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tensor, times: torch.Tensor,
-                assumptions: TrafficAssumptions, moving: bool = True) -> torch.Tensor:
+                assumptions: TrafficAssumptions, moving: bool = True, frame: Optional[float] = None) -> torch.Tensor:
     """The lowest x [m] of each car's footprint over each interval if it decides, on the ego's path,
     to enter the ego's lane ahead of it at any pose up to that interval (module docstring).
 
@@ -103,6 +104,7 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
             frame-stepped car may lag the continuous least distance by ``a dt / 2`` per second).
         moving: count the car's progress after it decided (``False``: only that it never moves
             back, a lower floor at a twelfth of the work, enough for most paths).
+        frame: the frame [s] (``times``' spacing); ``None``: read from ``times`` on the host.
 
     Returns:
         (R, ..., P): at interval i, the least ``x_low`` of the entering car's footprint.
@@ -116,6 +118,7 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     dtype = path_x.dtype
     starts, ends = times[:-1].to(dtype), times[1:].to(dtype)  # (P,)
     steps = ends - starts
+    frame = float(steps[0]) if frame is None else frame
     x, speed = cars[:, 0, None], torch.hypot(cars[:, 2], cars[:, 3])[:, None]  # (R, 1)
     # The car's speed w at pose j lies in [slow, fast]. On each slice [w_k, w_k+1] of that range its
     # centre is at least the least distance that ends at w_k from where it is now, and at least the
@@ -126,7 +129,7 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     # (less the frame-stepped car's lag and what turning across the road took from its progress)
     slope = math.tan(0.5 * a.max_heading) * a.lateral_speed  # [m/s] of progress a turn may take
     cap = math.tan(0.5 * a.max_heading) * a.lateral_travel
-    stepping = 0.5 * a.max_acceleration * float(steps[0]) * starts[:, None] + (slope * starts).clamp_max(cap)[:, None]
+    stepping = 0.5 * a.max_acceleration * frame * starts[:, None] + (slope * starts).clamp_max(cap)[:, None]
     reached = x[..., None] + _least_distance_to(speed[..., None], w[..., :-1], starts[:, None], a) - stepping
     ego_speed = path_speed.clamp_min(0.0)[..., None]  # (R, ..., P, 1)
     ahead = path_x[..., None] + safe_distance(a, desired_gap(a, ego_speed, per_car(w[..., 1:])).clamp_min(0.0), ego_speed)
@@ -163,7 +166,7 @@ def entry_floor(path_x: torch.Tensor, path_speed: torch.Tensor, cars: torch.Tens
     # the tighter, so the floor settles a turn's time after the cars and the ego stand (Verifier.frames
     # checks that far).
     progress, turned = per_car(table.transpose(1, 2)), per_car(kept.transpose(1, 2))  # (R, 1.., P, G)
-    window = turn_frames(a, float(steps[0]))
+    window = turn_frames(a, frame)
     turning = _window_min(best - turned, window, dim=-2).add_(turned)
     kept_older = running_min(best - turned, dim=-2).roll(window + 1, dims=-2).add_(turned)
     older = running_min(best.sub_(progress), dim=-2).roll(window + 1, dims=-2)
@@ -185,7 +188,7 @@ def turn_frames(assumptions: TrafficAssumptions, frame: float) -> int:
 def _window_min(values: torch.Tensor, window: int, dim: int) -> torch.Tensor:
     """The minimum of ``values`` over each index and the ``window`` before it along ``dim``."""
     steps = values.movedim(dim, 0)
-    least = steps.clone()
+    least = steps.clone(memory_format=torch.contiguous_format)
     for shift in range(1, min(window, steps.shape[0] - 1) + 1):
         torch.minimum(least[shift:], steps[:-shift], out=least[shift:])
     return least.movedim(0, dim)

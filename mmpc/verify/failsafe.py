@@ -139,6 +139,8 @@ class FailSafeRollout:
     def __call__(self, body: Body, lane: torch.Tensor, deceleration: torch.Tensor, frames: int) -> Body:
         """The fail-safe (``lane``, ``deceleration``) from ``body``, every field (...): poses at the
         end of each command, every field (..., frames)."""
+        if torch.compiler.is_compiling():  # inside a caller's graph
+            return rollout(body, lane, deceleration, frames, self.length, self.road, self.sim)
         if self.compiling.compiled and body.x.numel() and body.x.device.type == "cpu":
             path = self.compiling.attempt(lambda: self._compiled(body, lane, deceleration, frames))
             if path is not None:

@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Optional
 
 import torch
 
+from mmpc.compaction import capacity, compact, scatter
 from mmpc.problem import EGO_V
 from mmpc.road import Road
 from mmpc.scenario import ScenarioConfig
@@ -34,6 +35,14 @@ from mmpc.verify.cut_ins import entry_floor, turn_frames
 from mmpc.verify.failsafe import Body, FailSafeRollout, FailSafes, drive, ego_body, failsafe_command, failsafe_table
 from mmpc.verify.geometry import rectangle_meets_box
 from mmpc.verify.occupancy import Occupancy, held_variant, occupancy
+
+
+#: With ``fixed_shapes``: the (car, pose) pairs per environment whose boxes come near a path get the
+#: exact test in a buffer of this many per environment (an environment past it is not verified).
+TRIPLES_PER_ENV = 1024
+
+#: With ``fixed_shapes``: the cars per environment that may still cut in whose entry floors are computed.
+PAIRS_PER_ENV = 8
 
 
 class Verdict(NamedTuple):
@@ -65,11 +74,16 @@ class Verifier:
         max_horizon: the longest fail-safe checked [s] (one that has not come to rest by then fails).
         compile: whether the fail-safe rollout and the occupancy sets run compiled
             (:class:`mmpc.verify.compiling.CheckCompiling`): ``"auto"``, ``True`` or ``False``.
+        fixed_shapes: check without reading a value on the host, every shape known from the input's
+            (one graph per step, :mod:`mmpc.compaction`): fail-safes over the whole horizon, the exact
+            tests in buffers of :data:`TRIPLES_PER_ENV` and :data:`PAIRS_PER_ENV` per environment (an
+            environment past them is not verified: safe, never wrong), values unchecked (a NaN or
+            inf state, car or command is not verified).
     """
 
     def __init__(self, road: Road, sim: SimConfig = SimConfig(), assumptions: TrafficAssumptions = TrafficAssumptions(),
                  failsafes: FailSafes = FailSafes(), ego_size: tuple[float, float] = (5.0, 2.0), margin: float = 0.1,
-                 max_horizon: float = 12.0, compile: bool | str = "auto") -> None:
+                 max_horizon: float = 12.0, compile: bool | str = "auto", fixed_shapes: bool = False) -> None:
         if not (margin >= 0 and max_horizon > 0):
             raise ValueError(f"Verifier: `margin` must be >= 0 m and `max_horizon` > 0 s; got {margin!r}, {max_horizon!r}")
         if sim.simulation_frequency < sim.kp_heading:
@@ -83,6 +97,8 @@ class Verifier:
         if sim.frames_per_command != 1:
             raise ValueError(f"Verifier: the check samples the ego once per command, so it needs one simulation frame per "
                              f"command; got {sim.simulation_frequency} Hz simulation for {sim.policy_frequency} Hz commands")
+        if not isinstance(fixed_shapes, bool):
+            raise TypeError(f"Verifier: `fixed_shapes` must be True or False; got {fixed_shapes!r}")
         self.road, self.sim, self.assumptions, self.failsafes = road, sim, assumptions, failsafes
         self.length, self.width = ego_size
         self.margin = margin
@@ -90,6 +106,7 @@ class Verifier:
         self.max_frames = max(1, math.ceil(max_horizon / self.period))
         self.compiling = CheckCompiling(compile)
         self.rollout = FailSafeRollout(self.length, road, sim, self.compiling)
+        self.fixed_shapes = fixed_shapes
 
     @classmethod
     def for_scenario(cls, scenario: ScenarioConfig, **settings) -> "Verifier":
@@ -120,7 +137,10 @@ class Verifier:
 
     def frames(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor) -> int:
         """Fail-safe frames that bring every ego and every car's slowest motion to rest, and under the
-        follower rule a turn's time more, until where a car may cut in has settled (at most the horizon)."""
+        follower rule a turn's time more, until where a car may cut in has settled (at most the horizon;
+        with :attr:`fixed_shapes` the horizon: a verdict does not change with frames past that)."""
+        if self.fixed_shapes:
+            return self.max_frames
         fastest = ego[:, EGO_V].amax() if ego.shape[0] else ego.new_zeros(())
         if mask.any():
             fastest_car = torch.hypot(vehicles[..., 2], vehicles[..., 3])[mask].amax()
@@ -145,9 +165,15 @@ class Verifier:
             The :class:`Verdict`.
 
         Raises:
-            ValueError: shapes other than these, or a NaN/inf state or command of a present car.
+            ValueError: shapes other than these, or a NaN/inf state or command of a present car (with
+                :attr:`fixed_shapes` such an environment's commands are not verified instead).
         """
-        _check_inputs(ego, vehicles, mask, acceleration, steering)
+        _check_inputs(ego, vehicles, mask, acceleration, steering, values=not self.fixed_shapes)
+        if self.fixed_shapes:  # what cannot be read is checked as zeros and not verified (below)
+            readable = (ego.isfinite().all(dim=1) & (vehicles.isfinite().all(dim=2) | ~mask).all(dim=1))[:, None]
+            readable = readable & acceleration.isfinite() & steering.isfinite()  # (E, K)
+            ego, vehicles = ego.nan_to_num(0.0, 0.0, 0.0), vehicles.nan_to_num(0.0, 0.0, 0.0)
+            acceleration, steering = acceleration.nan_to_num(0.0, 0.0, 0.0), steering.nan_to_num(0.0, 0.0, 0.0)
         num_envs, num_candidates = acceleration.shape
         frames = self.frames(ego, vehicles, mask)
         times = torch.arange(frames + 3, dtype=ego.dtype, device=ego.device) * self.period  # an interval from each pose
@@ -166,6 +192,8 @@ class Verifier:
         left, right = self.road.bounds  # the lane rules hold for an ego on its lanes: it keeps its centre there
         on_road = ((poses.y[..., 1:] >= left) & (poses.y[..., 1:] <= right)).all(dim=-1)
         verified_f = ~meets & on_road
+        if self.fixed_shapes:
+            verified_f &= readable[..., None]
         verified = verified_f.any(dim=-1)
         first = verified_f.int().argmax(dim=-1, keepdim=True)
         lane = torch.where(verified, lanes.gather(-1, first)[..., 0], -1)
@@ -175,6 +203,8 @@ class Verifier:
 
     def _occupancy(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
         """:func:`mmpc.verify.occupancy.occupancy` of the cars the ego may meet, compiled where :attr:`compiling` says."""
+        if torch.compiler.is_compiling():  # inside a caller's graph
+            return occupancy(ego, vehicles, mask, self.road, times, self.assumptions)
         if self.compiling.compiled and ego.shape[0] and ego.device.type == "cpu":  # compiled for the CPU, as the rollout
             sets = _compiled_occupancy(self.road, self.assumptions)
             found = self.compiling.attempt(lambda: sets(ego, vehicles, mask, times))
@@ -201,9 +231,11 @@ class Verifier:
         near = ((flat_x.amin(dim=1)[:, None] - reach <= sets.x_high) & (flat_x.amax(dim=1)[:, None] + reach >= sets.x_low)
                 & (flat_y.amin(dim=1)[:, None] - reach <= sets.y_high.amax(dim=1))
                 & (flat_y.amax(dim=1)[:, None] + reach >= sets.y_low.amin(dim=1)) & mask[..., None])
-        env, car, pose = near.nonzero(as_tuple=True)  # (Q,)
+        num_envs = near.shape[0]
+        triples = compact(near, self._capacity(num_envs, TRIPLES_PER_ENV, near.numel()))
+        env, car, pose = triples.index  # (Q,)
         meets = torch.zeros(variant.shape, dtype=torch.int32, device=variant.device)
-        if env.numel():
+        if self.fixed_shapes or env.numel():
             chosen = variant[env]  # (Q, K, F)
             rows = torch.arange(env.numel(), device=env.device)[:, None, None]
             y_low = sets.y_low[env, :, car, pose][rows, chosen]
@@ -212,31 +244,53 @@ class Verifier:
             rectangle = (x[env, ..., pose], y[env, ..., pose], poses.heading[env, ..., pose], half_length[env, ..., pose],
                          half_width)
             hit = rectangle_meets_box(*rectangle, x_low, x_high, y_low, y_high)
-            entering = sets.enters[env, car].nonzero().squeeze(1)  # (Q',) triples of cars that may still cut in
-            for moving in (False, True):  # the cheap floor first; the full one where the cheap one meets the path
-                if not entering.numel():
+            # the triples of cars that may still cut in: the cheap floor first, the full one where the cheap one meets
+            entering = compact(sets.enters[env, car] & triples.valid, env.numel() if self.fixed_shapes else None,
+                               fill=env.numel())
+            for moving in (False, True):
+                if not (self.fixed_shapes or entering.index[0].numel()):
                     break
-                floor = self._entry_floor(poses, vehicles, times, env[entering], car[entering], pose[entering], moving)
-                entered = rectangle_meets_box(*(part[entering] for part in rectangle[:4]), half_width,
-                                              torch.maximum(x_low[entering], floor), x_high[entering],
-                                              sets.y_low[env[entering], 0, car[entering], pose[entering], None, None],
-                                              sets.y_high[env[entering], 0, car[entering], pose[entering], None, None])
+                which = entering.index[0].clamp_max(env.numel() - 1)  # (Q',): the padding reads the last triple
+                floor, known = self._entry_floor(poses, vehicles, times, env[which], car[which], pose[which],
+                                                 entering.valid, moving)
+                entered = rectangle_meets_box(*(part[which] for part in rectangle[:4]), half_width,
+                                              torch.maximum(x_low[which], floor), x_high[which],
+                                              sets.y_low[env[which], 0, car[which], pose[which], None, None],
+                                              sets.y_high[env[which], 0, car[which], pose[which], None, None])
+                entered = (entered | ~known[:, None, None]) & entering.valid[:, None, None]  # a pair past its buffer: met
                 if moving:
-                    hit[entering] |= entered
+                    hit = scatter(hit, 0, entering.index[0], hit[which] | entered)
                 else:
-                    entering = entering[entered.flatten(1).any(dim=1)]
-            meets.index_add_(0, env, hit.int())
-        return meets > 0
+                    still = entered.flatten(1).any(dim=1)  # (Q',), False on the padding
+                    entering = entering._replace(valid=still)
+                    if not self.fixed_shapes:  # the exact path keeps only those
+                        entering = entering._replace(index=(entering.index[0][still],), valid=still[still])
+            meets.index_add_(0, env, (hit & triples.valid[:, None, None]).int())
+        crowded = triples.dropped.flatten(1).any(dim=1)  # (E,): an environment past the buffer is not verified
+        return (meets > 0) | crowded[:, None, None]
 
     def _entry_floor(self, poses: Body, vehicles: torch.Tensor, times: torch.Tensor, env: torch.Tensor, car: torch.Tensor,
-                     pose: torch.Tensor, moving: bool) -> torch.Tensor:
-        """(Q, K, F): where the cars ``car`` of environments ``env`` (Q,) could be at ``pose`` (Q,)
-        had they decided to cut in on each path (:func:`mmpc.verify.cut_ins.entry_floor`, once per pair)."""
-        pairs, which = torch.unique(env * vehicles.shape[1] + car, return_inverse=True)
-        pair_env, pair_car = pairs // vehicles.shape[1], pairs % vehicles.shape[1]
+                     pose: torch.Tensor, valid: torch.Tensor, moving: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where the cars ``car`` of environments ``env`` (Q,) could be at ``pose`` (Q,) had they decided
+        to cut in on each path (:func:`mmpc.verify.cut_ins.entry_floor`, once per (environment, car)
+        pair of the ``valid`` (Q,) triples): (Q, K, F) floors [m] and (Q,) bool, whether the pair found
+        room in the buffer of :data:`PAIRS_PER_ENV` (with :attr:`fixed_shapes`; else always)."""
+        num_envs, num_cars = vehicles.shape[:2]
+        key = env * num_cars + car  # (Q,)
+        wanted = torch.zeros(num_envs * num_cars, dtype=torch.int32, device=env.device).index_add_(0, key, valid.int()) > 0
+        pairs = compact(wanted, self._capacity(num_envs, PAIRS_PER_ENV, wanted.numel()), fill=wanted.numel())
+        flat = pairs.index[0]  # (N,) padding: one past the last pair
+        slot = scatter(torch.full_like(wanted, -1, dtype=torch.long), 0, flat, torch.arange(flat.numel(), device=env.device))
+        pair = flat.clamp_max(wanted.numel() - 1)
+        pair_env, pair_car = pair // num_cars, pair % num_cars
         floor = entry_floor(poses.x[pair_env], poses.speed[pair_env], vehicles[pair_env, pair_car], times, self.assumptions,
-                            moving)
-        return floor[which, ..., pose]
+                            moving, frame=self.period)  # (N, K, F, P)
+        which = slot[key]  # (Q,) -1: the pair is past the buffer
+        return floor[which.clamp_min(0), ..., pose], which >= 0
+
+    def _capacity(self, num_envs: int, per_env: int, most: int) -> Optional[int]:
+        """A buffer of ``per_env`` entries per environment, at most ``most``, with :attr:`fixed_shapes`; else ``None``."""
+        return capacity(self.fixed_shapes, num_envs, per_env, per_env, most)
 
 
 @functools.lru_cache(maxsize=None)
@@ -250,8 +304,9 @@ def _compiled_occupancy(road: Road, assumptions: TrafficAssumptions) -> Callable
 
 
 def _check_inputs(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
-                  steering: torch.Tensor) -> None:
-    """:meth:`Verifier.check`'s inputs: shapes that agree and finite values, or a ValueError saying what came."""
+                  steering: torch.Tensor, values: bool = True) -> None:
+    """:meth:`Verifier.check`'s inputs: shapes that agree and (``values``: read on the host) finite
+    values, or a ValueError saying what came."""
     envs = ego.shape[0] if ego.dim() == 2 else -1
     if ego.dim() != 2 or ego.shape[1] != 6:
         raise ValueError(f"`ego` must be (E, 6) ego states; got shape {tuple(ego.shape)}")
@@ -259,6 +314,8 @@ def _check_inputs(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor,
         raise ValueError(f"`vehicles` must be (E={envs}, M, 4) x, y, vx, vy; got shape {tuple(vehicles.shape)}")
     if mask.shape != vehicles.shape[:2] or mask.dtype != torch.bool:
         raise ValueError(f"`mask` must be a bool tensor of shape {tuple(vehicles.shape[:2])}; got {mask.dtype} {tuple(mask.shape)}")
+    if not values:
+        return
     if acceleration.dim() != 2 or acceleration.shape[0] != envs or steering.shape != acceleration.shape:
         raise ValueError(f"`acceleration` and `steering` must be (E={envs}, K) each; got {tuple(acceleration.shape)} "
                          f"and {tuple(steering.shape)}")
