@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import torch
+from torch._dynamo.testing import CompileCounter
 
 from mmpc.drivers.mpc_driver import MPCDriver
 from mmpc.drivers.verified import VerifiedDriver
@@ -48,20 +49,29 @@ def test_fixed_shapes_decide_as_the_checked_mpc(scenario, one_thread):
     assert restarts >= 4
 
 
-def test_the_checked_decision_traces_as_one_graph(scenario, one_thread):
-    """``verified:mpc`` with fixed shapes: the MPC's decision, the check and the guard in one graph."""
-    driver = VerifiedDriver(MPCDriver(build_mpc(scenario, compile=False, fixed_shapes=True), period=scenario.period),
-                            Verifier.for_scenario(scenario, compile=False, fixed_shapes=True))
+def test_the_checked_decision_runs_as_one_graph(scenario, one_thread):
+    """``verified:mpc`` with fixed shapes: the MPC's decision, the check and the guard compile with
+    ``fullgraph=True`` (dynamo's graph, run eager) and, warm-started with fail-safes stored, drive as
+    a twin decided eagerly, the second step without tracing again (the state carried between graphs)."""
+    def expert():
+        return VerifiedDriver(MPCDriver(build_mpc(scenario, compile=False, fixed_shapes=True), period=scenario.period),
+                              Verifier.for_scenario(scenario, compile=False, fixed_shapes=True))
+
+    graphed, eager = expert(), expert()
+    traced = CompileCounter()  # runs dynamo's graphs eagerly and counts them
+    decide = torch.compile(graphed.decide, fullgraph=True, backend=traced)
     world = BatchedWorld.start(scenario, SEEDS[:4])
     envs = list(range(4))
-    driver.reset(4)
-    for _ in range(2):  # the first step solves cold; the next ones warm-started, with a fail-safe stored
+    graphed.reset(4)
+    eager.reset(4)
+    for step in range(4):  # the first step solves cold; the next ones warm-started, with a fail-safe stored
         observation, _ = world.observe(envs)
-        decision = driver.decide(observation)
-        world.apply(envs, decision.acceleration, decision.steering)
-    observation, _ = world.observe(envs)
-    explained = torch._dynamo.explain(driver.decide)(observation)
-    assert (explained.graph_count, explained.graph_break_count) == (1, 0), explained.break_reasons
+        expected = eager.decide(observation)
+        decision = decide(observation) if step >= 2 else graphed.decide(observation)
+        for name in ("acceleration", "steering", "verified", "failsafe", "goal_index"):
+            assert torch.equal(getattr(decision, name), getattr(expected, name)), (step, name)
+        world.apply(envs, expected.acceleration, expected.steering)
+    assert traced.frame_count == 1
 
 
 def test_fixed_shapes_are_refused_with_early_exits(scenario):

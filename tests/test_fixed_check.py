@@ -75,7 +75,7 @@ def test_fixed_shapes_give_the_checked_verdicts(scenario, states, one_thread):
     acceleration, steering = commands(states)
     expected = checked.check(states.ego, states.vehicles, states.vehicle_mask, acceleration, steering)
     verdict = fixed.check(states.ego, states.vehicles, states.vehicle_mask, acceleration, steering)
-    assert expected.verified.any() and not expected.verified.all()
+    assert expected.verified.any() and not expected.verified.all() and not verdict.crowded.any()
     assert torch.equal(verdict.verified, expected.verified) and torch.equal(verdict.lane, expected.lane)
 
 
@@ -108,6 +108,7 @@ def test_an_environment_past_the_buffer_is_not_verified(scenario, states, monkey
     expected = checked.check(states.ego, states.vehicles, states.vehicle_mask, acceleration, steering)
     monkeypatch.setattr(verifier_module, "TRIPLES_PER_ENV", 150)  # the first ~2 of 8 fit
     verdict = fixed.check(states.ego, states.vehicles, states.vehicle_mask, acceleration, steering)
+    assert verdict.crowded[-1] and not verdict.crowded[0] and not expected.crowded.any()
     assert not verdict.verified[-1].any() and expected.verified[-1].any()
     assert not (verdict.verified & ~expected.verified).any()
     assert torch.equal(verdict.verified[0], expected.verified[0])

@@ -399,7 +399,8 @@ class _Search:
                 later = self.verifier.check(ego[rest], vehicles[rest], mask[rest], children.acceleration[rest, 2:],
                                             children.steering[rest, 2:])
                 index = (rest[:, None] * kinds + torch.arange(2, kinds)).reshape(-1)
-                checks.record(index, type(later)(*(field.reshape(-1, 1) for field in later)))
+                checks.record(index, later._replace(crowded=later.crowded.repeat_interleave(kinds - 2), **{
+                    name: getattr(later, name).reshape(-1, 1) for name in ("verified", "lane", "deceleration")}))
             valid = checks.valid.view(nodes, kinds).clone()
         else:
             valid = children.known & (torch.arange(kinds) <= 1)  # the driver's command or the node's mode

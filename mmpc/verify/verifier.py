@@ -52,11 +52,14 @@ class Verdict(NamedTuple):
         verified: (E, K) bool, some fail-safe from the command's end verifies.
         lane: (E, K) long, the first such fail-safe's target lane (-1 where none).
         deceleration: (E, K), its deceleration [m/s^2] (NaN where none).
+        crowded: (E,) bool, the environment's exact tests did not fit the buffer of a fixed-shape
+            check (nothing of it verified; always False otherwise).
     """
 
     verified: torch.Tensor
     lane: torch.Tensor
     deceleration: torch.Tensor
+    crowded: torch.Tensor
 
 
 class Verifier:
@@ -188,7 +191,7 @@ class Verifier:
         poses = Body(*(torch.cat([a[:, None, None, None].expand(num_envs, num_candidates, count, 1),
                                   b[..., None, None].expand(num_envs, num_candidates, count, 1), c], dim=-1)
                        for a, b, c in zip(now, end, path)))  # (E, K, F, frames + 2) at times[:-1]
-        meets = self._meets(poses, sets, mask, vehicles, times)  # (E, K, F)
+        meets, crowded = self._meets(poses, sets, mask, vehicles, times)  # (E, K, F), (E,)
         left, right = self.road.bounds  # the lane rules hold for an ego on its lanes: it keeps its centre there
         on_road = ((poses.y[..., 1:] >= left) & (poses.y[..., 1:] <= right)).all(dim=-1)
         verified_f = ~meets & on_road
@@ -199,7 +202,7 @@ class Verifier:
         lane = torch.where(verified, lanes.gather(-1, first)[..., 0], -1)
         deceleration = torch.where(verified, decelerations.gather(-1, first)[..., 0],
                                    torch.full_like(decelerations[..., 0], float("nan")))
-        return Verdict(verified, lane, deceleration)
+        return Verdict(verified, lane, deceleration, crowded)
 
     def _occupancy(self, ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, times: torch.Tensor) -> Occupancy:
         """:func:`mmpc.verify.occupancy.occupancy` of the cars the ego may meet, compiled where :attr:`compiling` says."""
@@ -213,12 +216,13 @@ class Verifier:
         return self.compiling.eager(occupancy, ego, vehicles, mask, self.road, times, self.assumptions)
 
     def _meets(self, poses: Body, sets: Occupancy, mask: torch.Tensor, vehicles: torch.Tensor, times: torch.Tensor
-               ) -> torch.Tensor:
+               ) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, K, F) bool: a path of ``poses`` (E, K, F, P) meets a set of ``sets`` (P intervals of
         ``times``): pose i, stretched forward by its frame's sweep (module docstring), against the
         box of interval i, and for a car that may still cut in (:attr:`Occupancy.enters`) against
         its uncut band past where it could enter on this path. Only the (environment, car, pose)
-        triples whose bounding boxes overlap get the exact test."""
+        triples whose bounding boxes overlap get the exact test; with :attr:`fixed_shapes` in a buffer,
+        and an environment past it meets everything: (E,) bool, those environments."""
         variant = held_variant(sets.ego_lanes, poses.y, self.road, self.assumptions.lane_margin)  # (E, K, F)
         sweep = poses.speed.clamp_min(0.0) * self.sim.dt  # (E, K, F, P) [m]
         cos, sin = torch.cos(poses.heading), torch.sin(poses.heading)
@@ -267,7 +271,7 @@ class Verifier:
                         entering = entering._replace(index=(entering.index[0][still],), valid=still[still])
             meets.index_add_(0, env, (hit & triples.valid[:, None, None]).int())
         crowded = triples.dropped.flatten(1).any(dim=1)  # (E,): an environment past the buffer is not verified
-        return (meets > 0) | crowded[:, None, None]
+        return (meets > 0) | crowded[:, None, None], crowded
 
     def _entry_floor(self, poses: Body, vehicles: torch.Tensor, times: torch.Tensor, env: torch.Tensor, car: torch.Tensor,
                      pose: torch.Tensor, valid: torch.Tensor, moving: bool) -> tuple[torch.Tensor, torch.Tensor]:
