@@ -1,8 +1,8 @@
 """GPU benchmark, one command: the solver (eager and compiled), the batched simulator alone, the
-MPC in the loop (its decision checked or at fixed shapes), and the wall time of a full evaluation
-per scenario; a table per section and ``bench_gpu.json`` (rewritten after every section, so a run
-stopped by its time limit keeps what it measured). ``--sections decision`` (any device) counts the
-graph breaks of the MPC's and the expert's decisions.
+MPC in the loop (its decision checked or at fixed shapes, alone or behind the check), and the wall
+time of a full evaluation per scenario; a table per section and ``bench_gpu.json`` (rewritten after
+every section, so a run stopped by its time limit keeps what it measured). ``--sections decision``
+(any device) counts the graph breaks of the expert's decision, as shipped and at fixed shapes.
 
     python scripts/bench_gpu.py --out benchmarks            # on a machine with CUDA
     python scripts/bench_gpu.py --all --profile --out runs/gpu   # a lent GPU: the -m gpu tests too
