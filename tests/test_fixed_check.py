@@ -117,3 +117,15 @@ def test_an_environment_past_the_buffer_is_not_verified(scenario, states, monkey
 def test_fixed_shapes_must_be_a_bool(scenario):
     with pytest.raises(TypeError, match="fixed_shapes"):
         Verifier.for_scenario(scenario, fixed_shapes="yes")
+
+
+def test_both_checks_refuse_commands_of_the_wrong_shape_and_answer_an_empty_batch(scenario):
+    for verifier in checks(scenario):
+        ego, vehicles, mask = torch.zeros(2, 6), torch.zeros(2, 3, 4), torch.ones(2, 3, dtype=torch.bool)
+        with pytest.raises(ValueError, match=r"must be \(E=2, K\) each"):
+            verifier.check(ego, vehicles, mask, torch.zeros(2, 2), torch.zeros(3, 2))
+        verdict = verifier.check(ego[:0], vehicles[:0], mask[:0], torch.zeros(0, 2), torch.zeros(0, 2))
+        assert verdict.verified.shape == verdict.lane.shape == (0, 2) and verdict.crowded.shape == (0,)
+        guarded = Guard(verifier).choose(ego[:0], vehicles[:0], None, torch.zeros(0, dtype=torch.long), torch.zeros(0),
+                                         torch.zeros(0))
+        assert guarded.acceleration.shape == guarded.verified.shape == (0,)

@@ -59,12 +59,12 @@ def guarded_command(guard: Guard, observation: Observation, acceleration: torch.
             candidates (at most ``alternatives``) are tried before the fail-safes; ``None``: none.
     """
     where = observation.ego.device if guard.verifier.fixed_shapes else torch.device("cpu")
-    host = observation.to(where)
+    state = observation.to(where)
     asked = acceleration.to(where), steering.to(where)
     others = None
     if plan is not None and mpc is not None and alternatives:
         others = lambda rows: cheapest_goals(plan, mpc, rows, alternatives)  # noqa: E731
-    chosen = guard.choose(host.ego, host.vehicles, host.vehicle_mask, host.ids(), *asked, others)
+    chosen = guard.choose(state.ego, state.vehicles, state.vehicle_mask, state.ids(), *asked, others)
     driven = chosen.acceleration.to(asked[0].dtype), chosen.steering.to(asked[1].dtype)
     changed = (driven[0] != asked[0]) | (driven[1] != asked[1])
     device = acceleration.device

@@ -106,7 +106,7 @@ class Guard:
         retried = compact(~verified, capacity(fixed, num_envs, RETRY_SHARE, RETRY_FLOOR, num_envs) if num_envs else None,
                           fill=num_envs)
         rows = retried.index[0]  # (R,) the padding: one past the last row
-        if fixed or rows.numel():
+        if rows.numel():  # with fixed shapes the buffer's size, known before the data
             read = rows.clamp_max(num_envs - 1)
             candidates = self._candidates(ego, asked_acceleration, asked_steering, read, alternatives)
             verdict = verifier.check(ego[read], vehicles[read], mask[read], *candidates)

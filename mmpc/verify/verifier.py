@@ -172,12 +172,16 @@ class Verifier:
                 :attr:`fixed_shapes` such an environment's commands are not verified instead).
         """
         _check_inputs(ego, vehicles, mask, acceleration, steering, values=not self.fixed_shapes)
+        num_envs, num_candidates = acceleration.shape
+        if not num_envs:  # nothing to check (a fixed-shape buffer holds at least one entry)
+            verified = torch.zeros(acceleration.shape, dtype=torch.bool, device=ego.device)
+            return Verdict(verified, torch.full_like(verified, -1, dtype=torch.long),
+                           torch.full_like(acceleration, float("nan")), verified.new_zeros(0))
         if self.fixed_shapes:  # what cannot be read is checked as zeros and not verified (below)
-            readable = (ego.isfinite().all(dim=1) & (vehicles.isfinite().all(dim=2) | ~mask).all(dim=1))[:, None]
-            readable = readable & acceleration.isfinite() & steering.isfinite()  # (E, K)
+            finite_state, finite_commands = _finite(ego, vehicles, mask, acceleration, steering)
+            readable = finite_state[:, None] & finite_commands  # (E, K)
             ego, vehicles = ego.nan_to_num(0.0, 0.0, 0.0), vehicles.nan_to_num(0.0, 0.0, 0.0)
             acceleration, steering = acceleration.nan_to_num(0.0, 0.0, 0.0), steering.nan_to_num(0.0, 0.0, 0.0)
-        num_envs, num_candidates = acceleration.shape
         frames = self.frames(ego, vehicles, mask)
         times = torch.arange(frames + 3, dtype=ego.dtype, device=ego.device) * self.period  # an interval from each pose
         sets = self._occupancy(ego, vehicles, mask, times)
@@ -239,7 +243,7 @@ class Verifier:
         triples = compact(near, self._capacity(num_envs, TRIPLES_PER_ENV, near.numel()))
         env, car, pose = triples.index  # (Q,)
         meets = torch.zeros(variant.shape, dtype=torch.int32, device=variant.device)
-        if self.fixed_shapes or env.numel():
+        if env.numel():  # with fixed shapes the buffer's size, known before the data
             chosen = variant[env]  # (Q, K, F)
             rows = torch.arange(env.numel(), device=env.device)[:, None, None]
             y_low = sets.y_low[env, :, car, pose][rows, chosen]
@@ -252,7 +256,7 @@ class Verifier:
             entering = compact(sets.enters[env, car] & triples.valid, env.numel() if self.fixed_shapes else None,
                                fill=env.numel())
             for moving in (False, True):
-                if not (self.fixed_shapes or entering.index[0].numel()):
+                if not entering.index[0].numel():
                     break
                 which = entering.index[0].clamp_max(env.numel() - 1)  # (Q',): the padding reads the last triple
                 floor, known = self._entry_floor(poses, vehicles, times, env[which], car[which], pose[which],
@@ -318,12 +322,20 @@ def _check_inputs(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor,
         raise ValueError(f"`vehicles` must be (E={envs}, M, 4) x, y, vx, vy; got shape {tuple(vehicles.shape)}")
     if mask.shape != vehicles.shape[:2] or mask.dtype != torch.bool:
         raise ValueError(f"`mask` must be a bool tensor of shape {tuple(vehicles.shape[:2])}; got {mask.dtype} {tuple(mask.shape)}")
-    if not values:
-        return
     if acceleration.dim() != 2 or acceleration.shape[0] != envs or steering.shape != acceleration.shape:
         raise ValueError(f"`acceleration` and `steering` must be (E={envs}, K) each; got {tuple(acceleration.shape)} "
                          f"and {tuple(steering.shape)}")
-    if not bool(ego.isfinite().all()) or not bool(vehicles[mask].isfinite().all()):
+    if not values:
+        return
+    finite_state, finite_commands = _finite(ego, vehicles, mask, acceleration, steering)
+    if not bool(finite_state.all()):
         raise ValueError("the ego states and the present cars must be finite; got NaN or inf")
-    if not (bool(acceleration.isfinite().all()) and bool(steering.isfinite().all())):
+    if not bool(finite_commands.all()):
         raise ValueError("the candidate commands must be finite; got NaN or inf")
+
+
+def _finite(ego: torch.Tensor, vehicles: torch.Tensor, mask: torch.Tensor, acceleration: torch.Tensor,
+            steering: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(E,) bool: the ego state and the present cars finite; (E, K) bool: the command finite."""
+    state = ego.isfinite().all(dim=1) & (vehicles.isfinite().all(dim=2) | ~mask).all(dim=1)
+    return state, acceleration.isfinite() & steering.isfinite()
